@@ -1,0 +1,510 @@
+//! The CPU rasterizer: plain Rust on slices, rayon over tiles. Backend-agnostic: the burn glue
+//! ([`crate::ext`]) reads tensors into slices and wraps the results, so any CPU backend can use it.
+//!
+//! Determinism: tiles are independent and per-Gaussian gradients are summed over intersections in
+//! tile order, so the result does not depend on the number of threads or on scheduling.
+
+use crate::camera::Camera;
+use crate::constants::{EMPTY_ID, RasterConfig, TILE_SIZE};
+use crate::project::{self, GaussianGrad, Projected, ProjectedGrad};
+use rayon::prelude::*;
+
+/// Borrowed, flat inputs of the op (row-major, `N` Gaussians, `C` channels).
+#[derive(Clone, Copy, Debug)]
+pub struct SplatInputsRef<'a> {
+    /// `[N, 3]`
+    pub means: &'a [f32],
+    /// `[N, 3]`
+    pub log_scales: &'a [f32],
+    /// `[N, 4]` as (w, x, y, z), not necessarily normalised.
+    pub quats: &'a [f32],
+    /// `[N]`
+    pub opacity_logits: &'a [f32],
+    /// `[N, C]`
+    pub features: &'a [f32],
+    /// `[C]`
+    pub background: &'a [f32],
+    /// `[N, 2]` offsets added to the projected centres (zeros in normal use; its gradient is the
+    /// screen-space mean gradient that densification accumulates).
+    pub screen_offsets: &'a [f32],
+    /// `C`
+    pub channels: usize,
+}
+
+impl SplatInputsRef<'_> {
+    pub fn len(&self) -> usize {
+        self.opacity_logits.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+    fn mean(&self, i: usize) -> [f32; 3] {
+        [self.means[3 * i], self.means[3 * i + 1], self.means[3 * i + 2]]
+    }
+    fn log_scale(&self, i: usize) -> [f32; 3] {
+        [self.log_scales[3 * i], self.log_scales[3 * i + 1], self.log_scales[3 * i + 2]]
+    }
+    fn quat(&self, i: usize) -> [f32; 4] {
+        let q = &self.quats[4 * i..4 * i + 4];
+        [q[0], q[1], q[2], q[3]]
+    }
+
+    /// Checks lengths against `N` and `C` and that every value is finite.
+    pub fn validate(&self) -> Result<(), crate::SplatError> {
+        let n = self.len();
+        let c = self.channels;
+        if c == 0 {
+            return Err(crate::SplatError::Shape("features must have at least one channel".into()));
+        }
+        let checks: [(&str, &[f32], usize, usize); 7] = [
+            ("means", self.means, n * 3, 3),
+            ("log_scales", self.log_scales, n * 3, 3),
+            ("quats", self.quats, n * 4, 4),
+            ("opacity_logits", self.opacity_logits, n, 1),
+            ("features", self.features, n * c, c),
+            ("background", self.background, c, c),
+            ("screen_offsets", self.screen_offsets, n * 2, 2),
+        ];
+        for (name, data, want, width) in checks {
+            if data.len() != want {
+                return Err(crate::SplatError::Shape(format!(
+                    "{name} has {} values, expected {want} ({} rows of {width})",
+                    data.len(),
+                    want / width.max(1)
+                )));
+            }
+            if let Some(k) = data.iter().position(|v| !v.is_finite()) {
+                return Err(crate::SplatError::NonFinite {
+                    tensor: name,
+                    row: k / width.max(1),
+                    value: data[k],
+                });
+            }
+        }
+        Ok(())
+    }
+}
+
+/// Outputs of the forward pass, all row-major.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct ForwardOut {
+    /// `[H, W, C]` composited features including the background.
+    pub image: Vec<f32>,
+    /// `[H, W]` accumulated opacity `1 - T_final`.
+    pub alpha: Vec<f32>,
+    /// `[H, W]` blend-weighted depth `sum_i w_i z_i` (divide by alpha for the expectation).
+    pub depth: Vec<f32>,
+    /// `[H, W]` index of the Gaussian with the largest blend weight, or -1.
+    pub top_id: Vec<i32>,
+    /// `[H, W]` final transmittance (saved for the backward pass).
+    pub final_t: Vec<f32>,
+    /// `[H, W]` number of tile-list entries visited (saved for the backward pass).
+    pub n_visited: Vec<i32>,
+}
+
+/// Gradients with respect to every input.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct GradOut {
+    pub means: Vec<f32>,
+    pub log_scales: Vec<f32>,
+    pub quats: Vec<f32>,
+    pub opacity_logits: Vec<f32>,
+    pub features: Vec<f32>,
+    pub background: Vec<f32>,
+    /// `[N, 2]` gradient of the screen-space centres (the densification signal).
+    pub screen_offsets: Vec<f32>,
+}
+
+/// Projected Gaussians binned into tiles and depth-sorted per tile.
+pub struct Binned {
+    pub projected: Vec<Option<Projected>>,
+    /// `tiles + 1` offsets into `gids`.
+    pub tile_offsets: Vec<usize>,
+    /// Gaussian ids, grouped by tile, sorted by (depth, id) within a tile.
+    pub gids: Vec<u32>,
+}
+
+/// Projects and bins all Gaussians.
+pub fn bin(inp: &SplatInputsRef, cam: &Camera, cfg: &RasterConfig) -> Binned {
+    let n = inp.len();
+    let projected: Vec<Option<Projected>> = (0..n)
+        .into_par_iter()
+        .with_min_len(1024)
+        .map(|i| {
+            let mut p = project::project(cam, cfg, inp.mean(i), inp.log_scale(i), inp.quat(i), inp.opacity_logits[i])?;
+            let off = [inp.screen_offsets[2 * i], inp.screen_offsets[2 * i + 1]];
+            if off != [0.0, 0.0] {
+                p.mean2d[0] += off[0];
+                p.mean2d[1] += off[1];
+                p.rect = project::tile_rect(p.mean2d, p.radius, cam.tiles());
+                if p.rect[0] >= p.rect[2] || p.rect[1] >= p.rect[3] {
+                    return None;
+                }
+            }
+            Some(p)
+        })
+        .collect();
+    let [tx, ty] = cam.tiles();
+    let num_tiles = (tx * ty) as usize;
+    let mut counts = vec![0usize; num_tiles + 1];
+    for p in projected.iter().flatten() {
+        for y in p.rect[1]..p.rect[3] {
+            for x in p.rect[0]..p.rect[2] {
+                counts[(y * tx + x) as usize + 1] += 1;
+            }
+        }
+    }
+    for t in 0..num_tiles {
+        counts[t + 1] += counts[t];
+    }
+    let tile_offsets = counts;
+    let mut cursor = tile_offsets.clone();
+    let mut gids = vec![0u32; tile_offsets[num_tiles]];
+    for (i, p) in projected.iter().enumerate() {
+        if let Some(p) = p {
+            for y in p.rect[1]..p.rect[3] {
+                for x in p.rect[0]..p.rect[2] {
+                    let t = (y * tx + x) as usize;
+                    gids[cursor[t]] = i as u32;
+                    cursor[t] += 1;
+                }
+            }
+        }
+    }
+    // Sort each tile's list by (depth, id): a total order, hence deterministic.
+    let mut slices = Vec::with_capacity(num_tiles);
+    let mut rest: &mut [u32] = &mut gids;
+    for t in 0..num_tiles {
+        let (head, tail) = rest.split_at_mut(tile_offsets[t + 1] - tile_offsets[t]);
+        slices.push(head);
+        rest = tail;
+    }
+    slices.into_par_iter().for_each(|s| {
+        s.sort_unstable_by(|&a, &b| {
+            let da = projected[a as usize].as_ref().map(|p| p.depth).unwrap_or(0.0);
+            let db = projected[b as usize].as_ref().map(|p| p.depth).unwrap_or(0.0);
+            da.total_cmp(&db).then(a.cmp(&b))
+        })
+    });
+    Binned {
+        projected,
+        tile_offsets,
+        gids,
+    }
+}
+
+/// Pixel coordinates covered by tile `t`, clipped to the image.
+fn tile_pixels(cam: &Camera, t: usize) -> (u32, u32, u32, u32) {
+    let tx = cam.tiles()[0] as usize;
+    let x0 = (t % tx) as u32 * TILE_SIZE;
+    let y0 = (t / tx) as u32 * TILE_SIZE;
+    let x1 = (x0 + TILE_SIZE).min(cam.width);
+    let y1 = (y0 + TILE_SIZE).min(cam.height);
+    (x0, y0, x1, y1)
+}
+
+/// `power` of a Gaussian at pixel centre `(px, py)` and the deltas.
+#[inline]
+fn eval_power(p: &Projected, px: f32, py: f32) -> (f32, f32, f32) {
+    let dx = px - p.mean2d[0];
+    let dy = py - p.mean2d[1];
+    let power = -0.5 * (p.conic[0] * dx * dx + p.conic[2] * dy * dy) - p.conic[1] * dx * dy;
+    (power, dx, dy)
+}
+
+struct TileFwd {
+    image: Vec<f32>,
+    alpha: Vec<f32>,
+    depth: Vec<f32>,
+    top_id: Vec<i32>,
+    final_t: Vec<f32>,
+    n_visited: Vec<i32>,
+}
+
+/// Forward pass. `inp` must have passed [`SplatInputsRef::validate`].
+pub fn forward(inp: &SplatInputsRef, cam: &Camera, cfg: &RasterConfig) -> ForwardOut {
+    let binned = bin(inp, cam, cfg);
+    forward_binned(inp, cam, cfg, &binned)
+}
+
+/// Forward pass on already binned Gaussians.
+pub fn forward_binned(inp: &SplatInputsRef, cam: &Camera, cfg: &RasterConfig, b: &Binned) -> ForwardOut {
+    let c = inp.channels;
+    let num_tiles = b.tile_offsets.len() - 1;
+    let tiles: Vec<TileFwd> = (0..num_tiles)
+        .into_par_iter()
+        .map(|t| {
+            let (x0, y0, x1, y1) = tile_pixels(cam, t);
+            let (w, h) = ((x1 - x0) as usize, (y1 - y0) as usize);
+            let np = w * h;
+            let mut out = TileFwd {
+                image: vec![0.0; np * c],
+                alpha: vec![0.0; np],
+                depth: vec![0.0; np],
+                top_id: vec![EMPTY_ID; np],
+                final_t: vec![1.0; np],
+                n_visited: vec![0; np],
+            };
+            let mut best_w = vec![0.0f32; np];
+            let mut done = vec![false; np];
+            let mut active = np;
+            let list = &b.gids[b.tile_offsets[t]..b.tile_offsets[t + 1]];
+            for (k, &gid) in list.iter().enumerate() {
+                if active == 0 {
+                    break;
+                }
+                let p = b.projected[gid as usize].as_ref().expect("binned Gaussian is projected");
+                let f = &inp.features[gid as usize * c..(gid as usize + 1) * c];
+                for py in 0..h {
+                    for px in 0..w {
+                        let q = py * w + px;
+                        if done[q] {
+                            continue;
+                        }
+                        let (power, _, _) = eval_power(p, (x0 as usize + px) as f32 + 0.5, (y0 as usize + py) as f32 + 0.5);
+                        if power > 0.0 {
+                            continue;
+                        }
+                        let alpha = (p.opacity * power.exp()).min(cfg.alpha_max);
+                        if alpha < cfg.alpha_min {
+                            continue;
+                        }
+                        let t_pix = out.final_t[q];
+                        let next_t = t_pix * (1.0 - alpha);
+                        if next_t < cfg.t_min {
+                            done[q] = true;
+                            active -= 1;
+                            continue;
+                        }
+                        let wgt = alpha * t_pix;
+                        let img = &mut out.image[q * c..(q + 1) * c];
+                        for ch in 0..c {
+                            img[ch] += wgt * f[ch];
+                        }
+                        out.depth[q] += wgt * p.depth;
+                        if wgt > best_w[q] {
+                            best_w[q] = wgt;
+                            out.top_id[q] = gid as i32;
+                        }
+                        out.final_t[q] = next_t;
+                        out.n_visited[q] = k as i32 + 1;
+                    }
+                }
+            }
+            for q in 0..np {
+                let tf = out.final_t[q];
+                out.alpha[q] = 1.0 - tf;
+                for ch in 0..c {
+                    out.image[q * c + ch] += tf * inp.background[ch];
+                }
+            }
+            out
+        })
+        .collect();
+    let (wd, hd) = (cam.width as usize, cam.height as usize);
+    let mut res = ForwardOut {
+        image: vec![0.0; wd * hd * c],
+        alpha: vec![0.0; wd * hd],
+        depth: vec![0.0; wd * hd],
+        top_id: vec![EMPTY_ID; wd * hd],
+        final_t: vec![1.0; wd * hd],
+        n_visited: vec![0; wd * hd],
+    };
+    for (t, tile) in tiles.into_iter().enumerate() {
+        let (x0, y0, x1, y1) = tile_pixels(cam, t);
+        let w = (x1 - x0) as usize;
+        for py in y0 as usize..y1 as usize {
+            for px in x0 as usize..x1 as usize {
+                let q = (py - y0 as usize) * w + (px - x0 as usize);
+                let o = py * wd + px;
+                res.image[o * c..(o + 1) * c].copy_from_slice(&tile.image[q * c..(q + 1) * c]);
+                res.alpha[o] = tile.alpha[q];
+                res.depth[o] = tile.depth[q];
+                res.top_id[o] = tile.top_id[q];
+                res.final_t[o] = tile.final_t[q];
+                res.n_visited[o] = tile.n_visited[q];
+            }
+        }
+    }
+    res
+}
+
+/// Number of per-intersection gradient slots besides the features: mean2d (2), conic (3),
+/// opacity (1), depth (1).
+const ISECT_FIXED: usize = 7;
+
+/// Backward pass.
+///
+/// * `final_t`, `n_visited`: saved by [`forward`].
+/// * `g_image [H, W, C]`, `g_alpha [H, W]`, `g_depth [H, W]`: upstream gradients.
+#[allow(clippy::too_many_arguments)]
+pub fn backward(
+    inp: &SplatInputsRef,
+    cam: &Camera,
+    cfg: &RasterConfig,
+    final_t: &[f32],
+    n_visited: &[i32],
+    g_image: &[f32],
+    g_alpha: &[f32],
+    g_depth: &[f32],
+) -> GradOut {
+    let n = inp.len();
+    let c = inp.channels;
+    let stride = ISECT_FIXED + c;
+    let b = bin(inp, cam, cfg);
+    let num_tiles = b.tile_offsets.len() - 1;
+    let wd = cam.width as usize;
+    let mut isect = vec![0.0f32; b.gids.len() * stride];
+    {
+        let mut chunks = Vec::with_capacity(num_tiles);
+        let mut rest: &mut [f32] = &mut isect;
+        for t in 0..num_tiles {
+            let (head, tail) = rest.split_at_mut((b.tile_offsets[t + 1] - b.tile_offsets[t]) * stride);
+            chunks.push((t, head));
+            rest = tail;
+        }
+        chunks.into_par_iter().for_each(|(t, buf)| {
+            let (x0, y0, x1, y1) = tile_pixels(cam, t);
+            let (w, h) = ((x1 - x0) as usize, (y1 - y0) as usize);
+            let np = w * h;
+            let list = &b.gids[b.tile_offsets[t]..b.tile_offsets[t + 1]];
+            // Per-pixel state, walking back to front.
+            let mut tt = vec![0.0f32; np];
+            let mut last = vec![0usize; np];
+            let mut rec_f = vec![0.0f32; np * c];
+            let mut rec_z = vec![0.0f32; np];
+            let mut max_last = 0usize;
+            for py in 0..h {
+                for px in 0..w {
+                    let q = py * w + px;
+                    let o = (y0 as usize + py) * wd + x0 as usize + px;
+                    tt[q] = final_t[o];
+                    last[q] = n_visited[o].max(0) as usize;
+                    max_last = max_last.max(last[q]);
+                    rec_f[q * c..(q + 1) * c].copy_from_slice(inp.background);
+                }
+            }
+            for k in (0..max_last).rev() {
+                let gid = list[k] as usize;
+                let p = b.projected[gid].as_ref().expect("binned Gaussian is projected");
+                let f = &inp.features[gid * c..(gid + 1) * c];
+                let slot = &mut buf[k * stride..(k + 1) * stride];
+                for py in 0..h {
+                    for px in 0..w {
+                        let q = py * w + px;
+                        if k >= last[q] {
+                            continue;
+                        }
+                        let (power, dx, dy) = eval_power(p, (x0 as usize + px) as f32 + 0.5, (y0 as usize + py) as f32 + 0.5);
+                        if power > 0.0 {
+                            continue;
+                        }
+                        let g = power.exp();
+                        let raw = p.opacity * g;
+                        let alpha = raw.min(cfg.alpha_max);
+                        if alpha < cfg.alpha_min {
+                            continue;
+                        }
+                        let o = (y0 as usize + py) * wd + x0 as usize + px;
+                        // Transmittance in front of this Gaussian.
+                        let t_k = tt[q] / (1.0 - alpha);
+                        let wgt = alpha * t_k;
+                        let gf = &g_image[o * c..(o + 1) * c];
+                        let rf = &mut rec_f[q * c..(q + 1) * c];
+                        let mut d_alpha = 0.0f32;
+                        for ch in 0..c {
+                            d_alpha += gf[ch] * (f[ch] - rf[ch]);
+                            slot[ISECT_FIXED + ch] += wgt * gf[ch];
+                            rf[ch] = alpha * f[ch] + (1.0 - alpha) * rf[ch];
+                        }
+                        d_alpha += g_depth[o] * (p.depth - rec_z[q]);
+                        d_alpha *= t_k;
+                        d_alpha += g_alpha[o] * final_t[o] / (1.0 - alpha);
+                        slot[6] += wgt * g_depth[o];
+                        rec_z[q] = alpha * p.depth + (1.0 - alpha) * rec_z[q];
+                        tt[q] = t_k;
+                        if raw < cfg.alpha_max {
+                            slot[5] += d_alpha * g;
+                            let d_power = d_alpha * p.opacity * g;
+                            slot[0] += d_power * (p.conic[0] * dx + p.conic[1] * dy);
+                            slot[1] += d_power * (p.conic[2] * dy + p.conic[1] * dx);
+                            slot[2] += d_power * (-0.5 * dx * dx);
+                            slot[3] += d_power * (-dx * dy);
+                            slot[4] += d_power * (-0.5 * dy * dy);
+                        }
+                    }
+                }
+            }
+        });
+    }
+    // Group intersections by Gaussian (tile order kept) and reduce.
+    let mut counts = vec![0usize; n + 1];
+    for &g in &b.gids {
+        counts[g as usize + 1] += 1;
+    }
+    for i in 0..n {
+        counts[i + 1] += counts[i];
+    }
+    let mut cursor = counts.clone();
+    let mut by_gid = vec![0usize; b.gids.len()];
+    for (k, &g) in b.gids.iter().enumerate() {
+        by_gid[cursor[g as usize]] = k;
+        cursor[g as usize] += 1;
+    }
+    let mut out = GradOut {
+        means: vec![0.0; n * 3],
+        log_scales: vec![0.0; n * 3],
+        quats: vec![0.0; n * 4],
+        opacity_logits: vec![0.0; n],
+        features: vec![0.0; n * c],
+        background: vec![0.0; c],
+        screen_offsets: vec![0.0; n * 2],
+    };
+    let per: Vec<(GaussianGrad, [f32; 2])> = (0..n)
+        .into_par_iter()
+        .with_min_len(256)
+        .map(|i| {
+            let mut pg = ProjectedGrad::default();
+            for &k in &by_gid[counts[i]..counts[i + 1]] {
+                let s = &isect[k * stride..k * stride + ISECT_FIXED];
+                pg.mean2d[0] += s[0];
+                pg.mean2d[1] += s[1];
+                pg.conic[0] += s[2];
+                pg.conic[1] += s[3];
+                pg.conic[2] += s[4];
+                pg.opacity += s[5];
+                pg.depth += s[6];
+            }
+            if counts[i] == counts[i + 1] {
+                return (GaussianGrad::default(), [0.0; 2]);
+            }
+            let gg = project::project_backward(cam, inp.mean(i), inp.log_scale(i), inp.quat(i), inp.opacity_logits[i], &pg);
+            (gg, pg.mean2d)
+        })
+        .collect();
+    out.features
+        .par_chunks_mut(c)
+        .enumerate()
+        .with_min_len(256)
+        .for_each(|(i, fg)| {
+            for &k in &by_gid[counts[i]..counts[i + 1]] {
+                let s = &isect[k * stride + ISECT_FIXED..(k + 1) * stride];
+                for ch in 0..c {
+                    fg[ch] += s[ch];
+                }
+            }
+        });
+    for (i, (gg, m2)) in per.into_iter().enumerate() {
+        out.means[3 * i..3 * i + 3].copy_from_slice(&gg.mean);
+        out.log_scales[3 * i..3 * i + 3].copy_from_slice(&gg.log_scale);
+        out.quats[4 * i..4 * i + 4].copy_from_slice(&gg.quat);
+        out.opacity_logits[i] = gg.opacity_logit;
+        out.screen_offsets[2 * i..2 * i + 2].copy_from_slice(&m2);
+    }
+    for (o, &tf) in final_t.iter().enumerate() {
+        for ch in 0..c {
+            out.background[ch] += g_image[o * c + ch] * tf;
+        }
+    }
+    out
+}

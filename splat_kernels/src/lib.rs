@@ -1,0 +1,52 @@
+//! Differentiable N-channel Gaussian splatting as a burn backend extension.
+//!
+//! Layers, from the bottom:
+//! * [`constants`] — every numeric constant of the op, in one place.
+//! * [`camera`] — the pinhole camera.
+//! * [`project`] — per-Gaussian projection and its hand-written backward (f32).
+//! * [`cpu`] — tile binning, compositing and the backward pass on slices (rayon over tiles).
+//! * [`reference`] — a dense f64 twin of the whole op: the test oracle.
+//! * [`cube`] — the same op as CubeCL kernels for the wgpu backend.
+//! * [`ext`] — the burn backend extension trait, its NdArray / Cube / Autodiff implementations.
+//! * [`api`] — the tensor-level entry point [`api::splat`].
+//! * [`dense`] — the same math written with ordinary burn tensor ops (benchmark baseline).
+#![allow(deprecated)] // burn-ndarray is deprecated in burn 0.22 in favour of burn-flex.
+
+pub mod api;
+pub mod camera;
+pub mod constants;
+pub mod cpu;
+pub mod cube;
+pub mod dense;
+pub mod ext;
+pub mod project;
+pub mod reference;
+
+pub use api::{Gaussians, SplatRender, splat};
+pub use camera::Camera;
+pub use constants::RasterConfig;
+
+/// Errors of the splatting op: bad shapes, non-finite inputs, bad cameras.
+#[derive(Debug, Clone, PartialEq)]
+pub enum SplatError {
+    /// A tensor has the wrong shape.
+    Shape(String),
+    /// An input holds NaN or an infinity (policy: rejected with this error, never rendered).
+    NonFinite { tensor: &'static str, row: usize, value: f32 },
+    /// The camera cannot be used.
+    InvalidCamera(String),
+}
+
+impl std::fmt::Display for SplatError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        match self {
+            SplatError::Shape(s) => write!(f, "splat: bad input shape: {s}"),
+            SplatError::NonFinite { tensor, row, value } => {
+                write!(f, "splat: {tensor} row {row} holds a non-finite value ({value})")
+            }
+            SplatError::InvalidCamera(s) => write!(f, "splat: invalid camera: {s}"),
+        }
+    }
+}
+
+impl std::error::Error for SplatError {}

@@ -1,0 +1,168 @@
+//! Shared helpers of the integration tests: seeded random scenes and comparisons.
+#![allow(deprecated)]
+
+use burn::tensor::{Device, Tensor, TensorData};
+use splat_kernels::cpu::SplatInputsRef;
+use splat_kernels::{Camera, Gaussians};
+
+/// Small deterministic PRNG (SplitMix64) so tests need no extra crate.
+pub struct Rng(u64);
+
+impl Rng {
+    pub fn new(seed: u64) -> Self {
+        Self(seed ^ 0x9E37_79B9_7F4A_7C15)
+    }
+    pub fn next_u64(&mut self) -> u64 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        z ^ (z >> 31)
+    }
+    /// Uniform in [0, 1).
+    pub fn f(&mut self) -> f32 {
+        (self.next_u64() >> 40) as f32 / (1u64 << 24) as f32
+    }
+    pub fn range(&mut self, lo: f32, hi: f32) -> f32 {
+        lo + (hi - lo) * self.f()
+    }
+    pub fn normal(&mut self) -> f32 {
+        let u1 = self.f().max(1e-7);
+        let u2 = self.f();
+        (-2.0 * u1.ln()).sqrt() * (std::f32::consts::TAU * u2).cos()
+    }
+}
+
+/// Host copy of a scene's inputs.
+#[derive(Clone, Debug)]
+pub struct Scene {
+    pub means: Vec<f32>,
+    pub log_scales: Vec<f32>,
+    pub quats: Vec<f32>,
+    pub opacity_logits: Vec<f32>,
+    pub features: Vec<f32>,
+    pub background: Vec<f32>,
+    pub screen_offsets: Vec<f32>,
+    pub channels: usize,
+}
+
+impl Scene {
+    pub fn len(&self) -> usize {
+        self.opacity_logits.len()
+    }
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+    pub fn inputs(&self) -> SplatInputsRef<'_> {
+        SplatInputsRef {
+            means: &self.means,
+            log_scales: &self.log_scales,
+            quats: &self.quats,
+            opacity_logits: &self.opacity_logits,
+            features: &self.features,
+            background: &self.background,
+            screen_offsets: &self.screen_offsets,
+            channels: self.channels,
+        }
+    }
+    pub fn empty(channels: usize) -> Self {
+        Self {
+            means: vec![],
+            log_scales: vec![],
+            quats: vec![],
+            opacity_logits: vec![],
+            features: vec![],
+            background: vec![0.25; channels],
+            screen_offsets: vec![],
+            channels,
+        }
+    }
+    pub fn push(&mut self, mean: [f32; 3], log_scale: [f32; 3], quat: [f32; 4], logit: f32, feat: &[f32]) {
+        assert_eq!(feat.len(), self.channels);
+        self.means.extend_from_slice(&mean);
+        self.log_scales.extend_from_slice(&log_scale);
+        self.quats.extend_from_slice(&quat);
+        self.opacity_logits.push(logit);
+        self.features.extend_from_slice(feat);
+        self.screen_offsets.extend_from_slice(&[0.0, 0.0]);
+    }
+    /// Burn tensors on `device`.
+    pub fn gaussians(&self, device: &Device) -> (Gaussians, Tensor<1>) {
+        let n = self.len();
+        let c = self.channels;
+        let t2 = |v: &Vec<f32>, w: usize| Tensor::<2>::from_data(TensorData::new(v.clone(), [n, w]), device);
+        (
+            Gaussians {
+                means: t2(&self.means, 3),
+                log_scales: t2(&self.log_scales, 3),
+                quats: t2(&self.quats, 4),
+                opacity_logits: Tensor::<1>::from_data(TensorData::new(self.opacity_logits.clone(), [n]), device),
+                features: t2(&self.features, c),
+            },
+            Tensor::<1>::from_data(TensorData::new(self.background.clone(), [c]), device),
+        )
+    }
+}
+
+/// A camera at the origin looking down +z (OpenCV), `w x h` pixels.
+pub fn front_camera(w: u32, h: u32, focal: f32) -> Camera {
+    Camera::new(glam::Mat4::IDENTITY, focal, focal, w, h)
+}
+
+/// `n` random Gaussians in front of `cam` with `c`-channel features in [0, 1].
+pub fn random_scene(n: usize, c: usize, cam: &Camera, seed: u64) -> Scene {
+    let mut r = Rng::new(seed);
+    let mut s = Scene::empty(c);
+    s.background = (0..c).map(|_| r.f()).collect();
+    for _ in 0..n {
+        let z = r.range(2.0, 6.0);
+        // Keep centres inside the image (the Jacobian clamp is not exercised here).
+        let u = r.range(-0.45, 0.45) * cam.width as f32 / cam.fx;
+        let v = r.range(-0.45, 0.45) * cam.height as f32 / cam.fy;
+        let feat: Vec<f32> = (0..c).map(|_| r.f()).collect();
+        s.push(
+            [u * z, v * z, z],
+            [r.range(-3.5, -1.3), r.range(-3.5, -1.3), r.range(-3.5, -1.3)],
+            [r.normal(), r.normal(), r.normal(), r.normal()],
+            r.range(-2.0, 2.0),
+            &feat,
+        );
+    }
+    s
+}
+
+/// Largest absolute difference.
+pub fn max_abs_diff(a: &[f32], b: &[f32]) -> f32 {
+    assert_eq!(a.len(), b.len(), "length mismatch");
+    a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0.0, f32::max)
+}
+
+/// Reads a float tensor to the host (`to_vec` right after `into_data`, as wgpu readback is lazy).
+pub fn host<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+    t.into_data().to_vec::<f32>().expect("f32 tensor")
+}
+
+/// The reference's outputs with threshold-ambiguous pixels replaced by `fast`'s values, after
+/// checking that such pixels are rare (at most 1%).
+pub fn masked_reference(
+    r: &splat_kernels::reference::RefOut,
+    fast: &splat_kernels::cpu::ForwardOut,
+    c: usize,
+) -> splat_kernels::cpu::ForwardOut {
+    let n_amb = r.ambiguous.iter().filter(|&&a| a).count();
+    assert!(
+        n_amb * 100 <= r.ambiguous.len(),
+        "{n_amb} of {} pixels are threshold-ambiguous: the scene is badly conditioned",
+        r.ambiguous.len()
+    );
+    let mut out = r.to_forward_out();
+    for (o, &amb) in r.ambiguous.iter().enumerate() {
+        if amb {
+            out.image[o * c..(o + 1) * c].copy_from_slice(&fast.image[o * c..(o + 1) * c]);
+            out.alpha[o] = fast.alpha[o];
+            out.depth[o] = fast.depth[o];
+            out.top_id[o] = fast.top_id[o];
+        }
+    }
+    out
+}

@@ -1,1 +1,32 @@
+//! The scene model: a host-side Gaussian cloud, its Inria-layout `.ply` I/O, and the built-in
+//! synthetic scenes used by demos and tests.
 
+pub mod cloud;
+pub mod ply;
+pub mod synthetic;
+
+pub use cloud::GaussianCloud;
+
+/// An error that names the file (or input) and what is wrong with it.
+#[derive(Debug, Clone, PartialEq)]
+pub struct ModelError {
+    pub source: String,
+    pub message: String,
+}
+
+impl ModelError {
+    pub fn new(source: impl Into<String>, message: impl Into<String>) -> Self {
+        Self {
+            source: source.into(),
+            message: message.into(),
+        }
+    }
+}
+
+impl std::fmt::Display for ModelError {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "{}: {}", self.source, self.message)
+    }
+}
+
+impl std::error::Error for ModelError {}

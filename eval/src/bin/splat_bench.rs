@@ -1,0 +1,239 @@
+//! `splat-bench`: milliseconds per forward and per forward+backward of the splatting op for
+//! N in {10k, 100k, 1M}, C in {3, 32, 64}, at 384x384 and 1280x720, on ndarray, wgpu and the
+//! dense burn-ops baseline, with speed-up ratios. Prints a Markdown table.
+//!
+//! The dense baseline is timed on as many pixel chunks as fit in `--dense-budget` seconds and
+//! extrapolated linearly to the whole image (its cost is exactly linear in the number of chunks);
+//! such cells are marked `~`.
+#![allow(deprecated)]
+
+use burn::tensor::{Device, Tensor, TensorData};
+use clap::Parser;
+use eval::{BackendChoice, catch_backend};
+use splat_kernels::api::{SplatOptions, splat};
+use splat_kernels::{Camera, Gaussians, RasterConfig, dense};
+use std::time::Instant;
+
+#[derive(Parser)]
+#[command(about = "Benchmark the splatting op against a dense burn-ops implementation")]
+struct Args {
+    /// Gaussian counts.
+    #[arg(long, value_delimiter = ',', default_values_t = [10_000usize, 100_000, 1_000_000])]
+    n: Vec<usize>,
+    /// Channel counts.
+    #[arg(long, value_delimiter = ',', default_values_t = [3usize, 32, 64])]
+    c: Vec<usize>,
+    /// Resolutions as WxH.
+    #[arg(long, value_delimiter = ',', default_values_t = ["384x384".to_string(), "1280x720".to_string()])]
+    res: Vec<String>,
+    /// Backends to time (the dense baseline always runs on ndarray).
+    #[arg(long, value_delimiter = ',', default_values_t = ["ndarray".to_string(), "wgpu".to_string(), "dense".to_string()])]
+    impls: Vec<String>,
+    /// Seconds of dense-baseline work per cell before extrapolating.
+    #[arg(long, default_value_t = 4.0)]
+    dense_budget: f64,
+    /// Skip a backend for the remaining (larger) N of a row once one run took longer than this.
+    #[arg(long, default_value_t = 120.0)]
+    max_secs: f64,
+}
+
+struct Rng(u64);
+impl Rng {
+    fn f(&mut self) -> f32 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        ((z ^ (z >> 31)) >> 40) as f32 / (1u64 << 24) as f32
+    }
+}
+
+/// A cloud of `n` Gaussians filling a box in front of the camera; sizes shrink as n^(-1/3) so the
+/// depth complexity stays comparable across n.
+fn scene(n: usize, c: usize) -> Vec<Vec<f32>> {
+    let mut r = Rng(n as u64 * 31 + c as u64);
+    let sigma = 0.8 * (8.0 / n as f32).cbrt();
+    let mut means = Vec::with_capacity(n * 3);
+    let mut scales = Vec::with_capacity(n * 3);
+    let mut quats = Vec::with_capacity(n * 4);
+    let mut logits = Vec::with_capacity(n);
+    let mut feats = Vec::with_capacity(n * c);
+    for _ in 0..n {
+        means.extend([r.f() * 3.0 - 1.5, r.f() * 2.0 - 1.0, 3.0 + r.f() * 2.0]);
+        for _ in 0..3 {
+            scales.push((sigma * (0.3 + r.f())).ln());
+        }
+        quats.extend([r.f() - 0.5, r.f() - 0.5, r.f() - 0.5, r.f() - 0.5]);
+        logits.push(r.f() * 4.0 - 2.0);
+        for _ in 0..c {
+            feats.push(r.f());
+        }
+    }
+    vec![means, scales, quats, logits, feats]
+}
+
+fn tensors(host: &[Vec<f32>], n: usize, c: usize, device: &Device, grad: bool) -> (Gaussians, Tensor<1>) {
+    let t2 = |v: &Vec<f32>, w: usize| {
+        let t = Tensor::<2>::from_data(TensorData::new(v.clone(), [n, w]), device);
+        if grad { t.require_grad() } else { t }
+    };
+    let logits = Tensor::<1>::from_data(TensorData::new(host[3].clone(), [n]), device);
+    let bg = Tensor::<1>::zeros([c], device);
+    (
+        Gaussians {
+            means: t2(&host[0], 3),
+            log_scales: t2(&host[1], 3),
+            quats: t2(&host[2], 4),
+            opacity_logits: if grad { logits.require_grad() } else { logits },
+            features: t2(&host[4], c),
+        },
+        if grad { bg.require_grad() } else { bg },
+    )
+}
+
+/// Median of up to `reps` runs (fewer when a run is slow); each run ends with a device sync.
+fn time_runs(mut f: impl FnMut()) -> f64 {
+    f(); // warm-up (kernel compilation on wgpu)
+    let mut times = vec![];
+    let start = Instant::now();
+    while times.len() < 5 && (times.is_empty() || start.elapsed().as_secs_f64() < 2.0) {
+        let t = Instant::now();
+        f();
+        times.push(t.elapsed().as_secs_f64() * 1e3);
+    }
+    times.sort_by(|a, b| a.total_cmp(b));
+    times[times.len() / 2]
+}
+
+fn op_fwd(host: &[Vec<f32>], n: usize, c: usize, cam: &Camera, device: &Device) -> f64 {
+    let (g, bg) = tensors(host, n, c, device, false);
+    let opts = SplatOptions {
+        validate: false,
+        ..Default::default()
+    };
+    time_runs(|| {
+        let out = splat(&g, cam, bg.clone(), &opts).expect("valid");
+        let _ = out.alpha.sum().into_data().to_vec::<f32>();
+    })
+}
+
+fn op_fwd_bwd(host: &[Vec<f32>], n: usize, c: usize, cam: &Camera, device: &Device) -> f64 {
+    let device = device.clone().autodiff();
+    let (g, bg) = tensors(host, n, c, &device, true);
+    let opts = SplatOptions {
+        validate: false,
+        ..Default::default()
+    };
+    time_runs(|| {
+        let out = splat(&g, cam, bg.clone(), &opts).expect("valid");
+        let loss = out.features.sum() + out.alpha.sum();
+        let grads = loss.backward();
+        let _ = bg.grad(&grads).map(|t| t.into_data().to_vec::<f32>());
+    })
+}
+
+/// Dense baseline: (projection time + per-chunk time x chunks, fraction of chunks measured).
+fn dense_time(host: &[Vec<f32>], n: usize, c: usize, cam: &Camera, backward: bool, budget: f64) -> (f64, f64) {
+    let cfg = RasterConfig::default();
+    let device = if backward { Device::ndarray().autodiff() } else { Device::ndarray() };
+    let (g, bg) = tensors(host, n, c, &device, backward);
+    let t = Instant::now();
+    let proj = dense::project(&g, cam, &cfg);
+    let t_proj = t.elapsed().as_secs_f64();
+    let hw = (cam.width * cam.height) as usize;
+    let chunk = dense::chunk_pixels(n);
+    let chunks = hw.div_ceil(chunk);
+    let start = Instant::now();
+    let mut done = 0;
+    while done < chunks && (done == 0 || start.elapsed().as_secs_f64() < budget) {
+        let first = done * chunk;
+        let count = chunk.min(hw - first);
+        let (f, a, _) = dense::composite(&proj, cam, &cfg, bg.clone(), first, count);
+        if backward {
+            let grads = (f.sum() + a.sum()).backward();
+            let _ = bg.grad(&grads).map(|t| t.into_data().to_vec::<f32>());
+        } else {
+            let _ = f.sum().into_data().to_vec::<f32>();
+        }
+        done += 1;
+    }
+    let per_chunk = start.elapsed().as_secs_f64() / done as f64;
+    ((t_proj + per_chunk * chunks as f64) * 1e3, done as f64 / chunks as f64)
+}
+
+fn fmt_ms(v: Option<f64>) -> String {
+    match v {
+        Some(ms) if ms >= 100.0 => format!("{ms:.0}"),
+        Some(ms) => format!("{ms:.1}"),
+        None => "—".into(),
+    }
+}
+
+fn main() {
+    let a = Args::parse();
+    let want = |s: &str| a.impls.iter().any(|x| x == s);
+    println!("| res | N | C | ndarray fwd | ndarray f+b | wgpu fwd | wgpu f+b | dense fwd | dense f+b | ndarray vs dense (fwd / f+b) |");
+    println!("|---|---|---|---|---|---|---|---|---|---|");
+    for res in &a.res {
+        let Some((w, h)) = res.split_once('x').and_then(|(w, h)| Some((w.parse::<u32>().ok()?, h.parse::<u32>().ok()?))) else {
+            eprintln!("error: --res expects WxH, got `{res}`");
+            std::process::exit(2);
+        };
+        let cam = Camera::look_at(glam::Vec3::ZERO, glam::Vec3::Z, -glam::Vec3::Y, 50.0, w, h);
+        for &c in &a.c {
+            let mut slow: [bool; 4] = [false; 4];
+            for &n in &a.n {
+                let host = scene(n, c);
+                let mut run = |slot: usize, enabled: bool, f: &mut dyn FnMut() -> f64| -> Option<f64> {
+                    if !enabled || slow[slot] {
+                        return None;
+                    }
+                    let v = f();
+                    if v > a.max_secs * 1e3 {
+                        slow[slot] = true;
+                    }
+                    Some(v)
+                };
+                let nd = Device::ndarray();
+                let ndf = run(0, want("ndarray"), &mut || op_fwd(&host, n, c, &cam, &nd));
+                let ndb = run(1, want("ndarray"), &mut || op_fwd_bwd(&host, n, c, &cam, &nd));
+                let wg = BackendChoice::Wgpu.device();
+                let wgf = run(2, want("wgpu"), &mut || {
+                    catch_backend("wgpu", || op_fwd(&host, n, c, &cam, &wg)).unwrap_or(f64::NAN)
+                });
+                let wgb = run(3, want("wgpu"), &mut || {
+                    catch_backend("wgpu", || op_fwd_bwd(&host, n, c, &cam, &wg)).unwrap_or(f64::NAN)
+                });
+                let (mut df, mut db) = (None, None);
+                let (mut cf, mut cb) = (1.0, 1.0);
+                if want("dense") {
+                    let (t, cov) = dense_time(&host, n, c, &cam, false, a.dense_budget);
+                    df = Some(t);
+                    cf = cov;
+                    let (t, cov) = dense_time(&host, n, c, &cam, true, a.dense_budget);
+                    db = Some(t);
+                    cb = cov;
+                }
+                let mark = |v: Option<f64>, cov: f64| {
+                    let s = fmt_ms(v);
+                    if v.is_some() && cov < 1.0 { format!("~{s}") } else { s }
+                };
+                let ratio = |d: Option<f64>, o: Option<f64>| match (d, o) {
+                    (Some(d), Some(o)) if o > 0.0 => format!("{:.0}x", d / o),
+                    _ => "—".into(),
+                };
+                println!(
+                    "| {res} | {n} | {c} | {} | {} | {} | {} | {} | {} | {} / {} |",
+                    fmt_ms(ndf),
+                    fmt_ms(ndb),
+                    fmt_ms(wgf),
+                    fmt_ms(wgb),
+                    mark(df, cf),
+                    mark(db, cb),
+                    ratio(df, ndf),
+                    ratio(db, ndb),
+                );
+            }
+        }
+    }
+}

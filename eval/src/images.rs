@@ -1,0 +1,77 @@
+//! PNG output and colour maps.
+
+use std::io::BufWriter;
+use std::path::Path;
+
+/// Writes an 8-bit RGB PNG from `[H, W, 3]` floats in [0, 1] (clamped), atomically.
+pub fn write_rgb(path: &Path, width: u32, height: u32, rgb: &[f32]) -> Result<(), String> {
+    assert_eq!(rgb.len(), (width * height * 3) as usize);
+    let bytes: Vec<u8> = rgb.iter().map(|v| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8).collect();
+    write_bytes(path, width, height, &bytes)
+}
+
+fn write_bytes(path: &Path, width: u32, height: u32, bytes: &[u8]) -> Result<(), String> {
+    let err = |e: String| format!("{}: cannot write PNG: {e}", path.display());
+    if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
+        std::fs::create_dir_all(dir).map_err(|e| err(e.to_string()))?;
+    }
+    let tmp = path.with_extension("png.tmp");
+    {
+        let file = std::fs::File::create(&tmp).map_err(|e| err(e.to_string()))?;
+        let mut enc = png::Encoder::new(BufWriter::new(file), width, height);
+        enc.set_color(png::ColorType::Rgb);
+        enc.set_depth(png::BitDepth::Eight);
+        let mut w = enc.write_header().map_err(|e| err(e.to_string()))?;
+        w.write_image_data(bytes).map_err(|e| err(e.to_string()))?;
+    }
+    std::fs::rename(&tmp, path).map_err(|e| err(e.to_string()))
+}
+
+/// A perceptual blue-to-yellow ramp for t in [0, 1] (piecewise linear "viridis"-like).
+pub fn ramp(t: f32) -> [f32; 3] {
+    const STOPS: [[f32; 3]; 5] = [
+        [0.267, 0.005, 0.329],
+        [0.230, 0.322, 0.546],
+        [0.128, 0.567, 0.551],
+        [0.369, 0.789, 0.383],
+        [0.993, 0.906, 0.144],
+    ];
+    let t = t.clamp(0.0, 1.0) * 4.0;
+    let i = (t.floor() as usize).min(3);
+    let f = t - i as f32;
+    std::array::from_fn(|k| STOPS[i][k] * (1.0 - f) + STOPS[i + 1][k] * f)
+}
+
+/// Depth map (near = yellow, far = blue; empty pixels black) from expected depth and alpha.
+pub fn depth_to_rgb(depth: &[f32], alpha: &[f32]) -> Vec<f32> {
+    let valid: Vec<f32> = depth.iter().zip(alpha).filter(|(_, a)| **a > 0.5).map(|(d, _)| *d).collect();
+    let lo = valid.iter().cloned().fold(f32::INFINITY, f32::min);
+    let hi = valid.iter().cloned().fold(f32::NEG_INFINITY, f32::max);
+    depth
+        .iter()
+        .zip(alpha)
+        .flat_map(|(&d, &a)| {
+            if a <= 0.5 || !(hi > lo) {
+                [0.0; 3]
+            } else {
+                ramp(1.0 - (d - lo) / (hi - lo))
+            }
+        })
+        .collect()
+}
+
+/// A stable pseudo-random colour per id (-1 = black).
+pub fn id_color(id: i32) -> [f32; 3] {
+    if id < 0 {
+        return [0.0; 3];
+    }
+    let mut h = (id as u32).wrapping_mul(0x9E37_79B9) ^ 0x85EB_CA6B;
+    h ^= h >> 15;
+    h = h.wrapping_mul(0xC2B2_AE35);
+    h ^= h >> 13;
+    [
+        0.25 + 0.75 * ((h & 0xFF) as f32 / 255.0),
+        0.25 + 0.75 * (((h >> 8) & 0xFF) as f32 / 255.0),
+        0.25 + 0.75 * (((h >> 16) & 0xFF) as f32 / 255.0),
+    ]
+}

@@ -1,0 +1,58 @@
+//! The `chatsplat` binary as a user runs it: a render that writes real PNGs, and clear errors with
+//! a non-zero exit for bad input.
+
+use std::process::Command;
+
+fn chatsplat() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_chatsplat"))
+}
+
+fn tmp(name: &str) -> std::path::PathBuf {
+    let d = std::env::temp_dir().join(format!("chatsplat-cli-{}", std::process::id()));
+    std::fs::create_dir_all(&d).unwrap();
+    d.join(name)
+}
+
+#[test]
+fn render_writes_png_files_of_the_requested_size() {
+    let out = tmp("r.png");
+    let depth = tmp("d.png");
+    let st = chatsplat()
+        .args(["render", "--density", "16", "--width", "97", "--height", "61", "--out"])
+        .arg(&out)
+        .arg("--depth")
+        .arg(&depth)
+        .output()
+        .unwrap();
+    assert!(st.status.success(), "{}", String::from_utf8_lossy(&st.stderr));
+    for p in [&out, &depth] {
+        let bytes = std::fs::read(p).unwrap();
+        assert_eq!(&bytes[1..4], b"PNG");
+        // IHDR width and height, big endian.
+        assert_eq!(u32::from_be_bytes(bytes[16..20].try_into().unwrap()), 97);
+        assert_eq!(u32::from_be_bytes(bytes[20..24].try_into().unwrap()), 61);
+    }
+    let stdout = String::from_utf8_lossy(&st.stdout);
+    assert!(stdout.contains("rendered"), "{stdout}");
+}
+
+#[test]
+fn bad_input_gives_a_clear_error_and_a_non_zero_exit() {
+    let missing = tmp("does-not-exist.ply");
+    let st = chatsplat().args(["render", "--ply"]).arg(&missing).output().unwrap();
+    assert!(!st.status.success());
+    let err = String::from_utf8_lossy(&st.stderr);
+    assert!(err.contains("does-not-exist.ply") && err.contains("cannot read"), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
+
+    let bad = tmp("bad.ply");
+    std::fs::write(&bad, b"ply\nformat binary_little_endian 1.0\nelement vertex 10\nproperty float x\nproperty float y\nproperty float z\nend_header\n\0\0\0\0").unwrap();
+    let st = chatsplat().args(["render", "--ply"]).arg(&bad).output().unwrap();
+    assert!(!st.status.success());
+    let err = String::from_utf8_lossy(&st.stderr);
+    assert!(err.contains("bad.ply") && err.contains("truncated"), "{err}");
+
+    let st = chatsplat().args(["render", "--eye", "1,2"]).output().unwrap();
+    assert!(!st.status.success());
+    assert!(String::from_utf8_lossy(&st.stderr).contains("--eye expects three"));
+}

@@ -1,0 +1,152 @@
+//! A built-in, deterministic tabletop made of Gaussians: a wooden table top and a few coloured
+//! primitives (sphere, box, cylinder, cone) on it. World frame: y up, table top at y = 0.
+//! Surfaces are covered by flat Gaussians oriented along the surface normal.
+
+use crate::GaussianCloud;
+use crate::cloud::SH_C0;
+use glam::{Quat, Vec3};
+
+/// One object of the tabletop.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Primitive {
+    pub name: &'static str,
+    pub shape: &'static str,
+    pub color: [f32; 3],
+    pub center: Vec3,
+    pub size: f32,
+}
+
+/// Deterministic SplitMix64.
+struct Rng(u64);
+impl Rng {
+    fn f(&mut self) -> f32 {
+        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
+        let mut z = self.0;
+        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
+        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
+        ((z ^ (z >> 31)) >> 40) as f32 / (1u64 << 24) as f32
+    }
+    fn range(&mut self, lo: f32, hi: f32) -> f32 {
+        lo + (hi - lo) * self.f()
+    }
+}
+
+fn logit(p: f32) -> f32 {
+    (p / (1.0 - p)).ln()
+}
+
+/// The objects placed by `seed` (positions and sizes jitter with the seed).
+pub fn tabletop_objects(seed: u64) -> Vec<Primitive> {
+    let mut r = Rng(seed ^ 0x5EED);
+    let base = [
+        ("red ball", "sphere", [0.85, 0.12, 0.10]),
+        ("blue box", "box", [0.15, 0.30, 0.85]),
+        ("green cylinder", "cylinder", [0.15, 0.70, 0.25]),
+        ("yellow cone", "cone", [0.95, 0.80, 0.10]),
+        ("purple ball", "sphere", [0.55, 0.20, 0.70]),
+    ];
+    base.iter()
+        .enumerate()
+        .map(|(k, &(name, shape, color))| {
+            let ang = k as f32 / base.len() as f32 * std::f32::consts::TAU + r.range(-0.3, 0.3);
+            let rad = if k == 0 { 0.0 } else { r.range(0.9, 1.3) };
+            let size = r.range(0.28, 0.42);
+            Primitive {
+                name,
+                shape,
+                color,
+                center: Vec3::new(rad * ang.cos(), size, rad * ang.sin()),
+                size,
+            }
+        })
+        .collect()
+}
+
+struct Builder {
+    cloud: GaussianCloud,
+    rng: Rng,
+}
+
+impl Builder {
+    fn splat(&mut self, p: Vec3, normal: Vec3, radius: f32, color: [f32; 3]) {
+        let q = Quat::from_rotation_arc(Vec3::Z, normal.normalize_or(Vec3::Y));
+        let jitter = self.rng.range(-0.04, 0.04);
+        self.cloud.means.push(p.into());
+        self.cloud.log_scales.push([radius.ln(), radius.ln(), (radius * 0.15).ln()]);
+        self.cloud.quats.push([q.w, q.x, q.y, q.z]);
+        self.cloud.opacity_logits.push(logit(0.95));
+        self.cloud.sh_dc.push(color.map(|c| ((c + jitter).clamp(0.0, 1.0) - 0.5) / SH_C0));
+    }
+}
+
+/// A tabletop of about `density^2 * 5` Gaussians (density 40 gives about 9,000).
+pub fn tabletop(seed: u64, density: usize) -> (GaussianCloud, Vec<Primitive>) {
+    let objects = tabletop_objects(seed);
+    let mut b = Builder {
+        cloud: GaussianCloud::default(),
+        rng: Rng(seed),
+    };
+    // Table top: a 4 x 4 square with a wood-like stripe pattern.
+    let d = density.max(4);
+    let step = 4.0 / d as f32;
+    for i in 0..d {
+        for j in 0..d {
+            let x = -2.0 + (i as f32 + 0.5) * step;
+            let z = -2.0 + (j as f32 + 0.5) * step;
+            let stripe = 0.5 + 0.5 * (x * 9.0 + (z * 2.0).sin()).sin();
+            let col = [0.55 + 0.12 * stripe, 0.38 + 0.08 * stripe, 0.22 + 0.05 * stripe];
+            b.splat(Vec3::new(x, 0.0, z), Vec3::Y, step * 0.7, col);
+        }
+    }
+    for o in &objects {
+        let s = o.size;
+        let n = d * d / 4;
+        for k in 0..n {
+            // Fibonacci-like sampling on the unit sphere, mapped per shape.
+            let t = (k as f32 + 0.5) / n as f32;
+            let phi = k as f32 * 2.399_963;
+            let (p, nrm) = match o.shape {
+                "sphere" => {
+                    let y = 1.0 - 2.0 * t;
+                    let rr = (1.0 - y * y).sqrt();
+                    let v = Vec3::new(rr * phi.cos(), y, rr * phi.sin());
+                    (o.center + v * s, v)
+                }
+                "box" => {
+                    let face = k % 6;
+                    let (u, w) = (b.rng.range(-1.0, 1.0), b.rng.range(-1.0, 1.0));
+                    let (v, nn) = match face {
+                        0 => (Vec3::new(1.0, u, w), Vec3::X),
+                        1 => (Vec3::new(-1.0, u, w), -Vec3::X),
+                        2 => (Vec3::new(u, 1.0, w), Vec3::Y),
+                        3 => (Vec3::new(u, -1.0, w), -Vec3::Y),
+                        4 => (Vec3::new(u, w, 1.0), Vec3::Z),
+                        _ => (Vec3::new(u, w, -1.0), -Vec3::Z),
+                    };
+                    (o.center + v * s * 0.85, nn)
+                }
+                "cylinder" => {
+                    let y = -1.0 + 2.0 * t;
+                    let v = Vec3::new(phi.cos(), 0.0, phi.sin());
+                    if k % 5 == 0 {
+                        let rr = b.rng.f().sqrt();
+                        (o.center + Vec3::new(rr * phi.cos() * s * 0.7, s, rr * phi.sin() * s * 0.7), Vec3::Y)
+                    } else {
+                        (o.center + Vec3::new(v.x * s * 0.7, y * s, v.z * s * 0.7), v)
+                    }
+                }
+                _ => {
+                    // cone: apex up
+                    let h = t;
+                    let rr = (1.0 - h) * s * 0.8;
+                    let v = Vec3::new(phi.cos(), 0.6, phi.sin());
+                    (o.center + Vec3::new(rr * phi.cos(), -s + 2.0 * s * h, rr * phi.sin()), v)
+                }
+            };
+            let shade = 0.85 + 0.15 * nrm.normalize_or(Vec3::Y).y;
+            let col = o.color.map(|c| c * shade);
+            b.splat(p, nrm, s * 3.2 / d as f32 * 2.0, col);
+        }
+    }
+    (b.cloud, objects)
+}

@@ -115,6 +115,34 @@ fn ndarray_autodiff_gradients_equal_the_hand_written_backward() {
 }
 
 #[test]
+fn screen_gradient_accumulator_collects_per_view_norms() {
+    let cam = front_camera(40, 30, 40.0);
+    let scene = random_scene(25, 3, &cam, 4);
+    let device = Device::ndarray().autodiff();
+    let mut acc = splat_kernels::api::ScreenGradAccumulator::default();
+    let mut expected = vec![0.0f32; scene.len()];
+    for k in 0..2 {
+        let (g, bg) = scene.gaussians(&device);
+        let offsets = Tensor::<2>::zeros([scene.len(), 2], &device).require_grad();
+        let opts = SplatOptions { screen_offsets: Some(offsets.clone()), ..Default::default() };
+        let out = splat(&g, &cam, bg, &opts).unwrap();
+        let loss = out.features.sum() * (k as f32 + 1.0);
+        let grad = offsets.grad(&loss.backward()).unwrap();
+        let host_grad = host(grad.clone());
+        for i in 0..scene.len() {
+            expected[i] += (host_grad[2 * i].powi(2) + host_grad[2 * i + 1].powi(2)).sqrt();
+        }
+        acc.add(grad);
+    }
+    assert_eq!(acc.norm_sum.len(), scene.len());
+    for i in 0..scene.len() {
+        assert!((acc.norm_sum[i] - expected[i]).abs() <= 1e-6 * expected[i].max(1.0));
+    }
+    assert!(acc.count.iter().any(|&c| c == 2), "visible Gaussians are counted in both views");
+    assert!(acc.mean().iter().zip(&acc.norm_sum).all(|(m, s)| *m <= *s + 1e-9));
+}
+
+#[test]
 fn ndarray_api_rejects_bad_input_with_clear_errors() {
     let cam = front_camera(16, 16, 16.0);
     let device = Device::ndarray();
@@ -236,6 +264,30 @@ fn wgpu_matches_ndarray_forward_backward_and_hard_cases() {
     }
     let (fc, _) = render_and_grad(&hard, &cam, cfg, &nd.clone().autodiff(), 8);
     assert_close("hard forward", &f, &fc, 1e-4);
+    // Permutation invariance and culling on wgpu: identical images.
+    let cam = front_camera(50, 40, 50.0);
+    let scene = random_scene(120, 4, &cam, 11);
+    let mut rev = Scene::empty(4);
+    rev.background = scene.background.clone();
+    for i in (0..scene.len()).rev() {
+        rev.push(
+            scene.means[3 * i..3 * i + 3].try_into().unwrap(),
+            scene.log_scales[3 * i..3 * i + 3].try_into().unwrap(),
+            scene.quats[4 * i..4 * i + 4].try_into().unwrap(),
+            scene.opacity_logits[i],
+            &scene.features[4 * i..4 * i + 4],
+        );
+    }
+    let mut culled = scene.clone();
+    culled.push([0.0, 0.0, -2.0], [0.0; 3], [1.0, 0.0, 0.0, 0.0], 3.0, &[1.0; 4]);
+    culled.push([50.0, 0.0, 2.0], [-2.0; 3], [1.0, 0.0, 0.0, 0.0], 3.0, &[1.0; 4]);
+    let render = |s: &Scene| {
+        let (g, bg) = s.gaussians(&wgpu);
+        host(splat(&g, &cam, bg, &SplatOptions::default()).unwrap().features)
+    };
+    let base = render(&scene);
+    assert_eq!(render(&rev), base, "wgpu image changed under a permutation of the Gaussians");
+    assert_eq!(render(&culled), base, "off-screen Gaussians changed the wgpu image");
     // N = 0 and a 1x1 image.
     let empty = Scene::empty(2);
     let (g0, bg0) = empty.gaussians(&wgpu);

@@ -3,6 +3,7 @@
 
 pub mod cloud;
 pub mod ply;
+pub mod rng;
 pub mod synthetic;
 
 pub use cloud::GaussianCloud;

@@ -4,6 +4,7 @@
 
 use crate::GaussianCloud;
 use crate::cloud::SH_C0;
+use crate::rng::Rng;
 use glam::{Quat, Vec3};
 
 /// One object of the tabletop.
@@ -16,28 +17,13 @@ pub struct Primitive {
     pub size: f32,
 }
 
-/// Deterministic SplitMix64.
-struct Rng(u64);
-impl Rng {
-    fn f(&mut self) -> f32 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        ((z ^ (z >> 31)) >> 40) as f32 / (1u64 << 24) as f32
-    }
-    fn range(&mut self, lo: f32, hi: f32) -> f32 {
-        lo + (hi - lo) * self.f()
-    }
-}
-
 fn logit(p: f32) -> f32 {
     (p / (1.0 - p)).ln()
 }
 
 /// The objects placed by `seed` (positions and sizes jitter with the seed).
 pub fn tabletop_objects(seed: u64) -> Vec<Primitive> {
-    let mut r = Rng(seed ^ 0x5EED);
+    let mut r = Rng::new(seed ^ 0x5EED);
     let base = [
         ("red ball", "sphere", [0.85, 0.12, 0.10]),
         ("blue box", "box", [0.15, 0.30, 0.85]),
@@ -84,7 +70,7 @@ pub fn tabletop(seed: u64, density: usize) -> (GaussianCloud, Vec<Primitive>) {
     let objects = tabletop_objects(seed);
     let mut b = Builder {
         cloud: GaussianCloud::default(),
-        rng: Rng(seed),
+        rng: Rng::new(seed),
     };
     // Table top: a 4 x 4 square with a wood-like stripe pattern.
     let d = density.max(4);

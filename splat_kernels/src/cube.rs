@@ -49,6 +49,169 @@ fn sigmoid(x: f32) -> f32 {
     r
 }
 
+/// Per-Gaussian projection intermediates shared by the forward and backward kernels.
+#[derive(CubeType)]
+struct Covar {
+    /// Camera-space centre.
+    p0: f32,
+    p1: f32,
+    z: f32,
+    /// Normalised quaternion and 1/|q| (0 under the identity policy).
+    qw: f32,
+    qx: f32,
+    qy: f32,
+    qz: f32,
+    inv_norm: f32,
+    r00: f32,
+    r01: f32,
+    r02: f32,
+    r10: f32,
+    r11: f32,
+    r12: f32,
+    r20: f32,
+    r21: f32,
+    r22: f32,
+    s0: f32,
+    s1: f32,
+    s2: f32,
+    /// `R_c R S`
+    c00: f32,
+    c01: f32,
+    c02: f32,
+    c10: f32,
+    c11: f32,
+    c12: f32,
+    c20: f32,
+    c21: f32,
+    c22: f32,
+    u: f32,
+    v: f32,
+    uc: f32,
+    vc: f32,
+    j00: f32,
+    j02: f32,
+    j11: f32,
+    j12: f32,
+    /// `T = J R_c R S`
+    t00: f32,
+    t01: f32,
+    t02: f32,
+    t10: f32,
+    t11: f32,
+    t12: f32,
+}
+
+#[cube]
+fn covar(means: &[f32], log_scales: &[f32], quats: &[f32], cam: &[f32], iu: usize) -> Covar {
+    let mx = means[iu * 3];
+    let my = means[iu * 3 + 1];
+    let mz = means[iu * 3 + 2];
+    let p0 = cam[0] * mx + cam[1] * my + cam[2] * mz + cam[9];
+    let p1 = cam[3] * mx + cam[4] * my + cam[5] * mz + cam[10];
+    let z = cam[6] * mx + cam[7] * my + cam[8] * mz + cam[11];
+    let fx = cam[12];
+    let fy = cam[13];
+    // Quaternion (w, x, y, z) -> rotation, identity policy for tiny norms.
+    let q0 = quats[iu * 4];
+    let q1 = quats[iu * 4 + 1];
+    let q2 = quats[iu * 4 + 2];
+    let q3 = quats[iu * 4 + 3];
+    let m = f32::max(f32::max(f32::abs(q0), f32::abs(q1)), f32::max(f32::abs(q2), f32::abs(q3)));
+    let mut qw = 1.0f32;
+    let mut qx = 0.0f32;
+    let mut qy = 0.0f32;
+    let mut qz = 0.0f32;
+    let mut inv_norm = 0.0f32;
+    if m > 0.0 {
+        let a0 = q0 / m;
+        let a1 = q1 / m;
+        let a2 = q2 / m;
+        let a3 = q3 / m;
+        let nn = f32::sqrt(a0 * a0 + a1 * a1 + a2 * a2 + a3 * a3);
+        if m * nn >= QUAT_MIN_NORM {
+            qw = a0 / nn;
+            qx = a1 / nn;
+            qy = a2 / nn;
+            qz = a3 / nn;
+            inv_norm = 1.0 / (m * nn);
+        }
+    }
+    let r00 = 1.0 - 2.0 * (qy * qy + qz * qz);
+    let r01 = 2.0 * (qx * qy - qw * qz);
+    let r02 = 2.0 * (qx * qz + qw * qy);
+    let r10 = 2.0 * (qx * qy + qw * qz);
+    let r11 = 1.0 - 2.0 * (qx * qx + qz * qz);
+    let r12 = 2.0 * (qy * qz - qw * qx);
+    let r20 = 2.0 * (qx * qz - qw * qy);
+    let r21 = 2.0 * (qy * qz + qw * qx);
+    let r22 = 1.0 - 2.0 * (qx * qx + qy * qy);
+    let s0 = f32::exp(f32::clamp(log_scales[iu * 3], LOG_SCALE_MIN, LOG_SCALE_MAX));
+    let s1 = f32::exp(f32::clamp(log_scales[iu * 3 + 1], LOG_SCALE_MIN, LOG_SCALE_MAX));
+    let s2 = f32::exp(f32::clamp(log_scales[iu * 3 + 2], LOG_SCALE_MIN, LOG_SCALE_MAX));
+    let c00 = cam[0] * r00 * s0 + cam[1] * r10 * s0 + cam[2] * r20 * s0;
+    let c01 = cam[0] * r01 * s1 + cam[1] * r11 * s1 + cam[2] * r21 * s1;
+    let c02 = cam[0] * r02 * s2 + cam[1] * r12 * s2 + cam[2] * r22 * s2;
+    let c10 = cam[3] * r00 * s0 + cam[4] * r10 * s0 + cam[5] * r20 * s0;
+    let c11 = cam[3] * r01 * s1 + cam[4] * r11 * s1 + cam[5] * r21 * s1;
+    let c12 = cam[3] * r02 * s2 + cam[4] * r12 * s2 + cam[5] * r22 * s2;
+    let c20 = cam[6] * r00 * s0 + cam[7] * r10 * s0 + cam[8] * r20 * s0;
+    let c21 = cam[6] * r01 * s1 + cam[7] * r11 * s1 + cam[8] * r21 * s1;
+    let c22 = cam[6] * r02 * s2 + cam[7] * r12 * s2 + cam[8] * r22 * s2;
+    let u = p0 / z;
+    let v = p1 / z;
+    let uc = f32::clamp(u, 0.0f32 - cam[16], cam[16]);
+    let vc = f32::clamp(v, 0.0f32 - cam[17], cam[17]);
+    let j00 = fx / z;
+    let j02 = 0.0f32 - fx * uc / z;
+    let j11 = fy / z;
+    let j12 = 0.0f32 - fy * vc / z;
+    Covar {
+        p0,
+        p1,
+        z,
+        qw,
+        qx,
+        qy,
+        qz,
+        inv_norm,
+        r00,
+        r01,
+        r02,
+        r10,
+        r11,
+        r12,
+        r20,
+        r21,
+        r22,
+        s0,
+        s1,
+        s2,
+        c00,
+        c01,
+        c02,
+        c10,
+        c11,
+        c12,
+        c20,
+        c21,
+        c22,
+        u,
+        v,
+        uc,
+        vc,
+        j00,
+        j02,
+        j11,
+        j12,
+        t00: j00 * c00 + j02 * c20,
+        t01: j00 * c01 + j02 * c21,
+        t02: j00 * c02 + j02 * c22,
+        t10: j11 * c10 + j12 * c20,
+        t11: j11 * c11 + j12 * c21,
+        t12: j11 * c12 + j12 * c22,
+    }
+}
+
 /// Thread per Gaussian: projection, culling, tile rectangle and per-tile counts.
 #[cube(launch)]
 fn project_kernel(
@@ -76,83 +239,19 @@ fn project_kernel(
     rects[iu * 4 + 1] = 0;
     rects[iu * 4 + 2] = 0;
     rects[iu * 4 + 3] = 0;
-    let mx = means[iu * 3];
-    let my = means[iu * 3 + 1];
-    let mz = means[iu * 3 + 2];
-    let px = cam[0] * mx + cam[1] * my + cam[2] * mz + cam[9];
-    let py = cam[3] * mx + cam[4] * my + cam[5] * mz + cam[10];
-    let z = cam[6] * mx + cam[7] * my + cam[8] * mz + cam[11];
+    let k = covar(means, log_scales, quats, cam, iu);
+    let z = k.z;
     let fx = cam[12];
     let fy = cam[13];
+    let u = k.u;
+    let v = k.v;
     let mut visible = z >= cam[18] && z <= cam[19];
-    // Quaternion (w, x, y, z) -> rotation, identity policy for tiny norms.
-    let q0 = quats[iu * 4];
-    let q1 = quats[iu * 4 + 1];
-    let q2 = quats[iu * 4 + 2];
-    let q3 = quats[iu * 4 + 3];
-    let m = f32::max(f32::max(f32::abs(q0), f32::abs(q1)), f32::max(f32::abs(q2), f32::abs(q3)));
-    let mut qw = 1.0f32;
-    let mut qx = 0.0f32;
-    let mut qy = 0.0f32;
-    let mut qz = 0.0f32;
-    if m > 0.0 {
-        let s0 = q0 / m;
-        let s1 = q1 / m;
-        let s2 = q2 / m;
-        let s3 = q3 / m;
-        let nn = f32::sqrt(s0 * s0 + s1 * s1 + s2 * s2 + s3 * s3);
-        if m * nn >= QUAT_MIN_NORM {
-            qw = s0 / nn;
-            qx = s1 / nn;
-            qy = s2 / nn;
-            qz = s3 / nn;
-        }
-    }
-    let r00 = 1.0 - 2.0 * (qy * qy + qz * qz);
-    let r01 = 2.0 * (qx * qy - qw * qz);
-    let r02 = 2.0 * (qx * qz + qw * qy);
-    let r10 = 2.0 * (qx * qy + qw * qz);
-    let r11 = 1.0 - 2.0 * (qx * qx + qz * qz);
-    let r12 = 2.0 * (qy * qz - qw * qx);
-    let r20 = 2.0 * (qx * qz - qw * qy);
-    let r21 = 2.0 * (qy * qz + qw * qx);
-    let r22 = 1.0 - 2.0 * (qx * qx + qy * qy);
-    let s0 = f32::exp(f32::clamp(log_scales[iu * 3], LOG_SCALE_MIN, LOG_SCALE_MAX));
-    let s1 = f32::exp(f32::clamp(log_scales[iu * 3 + 1], LOG_SCALE_MIN, LOG_SCALE_MAX));
-    let s2 = f32::exp(f32::clamp(log_scales[iu * 3 + 2], LOG_SCALE_MIN, LOG_SCALE_MAX));
-    // M = R S, then R_c M.
-    let m00 = r00 * s0;
-    let m01 = r01 * s1;
-    let m02 = r02 * s2;
-    let m10 = r10 * s0;
-    let m11 = r11 * s1;
-    let m12 = r12 * s2;
-    let m20 = r20 * s0;
-    let m21 = r21 * s1;
-    let m22 = r22 * s2;
-    let c00 = cam[0] * m00 + cam[1] * m10 + cam[2] * m20;
-    let c01 = cam[0] * m01 + cam[1] * m11 + cam[2] * m21;
-    let c02 = cam[0] * m02 + cam[1] * m12 + cam[2] * m22;
-    let c10 = cam[3] * m00 + cam[4] * m10 + cam[5] * m20;
-    let c11 = cam[3] * m01 + cam[4] * m11 + cam[5] * m21;
-    let c12 = cam[3] * m02 + cam[4] * m12 + cam[5] * m22;
-    let c20 = cam[6] * m00 + cam[7] * m10 + cam[8] * m20;
-    let c21 = cam[6] * m01 + cam[7] * m11 + cam[8] * m21;
-    let c22 = cam[6] * m02 + cam[7] * m12 + cam[8] * m22;
-    let u = px / z;
-    let v = py / z;
-    let uc = f32::clamp(u, -cam[16], cam[16]);
-    let vc = f32::clamp(v, -cam[17], cam[17]);
-    let j00 = fx / z;
-    let j02 = -fx * uc / z;
-    let j11 = fy / z;
-    let j12 = -fy * vc / z;
-    let t00 = j00 * c00 + j02 * c20;
-    let t01 = j00 * c01 + j02 * c21;
-    let t02 = j00 * c02 + j02 * c22;
-    let t10 = j11 * c10 + j12 * c20;
-    let t11 = j11 * c11 + j12 * c21;
-    let t12 = j11 * c12 + j12 * c22;
+    let t00 = k.t00;
+    let t01 = k.t01;
+    let t02 = k.t02;
+    let t10 = k.t10;
+    let t11 = k.t11;
+    let t12 = k.t12;
     let ta = t00 * t00 + t01 * t01 + t02 * t02;
     let tc = t10 * t10 + t11 * t11 + t12 * t12;
     let a = ta + LOW_PASS;
@@ -322,6 +421,21 @@ fn tile_sort_kernel(keys: &mut [f32], gids: &mut [u32], offsets: &[u32], counts:
     }
 }
 
+/// Each thread of the workgroup copies one tile-list entry (`first + UNIT_POS`, if below
+/// `first + len`) into shared memory: its id and the first 7 projected floats.
+#[cube]
+fn stage_batch(gids: &[u32], proj: &[f32], s_gid: &mut Shared<[u32]>, s_p: &mut Shared<[f32]>, first: u32, len: u32) {
+    if UNIT_POS < len {
+        let u = UNIT_POS as usize;
+        let g = gids[(first + UNIT_POS) as usize];
+        let gu = g as usize;
+        s_gid[u] = g;
+        for k in 0usize..7usize {
+            s_p[u * 7 + k] = proj[gu * 8 + k];
+        }
+    }
+}
+
 /// Workgroup per tile, thread per pixel: front-to-back compositing.
 #[cube(launch)]
 fn raster_fwd_kernel(
@@ -370,20 +484,7 @@ fn raster_fwd_kernel(
     }
     let mut base = 0u32;
     while base < count {
-        let idx = base + UNIT_POS;
-        let u = UNIT_POS as usize;
-        if idx < count {
-            let g = gids[(start + idx) as usize];
-            let gu = g as usize;
-            s_gid[u] = g;
-            s_p[u * 7] = proj[gu * 8];
-            s_p[u * 7 + 1] = proj[gu * 8 + 1];
-            s_p[u * 7 + 2] = proj[gu * 8 + 2];
-            s_p[u * 7 + 3] = proj[gu * 8 + 3];
-            s_p[u * 7 + 4] = proj[gu * 8 + 4];
-            s_p[u * 7 + 5] = proj[gu * 8 + 5];
-            s_p[u * 7 + 6] = proj[gu * 8 + 6];
-        }
+        stage_batch(gids, proj, &mut s_gid, &mut s_p, start + base, count - base);
         sync_cube();
         let batch = u32::min(256u32, count - base);
         for j in 0u32..batch {
@@ -512,20 +613,7 @@ fn raster_bwd_kernel(
     let mut end = max_last;
     while end > 0 {
         let begin = end - u32::min(256u32, end);
-        let u = UNIT_POS as usize;
-        let idx = begin + UNIT_POS;
-        if idx < end {
-            let g = gids[(start + idx) as usize];
-            let gu = g as usize;
-            s_gid[u] = g;
-            s_p[u * 7] = proj[gu * 8];
-            s_p[u * 7 + 1] = proj[gu * 8 + 1];
-            s_p[u * 7 + 2] = proj[gu * 8 + 2];
-            s_p[u * 7 + 3] = proj[gu * 8 + 3];
-            s_p[u * 7 + 4] = proj[gu * 8 + 4];
-            s_p[u * 7 + 5] = proj[gu * 8 + 5];
-            s_p[u * 7 + 6] = proj[gu * 8 + 6];
-        }
+        stage_batch(gids, proj, &mut s_gid, &mut s_p, start + begin, end - begin);
         sync_cube();
         let batch = end - begin;
         for jj in 0u32..batch {
@@ -630,85 +718,20 @@ fn project_bwd_kernel(
         g_offsets[iu * 2] = gm0;
         g_offsets[iu * 2 + 1] = gm1;
         // Recompute the forward intermediates.
-        let mx = means[iu * 3];
-        let my = means[iu * 3 + 1];
-        let mz = means[iu * 3 + 2];
-        let p0 = cam[0] * mx + cam[1] * my + cam[2] * mz + cam[9];
-        let p1 = cam[3] * mx + cam[4] * my + cam[5] * mz + cam[10];
-        let z = cam[6] * mx + cam[7] * my + cam[8] * mz + cam[11];
+        let k = covar(means, log_scales, quats, cam, iu);
+        let (p0, p1, z) = (k.p0, k.p1, k.z);
         let fx = cam[12];
         let fy = cam[13];
-        let q0 = quats[iu * 4];
-        let q1 = quats[iu * 4 + 1];
-        let q2 = quats[iu * 4 + 2];
-        let q3 = quats[iu * 4 + 3];
-        let m = f32::max(f32::max(f32::abs(q0), f32::abs(q1)), f32::max(f32::abs(q2), f32::abs(q3)));
-        let mut qw = 1.0f32;
-        let mut qx = 0.0f32;
-        let mut qy = 0.0f32;
-        let mut qz = 0.0f32;
-        let mut inv_norm = 0.0f32;
-        if m > 0.0 {
-            let s0 = q0 / m;
-            let s1 = q1 / m;
-            let s2 = q2 / m;
-            let s3 = q3 / m;
-            let nn = f32::sqrt(s0 * s0 + s1 * s1 + s2 * s2 + s3 * s3);
-            if m * nn >= QUAT_MIN_NORM {
-                qw = s0 / nn;
-                qx = s1 / nn;
-                qy = s2 / nn;
-                qz = s3 / nn;
-                inv_norm = 1.0 / (m * nn);
-            }
-        }
-        let r00 = 1.0 - 2.0 * (qy * qy + qz * qz);
-        let r01 = 2.0 * (qx * qy - qw * qz);
-        let r02 = 2.0 * (qx * qz + qw * qy);
-        let r10 = 2.0 * (qx * qy + qw * qz);
-        let r11 = 1.0 - 2.0 * (qx * qx + qz * qz);
-        let r12 = 2.0 * (qy * qz - qw * qx);
-        let r20 = 2.0 * (qx * qz - qw * qy);
-        let r21 = 2.0 * (qy * qz + qw * qx);
-        let r22 = 1.0 - 2.0 * (qx * qx + qy * qy);
+        let (qw, qx, qy, qz, inv_norm) = (k.qw, k.qx, k.qy, k.qz, k.inv_norm);
+        let (r00, r01, r02, r10, r11, r12, r20, r21, r22) = (k.r00, k.r01, k.r02, k.r10, k.r11, k.r12, k.r20, k.r21, k.r22);
+        let (s0, s1, s2) = (k.s0, k.s1, k.s2);
+        let (c00, c01, c02, c10, c11, c12, c20, c21, c22) = (k.c00, k.c01, k.c02, k.c10, k.c11, k.c12, k.c20, k.c21, k.c22);
+        let (u, v, uc, vc) = (k.u, k.v, k.uc, k.vc);
+        let (j00, j02, j11, j12) = (k.j00, k.j02, k.j11, k.j12);
+        let (t00, t01, t02, t10, t11, t12) = (k.t00, k.t01, k.t02, k.t10, k.t11, k.t12);
         let l0 = log_scales[iu * 3];
         let l1 = log_scales[iu * 3 + 1];
         let l2 = log_scales[iu * 3 + 2];
-        let s0 = f32::exp(f32::clamp(l0, LOG_SCALE_MIN, LOG_SCALE_MAX));
-        let s1 = f32::exp(f32::clamp(l1, LOG_SCALE_MIN, LOG_SCALE_MAX));
-        let s2 = f32::exp(f32::clamp(l2, LOG_SCALE_MIN, LOG_SCALE_MAX));
-        let m00 = r00 * s0;
-        let m01 = r01 * s1;
-        let m02 = r02 * s2;
-        let m10 = r10 * s0;
-        let m11 = r11 * s1;
-        let m12 = r12 * s2;
-        let m20 = r20 * s0;
-        let m21 = r21 * s1;
-        let m22 = r22 * s2;
-        let c00 = cam[0] * m00 + cam[1] * m10 + cam[2] * m20;
-        let c01 = cam[0] * m01 + cam[1] * m11 + cam[2] * m21;
-        let c02 = cam[0] * m02 + cam[1] * m12 + cam[2] * m22;
-        let c10 = cam[3] * m00 + cam[4] * m10 + cam[5] * m20;
-        let c11 = cam[3] * m01 + cam[4] * m11 + cam[5] * m21;
-        let c12 = cam[3] * m02 + cam[4] * m12 + cam[5] * m22;
-        let c20 = cam[6] * m00 + cam[7] * m10 + cam[8] * m20;
-        let c21 = cam[6] * m01 + cam[7] * m11 + cam[8] * m21;
-        let c22 = cam[6] * m02 + cam[7] * m12 + cam[8] * m22;
-        let u = p0 / z;
-        let v = p1 / z;
-        let uc = f32::clamp(u, -cam[16], cam[16]);
-        let vc = f32::clamp(v, -cam[17], cam[17]);
-        let j00 = fx / z;
-        let j02 = 0.0f32 - fx * uc / z;
-        let j11 = fy / z;
-        let j12 = 0.0f32 - fy * vc / z;
-        let t00 = j00 * c00 + j02 * c20;
-        let t01 = j00 * c01 + j02 * c21;
-        let t02 = j00 * c02 + j02 * c22;
-        let t10 = j11 * c10 + j12 * c20;
-        let t11 = j11 * c11 + j12 * c21;
-        let t12 = j11 * c12 + j12 * c22;
         // conic -> covariance
         let ia = proj[iu * 8 + 2];
         let ib = proj[iu * 8 + 3];

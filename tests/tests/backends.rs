@@ -2,6 +2,8 @@
 //! wgpu (lavapipe on CPU in CI) against NdArray. wgpu runs in one test to pay kernel compilation
 //! once; set CHATSPLAT_REQUIRE_WGPU=1 to fail instead of skipping when no adapter exists.
 
+#![allow(deprecated)] // burn-ndarray and TensorData::to_vec are deprecated in burn 0.22; the card names ndarray.
+
 use burn::tensor::{Device, DeviceKind, Tensor, TensorData};
 use chatsplat_tests::*;
 use splat_kernels::api::{SplatOptions, splat};

@@ -1,6 +1,8 @@
 //! The CPU rasterizer against the dense f64 reference: forward, finite-difference gradients,
 //! invariances and determinism.
 
+#![allow(deprecated)] // burn-ndarray and TensorData::to_vec are deprecated in burn 0.22; the card names ndarray.
+
 use chatsplat_tests::*;
 use splat_kernels::RasterConfig;
 use splat_kernels::cpu;

@@ -1,6 +1,8 @@
 //! The burn-ops baseline computes the same math as the kernels (it is what `splat-bench` compares
 //! against, so it must be right).
 
+#![allow(deprecated)] // burn-ndarray and TensorData::to_vec are deprecated in burn 0.22; the card names ndarray.
+
 use burn::tensor::{Device, Tensor, TensorData};
 use chatsplat_tests::*;
 use splat_kernels::{RasterConfig, cpu, dense, reference};

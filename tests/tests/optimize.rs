@@ -1,6 +1,8 @@
 //! The op inside a burn training loop: a `Module` of Gaussian parameters fitted with burn's Adam
 //! to renders of a hidden scene, through the hand-written backward, on NdArray and wgpu.
 
+#![allow(deprecated)] // burn-ndarray and TensorData::to_vec are deprecated in burn 0.22; the card names ndarray.
+
 use burn::module::{Module, Param};
 use burn::optim::{AdamConfig, GradientsParams};
 use burn::tensor::{Device, DeviceKind, Tensor};

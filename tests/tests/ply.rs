@@ -1,5 +1,7 @@
 //! Inria-layout .ply: bit-exact round trip, foreign layouts, clear errors on malformed files.
 
+#![allow(deprecated)] // burn-ndarray and TensorData::to_vec are deprecated in burn 0.22; the card names ndarray.
+
 use model::{GaussianCloud, ply};
 
 fn sample() -> GaussianCloud {

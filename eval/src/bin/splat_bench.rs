@@ -10,6 +10,7 @@
 use burn::tensor::{Device, Tensor, TensorData};
 use clap::Parser;
 use eval::{BackendChoice, catch_backend};
+use model::rng::Rng;
 use splat_kernels::api::{SplatOptions, splat};
 use splat_kernels::{Camera, Gaussians, RasterConfig, dense};
 use std::time::Instant;
@@ -37,21 +38,10 @@ struct Args {
     max_secs: f64,
 }
 
-struct Rng(u64);
-impl Rng {
-    fn f(&mut self) -> f32 {
-        self.0 = self.0.wrapping_add(0x9E37_79B9_7F4A_7C15);
-        let mut z = self.0;
-        z = (z ^ (z >> 30)).wrapping_mul(0xBF58_476D_1CE4_E5B9);
-        z = (z ^ (z >> 27)).wrapping_mul(0x94D0_49BB_1331_11EB);
-        ((z ^ (z >> 31)) >> 40) as f32 / (1u64 << 24) as f32
-    }
-}
-
 /// A cloud of `n` Gaussians filling a box in front of the camera; sizes shrink as n^(-1/3) so the
 /// depth complexity stays comparable across n.
 fn scene(n: usize, c: usize) -> Vec<Vec<f32>> {
-    let mut r = Rng(n as u64 * 31 + c as u64);
+    let mut r = Rng::new(n as u64 * 31 + c as u64);
     let sigma = 0.8 * (8.0 / n as f32).cbrt();
     let mut means = Vec::with_capacity(n * 3);
     let mut scales = Vec::with_capacity(n * 3);

@@ -31,10 +31,10 @@ struct Args {
     #[arg(long, value_delimiter = ',', default_values_t = ["ndarray".to_string(), "wgpu".to_string(), "dense".to_string()])]
     impls: Vec<String>,
     /// Seconds of dense-baseline work per cell before extrapolating.
-    #[arg(long, default_value_t = 4.0)]
+    #[arg(long, default_value_t = 3.0)]
     dense_budget: f64,
     /// Skip a backend for the remaining (larger) N of a row once one run took longer than this.
-    #[arg(long, default_value_t = 120.0)]
+    #[arg(long, default_value_t = 60.0)]
     max_secs: f64,
 }
 
@@ -86,7 +86,7 @@ fn time_runs(mut f: impl FnMut()) -> f64 {
     f(); // warm-up (kernel compilation on wgpu)
     let mut times = vec![];
     let start = Instant::now();
-    while times.len() < 5 && (times.is_empty() || start.elapsed().as_secs_f64() < 2.0) {
+    while times.len() < 5 && (times.is_empty() || start.elapsed().as_secs_f64() < 1.5) {
         let t = Instant::now();
         f();
         times.push(t.elapsed().as_secs_f64() * 1e3);

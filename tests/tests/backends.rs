@@ -295,4 +295,10 @@ fn wgpu_matches_ndarray_forward_backward_and_hard_cases() {
     let (g0, bg0) = empty.gaussians(&wgpu);
     let out = splat(&g0, &front_camera(1, 1, 1.0), bg0, &SplatOptions::default()).unwrap();
     assert_eq!(host(out.features), empty.background);
+    let small = front_camera(9, 7, 8.0);
+    let (f0, g0) = render_and_grad(&empty, &small, cfg, &wgpu.clone().autodiff(), 3);
+    let (_, g0n) = render_and_grad(&empty, &small, cfg, &nd.clone().autodiff(), 3);
+    assert!(f0.chunks(2).all(|px| px == empty.background.as_slice()));
+    assert!(g0.means.is_empty() && g0.features.is_empty());
+    assert_close("N = 0 background gradient", &g0.background, &g0n.background, 1e-5);
 }

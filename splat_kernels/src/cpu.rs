@@ -212,6 +212,41 @@ fn eval_power(p: &Projected, px: f32, py: f32) -> (f32, f32, f32) {
     (power, dx, dy)
 }
 
+/// Pixel window `[x0, x1) x [y0, y1)` (tile-local) outside which the Gaussian's alpha is
+/// provably below `alpha_min`: the ellipse `o exp(power) >= alpha_min` and its bounding box,
+/// widened by one pixel against rounding. Skipping pixels outside it changes no result (they
+/// would be skipped by the alpha test anyway); it only saves work for small Gaussians.
+#[inline]
+fn pixel_window(p: &Projected, cfg: &RasterConfig, tx0: u32, ty0: u32, w: usize, h: usize) -> (usize, usize, usize, usize) {
+    let full = (0, w, 0, h);
+    if !(cfg.alpha_min > 0.0) {
+        return full;
+    }
+    if p.opacity < cfg.alpha_min {
+        return (0, 0, 0, 0);
+    }
+    let [a, b, c] = p.conic;
+    let det = a * c - b * b;
+    if !(det > 0.0) {
+        return full;
+    }
+    let k = 2.0 * (p.opacity / cfg.alpha_min).ln();
+    let hx = (k * c / det).sqrt() + 1.0;
+    let hy = (k * a / det).sqrt() + 1.0;
+    if !(hx.is_finite() && hy.is_finite()) {
+        return full;
+    }
+    // Pixel centres are at integer + 0.5.
+    let lo = |m: f32, half: f32, t0: u32, n: usize| ((m - half - 0.5 - t0 as f32).floor().max(0.0) as usize).min(n);
+    let hi = |m: f32, half: f32, t0: u32, n: usize| ((m + half - 0.5 - t0 as f32).ceil() + 1.0).clamp(0.0, n as f32) as usize;
+    (
+        lo(p.mean2d[0], hx, tx0, w),
+        hi(p.mean2d[0], hx, tx0, w),
+        lo(p.mean2d[1], hy, ty0, h),
+        hi(p.mean2d[1], hy, ty0, h),
+    )
+}
+
 struct TileFwd {
     image: Vec<f32>,
     alpha: Vec<f32>,
@@ -255,8 +290,9 @@ pub fn forward_binned(inp: &SplatInputsRef, cam: &Camera, cfg: &RasterConfig, b:
                 }
                 let p = b.projected[gid as usize].as_ref().expect("binned Gaussian is projected");
                 let f = &inp.features[gid as usize * c..(gid as usize + 1) * c];
-                for py in 0..h {
-                    for px in 0..w {
+                let (wx0, wx1, wy0, wy1) = pixel_window(p, cfg, x0, y0, w, h);
+                for py in wy0..wy1 {
+                    for px in wx0..wx1 {
                         let q = py * w + px;
                         if done[q] {
                             continue;
@@ -389,8 +425,9 @@ pub fn backward(
                 let p = b.projected[gid].as_ref().expect("binned Gaussian is projected");
                 let f = &inp.features[gid * c..(gid + 1) * c];
                 let slot = &mut buf[k * stride..(k + 1) * stride];
-                for py in 0..h {
-                    for px in 0..w {
+                let (wx0, wx1, wy0, wy1) = pixel_window(p, cfg, x0, y0, w, h);
+                for py in wy0..wy1 {
+                    for px in wx0..wx1 {
                         let q = py * w + px;
                         if k >= last[q] {
                             continue;

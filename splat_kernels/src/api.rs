@@ -48,6 +48,10 @@ pub struct SplatOptions {
     /// `[N, 2]` screen-space offsets added to the projected centres. Pass zeros that require grad to
     /// read the screen-space mean gradient (the densification signal) from `.grad()`.
     pub screen_offsets: Option<Tensor<2>>,
+    /// Largest buffer (bytes) one pass may bind; wider feature sets are rendered in channel
+    /// groups. `None`: 128 MiB on wgpu/CubeCL devices (the usual storage-binding limit, e.g. a
+    /// 1280x720x64 map is 243 MB), unlimited on the CPU.
+    pub max_pass_bytes: Option<usize>,
 }
 
 impl Default for SplatOptions {
@@ -56,6 +60,7 @@ impl Default for SplatOptions {
             config: RasterConfig::default(),
             validate: true,
             screen_offsets: None,
+            max_pass_bytes: None,
         }
     }
 }
@@ -144,25 +149,55 @@ pub fn splat(
     if options.validate {
         check_finite("background", &background)?;
     }
-    let prims = SplatPrims {
-        means: gaussians.means.clone().into_dispatch(),
-        log_scales: gaussians.log_scales.clone().into_dispatch(),
-        quats: gaussians.quats.clone().into_dispatch(),
-        opacity_logits: gaussians.opacity_logits.clone().into_dispatch(),
-        features: gaussians.features.clone().into_dispatch(),
-        background: background.into_dispatch(),
-        screen_offsets: offsets.into_dispatch(),
+    let is_cube = matches!(device.clone().inner().as_dispatch(), burn::backend::DispatchDevice::Cube(_));
+    let budget = options.max_pass_bytes.unwrap_or(if is_cube { 128 << 20 } else { usize::MAX });
+    let floats = budget / 4;
+    let hw = (camera.width * camera.height) as usize;
+    let per_pass = c.min((floats / hw).saturating_sub(2)).min(floats / n.max(1)).max(1);
+    let mut groups = vec![];
+    let mut start = 0;
+    while start < c {
+        let len = per_pass.min(c - start);
+        groups.push((start, len));
+        start += len;
+    }
+    let mut feature_maps = Vec::with_capacity(groups.len());
+    let mut first = None;
+    for &(start, len) in &groups {
+        let (feats, bg) = if groups.len() == 1 {
+            (gaussians.features.clone(), background.clone())
+        } else {
+            (gaussians.features.clone().narrow(1, start, len), background.clone().narrow(0, start, len))
+        };
+        let prims = SplatPrims {
+            means: gaussians.means.clone().into_dispatch(),
+            log_scales: gaussians.log_scales.clone().into_dispatch(),
+            quats: gaussians.quats.clone().into_dispatch(),
+            opacity_logits: gaussians.opacity_logits.clone().into_dispatch(),
+            features: feats.into_dispatch(),
+            background: bg.into_dispatch(),
+            screen_offsets: offsets.clone().into_dispatch(),
+        };
+        let out = <Dispatch as SplatBackend>::splat_forward(prims, *camera, options.config);
+        let packed = Tensor::<3>::from_dispatch(out.packed);
+        feature_maps.push(packed.clone().narrow(2, 0, len));
+        if first.is_none() {
+            first = Some((packed, Tensor::<2, Int>::from_dispatch(out.top_id), len));
+        }
+    }
+    let (packed, top_id, len0) = first.expect("at least one channel group");
+    let features = if feature_maps.len() == 1 {
+        feature_maps.pop().expect("one map")
+    } else {
+        Tensor::cat(feature_maps, 2)
     };
-    let out = <Dispatch as SplatBackend>::splat_forward(prims, *camera, options.config);
-    let packed = Tensor::<3>::from_dispatch(out.packed);
-    let features = packed.clone().narrow(2, 0, c);
-    let alpha = packed.clone().narrow(2, c, 1).squeeze_dim::<2>(2);
-    let depth = packed.narrow(2, c + 1, 1).squeeze_dim::<2>(2);
+    let alpha = packed.clone().narrow(2, len0, 1).squeeze_dim::<2>(2);
+    let depth = packed.narrow(2, len0 + 1, 1).squeeze_dim::<2>(2);
     Ok(SplatRender {
         features,
         alpha,
         depth,
-        top_id: Tensor::<2, Int>::from_dispatch(out.top_id),
+        top_id,
     })
 }
 

@@ -21,6 +21,17 @@ struct Grads {
 
 /// Renders on an autodiff `device` and back-propagates `<w, features> + <wa, alpha> + <wd, depth>`.
 fn render_and_grad(scene: &Scene, cam: &Camera, cfg: RasterConfig, device: &Device, seed: u64) -> (Vec<f32>, Grads) {
+    render_and_grad_with(scene, cam, cfg, device, seed, None)
+}
+
+fn render_and_grad_with(
+    scene: &Scene,
+    cam: &Camera,
+    cfg: RasterConfig,
+    device: &Device,
+    seed: u64,
+    max_pass_bytes: Option<usize>,
+) -> (Vec<f32>, Grads) {
     let (g, bg) = scene.gaussians(device);
     let g = splat_kernels::Gaussians {
         means: g.means.require_grad(),
@@ -36,6 +47,7 @@ fn render_and_grad(scene: &Scene, cam: &Camera, cfg: RasterConfig, device: &Devi
         config: cfg,
         validate: true,
         screen_offsets: Some(offsets.clone()),
+        max_pass_bytes,
     };
     let out = splat(&g, cam, bg.clone(), &opts).expect("valid inputs");
     let (h, w, c) = (cam.height as usize, cam.width as usize, scene.channels);
@@ -114,6 +126,26 @@ fn ndarray_autodiff_gradients_equal_the_hand_written_backward() {
         assert_eq!(a, b, "{name}: autodiff result differs from the direct backward");
         assert!(a.iter().any(|&v| v != 0.0), "{name}: gradient is all zero");
     }
+}
+
+/// Rendering wide features in channel groups (as wgpu does past its binding limit) changes no
+/// output and no gradient.
+fn assert_channel_groups_are_transparent(device: &Device) {
+    let cam = front_camera(40, 24, 40.0);
+    let scene = random_scene(50, 7, &cam, 31);
+    let cfg = RasterConfig::default();
+    let (f1, g1) = render_and_grad_with(&scene, &cam, cfg, device, 2, None);
+    // 40 x 24 pixels x (2 + 2) floats x 4 bytes: two channels per pass, four passes.
+    let (f2, g2) = render_and_grad_with(&scene, &cam, cfg, device, 2, Some(40 * 24 * 4 * 4));
+    assert_eq!(f1, f2);
+    for ((name, a), (_, b)) in grad_list(&g1).into_iter().zip(grad_list(&g2)) {
+        assert_close(&format!("channel groups: {name}"), a, b, 1e-5);
+    }
+}
+
+#[test]
+fn ndarray_channel_groups_change_nothing() {
+    assert_channel_groups_are_transparent(&Device::ndarray().autodiff());
 }
 
 #[test]
@@ -290,6 +322,7 @@ fn wgpu_matches_ndarray_forward_backward_and_hard_cases() {
     let base = render(&scene);
     assert_eq!(render(&rev), base, "wgpu image changed under a permutation of the Gaussians");
     assert_eq!(render(&culled), base, "off-screen Gaussians changed the wgpu image");
+    assert_channel_groups_are_transparent(&wgpu.clone().autodiff());
     // N = 0 and a 1x1 image.
     let empty = Scene::empty(2);
     let (g0, bg0) = empty.gaussians(&wgpu);

@@ -16,14 +16,16 @@ struct RefGaussian {
     depth: f64,
     opacity: f64,
     rect: [i64; 4],
-    /// The tile rectangle sits within rounding distance of a tile boundary.
-    rect_ambiguous: bool,
+    /// Rectangles for the footprint shrunk / grown by f32 rounding: tiles between them may or may
+    /// not be touched by an f32 implementation.
+    rect_inner: [i64; 4],
+    rect_outer: [i64; 4],
 }
 
-/// True when `x` is within `tol` of an integer.
-fn near_integer(x: f64, tol: f64) -> bool {
-    (x - x.round()).abs() < tol
+fn in_rect(r: &[i64; 4], tx: i64, ty: i64) -> bool {
+    tx >= r[0] && tx < r[2] && ty >= r[1] && ty < r[3]
 }
+
 
 fn project_one(inp: &SplatInputsRef, cam: &Camera, cfg: &RasterConfig, i: usize) -> Option<RefGaussian> {
     let f = |v: f32| v as f64;
@@ -75,16 +77,20 @@ fn project_one(inp: &SplatInputsRef, cam: &Camera, cfg: &RasterConfig, i: usize)
     ];
     let ts = TILE_SIZE as f64;
     let [tx, ty] = cam.tiles();
-    let rect = [
-        ((mean2d[0] - radius) / ts).floor().clamp(0.0, tx as f64) as i64,
-        ((mean2d[1] - radius) / ts).floor().clamp(0.0, ty as f64) as i64,
-        (((mean2d[0] + radius) / ts).floor() + 1.0).clamp(0.0, tx as f64) as i64,
-        (((mean2d[1] + radius) / ts).floor() + 1.0).clamp(0.0, ty as f64) as i64,
-    ];
-    let rect_ambiguous = near_integer(radius_raw, 1e-4 * radius_raw.max(1.0))
-        || [mean2d[0] - radius, mean2d[1] - radius, mean2d[0] + radius, mean2d[1] + radius]
-            .iter()
-            .any(|&e| near_integer(e / ts, 1e-5 * (e / ts).abs().max(1.0)));
+    let rect_of = |radius: f64, slack: f64| {
+        [
+            ((mean2d[0] - radius + slack) / ts).floor().clamp(0.0, tx as f64) as i64,
+            ((mean2d[1] - radius + slack) / ts).floor().clamp(0.0, ty as f64) as i64,
+            (((mean2d[0] + radius - slack) / ts).floor() + 1.0).clamp(0.0, tx as f64) as i64,
+            (((mean2d[1] + radius - slack) / ts).floor() + 1.0).clamp(0.0, ty as f64) as i64,
+        ]
+    };
+    let rect = rect_of(radius, 0.0);
+    // f32 rounding of the radius (relative ~1e-5) and of the centre (~1e-3 px).
+    let rtol = 2e-5 * radius_raw.max(1.0);
+    let ptol = 1e-3 + 1e-6 * (mean2d[0].abs() + mean2d[1].abs());
+    let rect_inner = rect_of((radius_raw - rtol).ceil(), ptol);
+    let rect_outer = rect_of((radius_raw + rtol).ceil(), -ptol);
     if rect[0] >= rect[2] || rect[1] >= rect[3] {
         return None;
     }
@@ -96,7 +102,8 @@ fn project_one(inp: &SplatInputsRef, cam: &Camera, cfg: &RasterConfig, i: usize)
         depth: p.z,
         opacity: 1.0 / (1.0 + (-l).exp()),
         rect,
-        rect_ambiguous,
+        rect_inner,
+        rect_outer,
     })
 }
 
@@ -147,7 +154,7 @@ pub fn render(inp: &SplatInputsRef, cam: &Camera, cfg: &RasterConfig) -> RefOut 
             let mut best = 0.0f64;
             let o = y * w + x;
             for g in &gs {
-                if tile_x < g.rect[0] || tile_x >= g.rect[2] || tile_y < g.rect[1] || tile_y >= g.rect[3] {
+                if !in_rect(&g.rect_outer, tile_x, tile_y) {
                     continue;
                 }
                 let dx = px - g.mean2d[0];
@@ -156,8 +163,14 @@ pub fn render(inp: &SplatInputsRef, cam: &Camera, cfg: &RasterConfig) -> RefOut 
                 let alpha = (g.opacity * power.exp()).min(cfg.alpha_max as f64);
                 let amin = cfg.alpha_min as f64;
                 let tmin = cfg.t_min as f64;
-                if g.rect_ambiguous
-                    || (alpha - amin).abs() <= 1e-5 * amin
+                let membership_unsure = !in_rect(&g.rect_inner, tile_x, tile_y) && power <= 0.0 && alpha >= amin;
+                if membership_unsure {
+                    out.ambiguous[o] = true;
+                }
+                if !in_rect(&g.rect, tile_x, tile_y) {
+                    continue;
+                }
+                if (alpha - amin).abs() <= 1e-5 * amin
                     || (t * (1.0 - alpha) - tmin).abs() <= 1e-4 * tmin
                     || (power.abs() < 1e-6 && g.opacity >= amin)
                 {

@@ -36,6 +36,77 @@ struct Args {
     /// Skip a backend for the remaining (larger) N of a row once one run took longer than this.
     #[arg(long, default_value_t = 60.0)]
     max_secs: f64,
+    /// Instead of timing, print each implementation's error against the f64 reference.
+    #[arg(long)]
+    accuracy: bool,
+}
+
+/// Max abs error of every implementation against the dense f64 reference on a small scene
+/// (the reference is O(pixels x N)), for the speed-against-error table.
+fn accuracy() {
+    use splat_kernels::{cpu::SplatInputsRef, reference};
+    println!("| scene | impl | max abs error (features) | max abs error (alpha) | mean abs error (features) |");
+    println!("|---|---|---|---|---|");
+    for (n, c, w, h) in [(2000usize, 32usize, 160u32, 120u32), (20000, 3, 160, 120)] {
+        let cam = Camera::look_at(glam::Vec3::ZERO, glam::Vec3::Z, -glam::Vec3::Y, 50.0, w, h);
+        let host = scene(n, c);
+        let zeros = vec![0.0f32; n * 2];
+        let bg = vec![0.0f32; c];
+        let inp = SplatInputsRef {
+            means: &host[0],
+            log_scales: &host[1],
+            quats: &host[2],
+            opacity_logits: &host[3],
+            features: &host[4],
+            background: &bg,
+            screen_offsets: &zeros,
+            channels: c,
+        };
+        let cfg = RasterConfig::default();
+        let r = reference::render(&inp, &cam, &cfg);
+        let amb = r.ambiguous.iter().filter(|&&a| a).count();
+        let mut rows: Vec<(&str, Vec<f32>, Vec<f32>)> = vec![];
+        for (name, dev) in [("ndarray", Device::ndarray()), ("wgpu", BackendChoice::Wgpu.device())] {
+            let got = catch_backend(name, || {
+                let (g, bgt) = tensors(&host, n, c, &dev, false);
+                let out = splat(&g, &cam, bgt, &SplatOptions::default()).expect("valid");
+                (
+                    out.features.into_data().to_vec::<f32>().expect("f32"),
+                    out.alpha.into_data().to_vec::<f32>().expect("f32"),
+                )
+            });
+            if let Ok((f, a)) = got {
+                rows.push((name, f, a));
+            }
+        }
+        let (g, bgt) = tensors(&host, n, c, &Device::ndarray(), false);
+        let proj = dense::project(&g, &cam, &cfg);
+        let (f, a, _) = dense::composite(&proj, &cam, &cfg, bgt, 0, (w * h) as usize);
+        rows.push(("dense burn ops", f.into_data().to_vec::<f32>().expect("f32"), a.into_data().to_vec::<f32>().expect("f32")));
+        for (name, f, a) in rows {
+            // Threshold-ambiguous pixels (f32 rounding may flip a 1/255 or 1e-4 test) are excluded.
+            let mut fmax = 0.0f64;
+            let mut fsum = 0.0f64;
+            let mut cnt = 0usize;
+            let mut amax = 0.0f64;
+            for o in 0..(w * h) as usize {
+                if r.ambiguous[o] {
+                    continue;
+                }
+                for ch in 0..c {
+                    let e = (f[o * c + ch] as f64 - r.image[o * c + ch]).abs();
+                    fmax = fmax.max(e);
+                    fsum += e;
+                    cnt += 1;
+                }
+                amax = amax.max((a[o] as f64 - r.alpha[o]).abs());
+            }
+            println!(
+                "| N={n}, C={c}, {w}x{h} ({amb} ambiguous px excluded) | {name} | {fmax:.2e} | {amax:.2e} | {:.2e} |",
+                fsum / cnt.max(1) as f64
+            );
+        }
+    }
 }
 
 /// A cloud of `n` Gaussians filling a box in front of the camera; sizes shrink as n^(-1/3) so the
@@ -161,6 +232,10 @@ fn fmt_ms(v: Option<f64>) -> String {
 
 fn main() {
     let a = Args::parse();
+    if a.accuracy {
+        accuracy();
+        return;
+    }
     let want = |s: &str| a.impls.iter().any(|x| x == s);
     println!("| res | N | C | ndarray fwd | ndarray f+b | wgpu fwd | wgpu f+b | dense fwd | dense f+b | ndarray vs dense (fwd / f+b) |");
     println!("|---|---|---|---|---|---|---|---|---|---|");

@@ -140,3 +140,39 @@ pub fn masked_reference(
     }
     out
 }
+
+fn pick(r: &mut Rng, options: &[f32]) -> f32 {
+    options[(r.next_u64() % options.len() as u64) as usize]
+}
+
+/// A scene mixing extreme but finite values in every tensor (zero, denormal and huge values,
+/// Gaussians at and behind the near plane, opacity logits of +-1e4), deterministic from `seed`.
+pub fn fuzz_scene(seed: u64) -> Scene {
+    let pos = [0.0, 1e-38, -1e-42, 0.3, -0.4, 1e6, -1e6, 3.0e38];
+    let depth = [0.0, 0.0101, 0.5, 2.0, 1e3, 1e9, -1.0, 1e-30];
+    let ls = [-1000.0, -40.0, -18.4, -3.0, 0.0, 9.2, 25.0, 1000.0];
+    let quat = [0.0, 1e-45, -1e-40, 1e-13, 0.7, -1.0, 1e30, -3e38];
+    let logit = [-1e4, -50.0, -3.0, 0.0, 2.0, 50.0, 1e4, 1e-40];
+    let feat = [0.0, 1e-42, -1e3, 1e3, 0.5, -7.0];
+    let mut r = Rng::new(seed);
+    let c = 1 + (seed % 4) as usize;
+    let mut s = Scene::empty(c);
+    s.background = (0..c).map(|_| pick(&mut r, &feat)).collect();
+    for _ in 0..(1 + seed % 25) {
+        let z = pick(&mut r, &depth);
+        let f: Vec<f32> = (0..c).map(|_| pick(&mut r, &feat)).collect();
+        let mut m = [pick(&mut r, &pos) * 1e-3, pick(&mut r, &pos) * 1e-3, z];
+        if seed % 3 == 0 {
+            // Keep some centres on screen so the extreme shapes are actually rasterised.
+            m = [r.range(-0.5, 0.5) * z.abs(), r.range(-0.5, 0.5) * z.abs(), z];
+        }
+        s.push(
+            m,
+            [pick(&mut r, &ls), pick(&mut r, &ls), pick(&mut r, &ls)],
+            [pick(&mut r, &quat), pick(&mut r, &quat), pick(&mut r, &quat), pick(&mut r, &quat)],
+            pick(&mut r, &logit),
+            &f,
+        );
+    }
+    s
+}

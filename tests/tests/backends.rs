@@ -323,6 +323,19 @@ fn wgpu_matches_ndarray_forward_backward_and_hard_cases() {
     assert_eq!(render(&rev), base, "wgpu image changed under a permutation of the Gaussians");
     assert_eq!(render(&culled), base, "off-screen Gaussians changed the wgpu image");
     assert_channel_groups_are_transparent(&wgpu.clone().autodiff());
+    // The fuzz scenes of the CPU suite (extreme but finite values everywhere) stay finite on wgpu.
+    let cam = front_camera(23, 17, 20.0);
+    let mut drawn = 0;
+    for seed in 0..40u64 {
+        let s = fuzz_scene(seed);
+        let (f, g) = render_and_grad(&s, &cam, cfg, &wgpu.clone().autodiff(), seed);
+        assert!(f.iter().all(|v| v.is_finite()), "fuzz seed {seed}: wgpu forward not finite");
+        for (name, v) in grad_list(&g) {
+            assert!(v.iter().all(|x| x.is_finite()), "fuzz seed {seed}: wgpu grad {name} not finite");
+        }
+        drawn += (f != s.background.repeat(23 * 17)) as usize;
+    }
+    assert!(drawn >= 10, "only {drawn} fuzz scenes drew anything on wgpu");
     // N = 0 and a 1x1 image.
     let empty = Scene::empty(2);
     let (g0, bg0) = empty.gaussians(&wgpu);

@@ -111,6 +111,7 @@ fn int_prim<B: Backend>(v: Vec<i32>, shape: Vec<usize>, device: &B::Device) -> I
 }
 
 /// Host copies of the seven inputs.
+#[derive(Clone, Debug, Default, PartialEq)]
 pub struct HostInputs {
     pub means: Vec<f32>,
     pub log_scales: Vec<f32>,

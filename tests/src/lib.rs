@@ -7,51 +7,34 @@ use splat_kernels::{Camera, Gaussians};
 
 pub use model::rng::Rng;
 
-/// Host copy of a scene's inputs.
-#[derive(Clone, Debug)]
-pub struct Scene {
-    pub means: Vec<f32>,
-    pub log_scales: Vec<f32>,
-    pub quats: Vec<f32>,
-    pub opacity_logits: Vec<f32>,
-    pub features: Vec<f32>,
-    pub background: Vec<f32>,
-    pub screen_offsets: Vec<f32>,
-    pub channels: usize,
+/// Host copy of a scene's inputs (the op's own host layout).
+pub type Scene = splat_kernels::ext::HostInputs;
+
+/// Test conveniences on [`Scene`].
+pub trait SceneExt {
+    fn len(&self) -> usize;
+    fn inputs(&self) -> SplatInputsRef<'_>;
+    fn empty(channels: usize) -> Self;
+    fn push(&mut self, mean: [f32; 3], log_scale: [f32; 3], quat: [f32; 4], logit: f32, feat: &[f32]);
+    /// Burn tensors on `device`.
+    fn gaussians(&self, device: &Device) -> (Gaussians, Tensor<1>);
 }
 
-impl Scene {
-    pub fn len(&self) -> usize {
+impl SceneExt for Scene {
+    fn len(&self) -> usize {
         self.opacity_logits.len()
     }
-    pub fn is_empty(&self) -> bool {
-        self.len() == 0
+    fn inputs(&self) -> SplatInputsRef<'_> {
+        self.as_ref()
     }
-    pub fn inputs(&self) -> SplatInputsRef<'_> {
-        SplatInputsRef {
-            means: &self.means,
-            log_scales: &self.log_scales,
-            quats: &self.quats,
-            opacity_logits: &self.opacity_logits,
-            features: &self.features,
-            background: &self.background,
-            screen_offsets: &self.screen_offsets,
-            channels: self.channels,
-        }
-    }
-    pub fn empty(channels: usize) -> Self {
+    fn empty(channels: usize) -> Self {
         Self {
-            means: vec![],
-            log_scales: vec![],
-            quats: vec![],
-            opacity_logits: vec![],
-            features: vec![],
             background: vec![0.25; channels],
-            screen_offsets: vec![],
             channels,
+            ..Default::default()
         }
     }
-    pub fn push(&mut self, mean: [f32; 3], log_scale: [f32; 3], quat: [f32; 4], logit: f32, feat: &[f32]) {
+    fn push(&mut self, mean: [f32; 3], log_scale: [f32; 3], quat: [f32; 4], logit: f32, feat: &[f32]) {
         assert_eq!(feat.len(), self.channels);
         self.means.extend_from_slice(&mean);
         self.log_scales.extend_from_slice(&log_scale);
@@ -60,8 +43,7 @@ impl Scene {
         self.features.extend_from_slice(feat);
         self.screen_offsets.extend_from_slice(&[0.0, 0.0]);
     }
-    /// Burn tensors on `device`.
-    pub fn gaussians(&self, device: &Device) -> (Gaussians, Tensor<1>) {
+    fn gaussians(&self, device: &Device) -> (Gaussians, Tensor<1>) {
         let n = self.len();
         let c = self.channels;
         let t2 = |v: &Vec<f32>, w: usize| Tensor::<2>::from_data(TensorData::new(v.clone(), [n, w]), device);

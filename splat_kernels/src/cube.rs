@@ -20,7 +20,7 @@
 //! The math mirrors [`crate::project`] and [`crate::cpu`] line for line; see there for derivations.
 
 use crate::camera::Camera;
-use crate::constants::{LOG_SCALE_MAX, LOG_SCALE_MIN, LOW_PASS, QUAT_MIN_NORM, RasterConfig, TILE_PIXELS};
+use crate::constants::{LOG_SCALE_MAX, LOG_SCALE_MIN, LOW_PASS, QUAT_MIN_NORM, RasterConfig, TILE_PIXELS, TILE_SIZE};
 use crate::ext::{SplatBackend, SplatFwdPrims, SplatPrims, SplatSaved};
 use burn::backend::ops::FloatTensorOps;
 use burn::backend::wgpu::{CubeBackend, CubeTensor};
@@ -270,7 +270,7 @@ fn project_kernel(
     let cx2 = fx * u + cam[14] + offsets[iu * 2];
     let cy2 = fy * v + cam[15] + offsets[iu * 2 + 1];
     visible = visible && cx2 - cx2 == 0.0 && cy2 - cy2 == 0.0 && radius - radius == 0.0;
-    let ts = 16.0f32;
+    let ts = f32::cast_from(TILE_SIZE);
     let tx0 = f32::clamp(f32::floor((cx2 - radius) / ts), 0.0, f32::cast_from(tiles_x));
     let ty0 = f32::clamp(f32::floor((cy2 - radius) / ts), 0.0, f32::cast_from(tiles_y));
     let tx1 = f32::clamp(f32::floor((cx2 + radius) / ts) + 1.0, 0.0, f32::cast_from(tiles_x));
@@ -306,7 +306,7 @@ fn project_kernel(
 #[cube(launch)]
 fn scan_kernel(counts: &[u32], offsets: &mut [u32], total: &mut [u32], n: u32) {
     let mut partial = Shared::<[u32]>::new_slice(256usize);
-    let per = (n + 255) / 256;
+    let per = n.div_ceil(TILE_PIXELS);
     let begin = u32::min(UNIT_POS * per, n);
     let end = u32::min(begin + per, n);
     let mut s = 0u32;
@@ -317,7 +317,7 @@ fn scan_kernel(counts: &[u32], offsets: &mut [u32], total: &mut [u32], n: u32) {
     sync_cube();
     if UNIT_POS == 0 {
         let mut running = 0u32;
-        for k in 0..256u32 {
+        for k in 0..TILE_PIXELS {
             let v = partial[k as usize];
             partial[k as usize] = running;
             running += v;
@@ -398,7 +398,7 @@ fn tile_sort_kernel(keys: &mut [f32], gids: &mut [u32], offsets: &[u32], counts:
             if hi < n {
                 compare_swap(keys, gids, start + lo as usize, start + hi as usize);
             }
-            i += 256;
+            i += TILE_PIXELS;
         }
         sync_storage();
         let mut stride = half / 2;
@@ -412,7 +412,7 @@ fn tile_sort_kernel(keys: &mut [f32], gids: &mut [u32], offsets: &[u32], counts:
                 if hi < n {
                     compare_swap(keys, gids, start + lo as usize, start + hi as usize);
                 }
-                j += 256;
+                j += TILE_PIXELS;
             }
             sync_storage();
             stride /= 2;
@@ -455,11 +455,12 @@ fn raster_fwd_kernel(
     tiles_x: u32,
     channels: u32,
 ) {
+    // Shared staging for one batch: TILE_PIXELS ids and 7 floats each (sizes must be literals).
     let mut s_gid = Shared::<[u32]>::new_slice(256usize);
     let mut s_p = Shared::<[f32]>::new_slice(1792usize);
     let tile = (CUBE_POS_Y * tiles_x + CUBE_POS_X) as usize;
-    let px = CUBE_POS_X * 16 + UNIT_POS % 16;
-    let py = CUBE_POS_Y * 16 + UNIT_POS / 16;
+    let px = CUBE_POS_X * TILE_SIZE + UNIT_POS % TILE_SIZE;
+    let py = CUBE_POS_Y * TILE_SIZE + UNIT_POS / TILE_SIZE;
     let inside = px < width && py < height;
     let pix = (py * width + px) as usize;
     let c2 = (channels + 2) as usize;
@@ -486,7 +487,7 @@ fn raster_fwd_kernel(
     while base < count {
         stage_batch(gids, proj, &mut s_gid, &mut s_p, start + base, count - base);
         sync_cube();
-        let batch = u32::min(256u32, count - base);
+        let batch = u32::min(TILE_PIXELS, count - base);
         for j in 0u32..batch {
             if !done {
                 let ju = j as usize;
@@ -519,7 +520,7 @@ fn raster_fwd_kernel(
             }
         }
         sync_cube();
-        base += 256;
+        base += TILE_PIXELS;
     }
     if inside {
         for ch in 0usize..ch_n {
@@ -568,12 +569,13 @@ fn raster_bwd_kernel(
     tiles_x: u32,
     channels: u32,
 ) {
+    // Shared staging for one batch: TILE_PIXELS ids and 7 floats each (sizes must be literals).
     let mut s_gid = Shared::<[u32]>::new_slice(256usize);
     let mut s_p = Shared::<[f32]>::new_slice(1792usize);
     let mut s_max = Shared::<[u32]>::new_slice(256usize);
     let tile = (CUBE_POS_Y * tiles_x + CUBE_POS_X) as usize;
-    let px = CUBE_POS_X * 16 + UNIT_POS % 16;
-    let py = CUBE_POS_Y * 16 + UNIT_POS / 16;
+    let px = CUBE_POS_X * TILE_SIZE + UNIT_POS % TILE_SIZE;
+    let py = CUBE_POS_Y * TILE_SIZE + UNIT_POS / TILE_SIZE;
     let inside = px < width && py < height;
     let pix = (py * width + px) as usize;
     let c2 = (channels + 2) as usize;
@@ -603,7 +605,7 @@ fn raster_bwd_kernel(
     sync_cube();
     if UNIT_POS == 0 {
         let mut mx = 0u32;
-        for k in 0..256u32 {
+        for k in 0..TILE_PIXELS {
             mx = u32::max(mx, s_max[k as usize]);
         }
         s_max[0] = mx;
@@ -612,7 +614,7 @@ fn raster_bwd_kernel(
     let max_last = s_max[0];
     let mut end = max_last;
     while end > 0 {
-        let begin = end - u32::min(256u32, end);
+        let begin = end - u32::min(TILE_PIXELS, end);
         stage_batch(gids, proj, &mut s_gid, &mut s_p, start + begin, end - begin);
         sync_cube();
         let batch = end - begin;

@@ -2,7 +2,7 @@
 //! backend selection, benchmark scenes.
 #![allow(deprecated)] // burn-ndarray is deprecated in burn 0.22 in favour of burn-flex.
 
-pub mod images;
+pub use model::images;
 
 use burn::tensor::{Device, DeviceKind};
 

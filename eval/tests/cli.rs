@@ -56,3 +56,20 @@ fn bad_input_gives_a_clear_error_and_a_non_zero_exit() {
     assert!(!st.status.success());
     assert!(String::from_utf8_lossy(&st.stderr).contains("--eye expects three"));
 }
+
+#[test]
+fn synth_writes_a_dataset_and_rejects_zero_views() {
+    let dir = tmp("synth");
+    let st = chatsplat()
+        .args(["synth", "--views", "2", "--width", "16", "--height", "12", "--out"])
+        .arg(&dir)
+        .output()
+        .unwrap();
+    assert!(st.status.success(), "{}", String::from_utf8_lossy(&st.stderr));
+    for rel in ["transforms.json", "scene.json", "images/frame_0001.png", "masks/frame_0001.png", "depth/frame_0001.png"] {
+        assert!(dir.join(rel).is_file(), "{rel} missing");
+    }
+    let st = chatsplat().args(["synth", "--views", "0", "--out"]).arg(&dir).output().unwrap();
+    assert!(!st.status.success());
+    assert!(String::from_utf8_lossy(&st.stderr).contains("views, width and height must be positive"));
+}

@@ -2,6 +2,7 @@
 //! synthetic scenes used by demos and tests.
 
 pub mod cloud;
+pub mod images;
 pub mod ply;
 pub mod rng;
 pub mod synthetic;

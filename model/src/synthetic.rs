@@ -21,6 +21,15 @@ fn logit(p: f32) -> f32 {
     (p / (1.0 - p)).ln()
 }
 
+/// Half side of the square table top (the table spans [-TABLE_HALF, TABLE_HALF] in x and z).
+pub const TABLE_HALF: f32 = 2.0;
+
+/// Wood-like stripes of the table top at (x, z).
+pub fn table_color(x: f32, z: f32) -> [f32; 3] {
+    let stripe = 0.5 + 0.5 * (x * 9.0 + (z * 2.0).sin()).sin();
+    [0.55 + 0.12 * stripe, 0.38 + 0.08 * stripe, 0.22 + 0.05 * stripe]
+}
+
 /// The objects placed by `seed` (positions and sizes jitter with the seed).
 pub fn tabletop_objects(seed: u64) -> Vec<Primitive> {
     let mut r = Rng::new(seed ^ 0x5EED);
@@ -79,9 +88,7 @@ pub fn tabletop(seed: u64, density: usize) -> (GaussianCloud, Vec<Primitive>) {
         for j in 0..d {
             let x = -2.0 + (i as f32 + 0.5) * step;
             let z = -2.0 + (j as f32 + 0.5) * step;
-            let stripe = 0.5 + 0.5 * (x * 9.0 + (z * 2.0).sin()).sin();
-            let col = [0.55 + 0.12 * stripe, 0.38 + 0.08 * stripe, 0.22 + 0.05 * stripe];
-            b.splat(Vec3::new(x, 0.0, z), Vec3::Y, step * 0.7, col);
+            b.splat(Vec3::new(x, 0.0, z), Vec3::Y, step * 0.7, table_color(x, z));
         }
     }
     for o in &objects {

@@ -10,7 +10,44 @@ pub fn write_rgb(path: &Path, width: u32, height: u32, rgb: &[f32]) -> Result<()
     write_bytes(path, width, height, &bytes)
 }
 
+/// Writes an 8-bit grayscale PNG (e.g. instance-id masks), atomically.
+pub fn write_gray8(path: &Path, width: u32, height: u32, values: &[u8]) -> Result<(), String> {
+    assert_eq!(values.len(), (width * height) as usize);
+    write_png(path, width, height, values, png::ColorType::Grayscale, png::BitDepth::Eight)
+}
+
+/// Writes a 16-bit grayscale PNG (e.g. depth in millimetres), atomically.
+pub fn write_gray16(path: &Path, width: u32, height: u32, values: &[u16]) -> Result<(), String> {
+    assert_eq!(values.len(), (width * height) as usize);
+    let bytes: Vec<u8> = values.iter().flat_map(|v| v.to_be_bytes()).collect();
+    write_png(path, width, height, &bytes, png::ColorType::Grayscale, png::BitDepth::Sixteen)
+}
+
 fn write_bytes(path: &Path, width: u32, height: u32, bytes: &[u8]) -> Result<(), String> {
+    write_png(path, width, height, bytes, png::ColorType::Rgb, png::BitDepth::Eight)
+}
+
+/// Reads an 8-bit PNG (gray, gray+alpha, RGB or RGBA) as (width, height, channels, bytes).
+pub fn read_png8(path: &Path) -> Result<(u32, u32, usize, Vec<u8>), String> {
+    let err = |e: String| format!("{}: cannot read PNG: {e}", path.display());
+    let file = std::fs::File::open(path).map_err(|e| err(e.to_string()))?;
+    let mut dec = png::Decoder::new(std::io::BufReader::new(file));
+    dec.set_transformations(png::Transformations::EXPAND | png::Transformations::STRIP_16);
+    let mut reader = dec.read_info().map_err(|e| err(e.to_string()))?;
+    let mut buf = vec![0; reader.output_buffer_size()];
+    let info = reader.next_frame(&mut buf).map_err(|e| err(e.to_string()))?;
+    buf.truncate(info.buffer_size());
+    Ok((info.width, info.height, info.color_type.samples(), buf))
+}
+
+fn write_png(
+    path: &Path,
+    width: u32,
+    height: u32,
+    bytes: &[u8],
+    color: png::ColorType,
+    depth: png::BitDepth,
+) -> Result<(), String> {
     let err = |e: String| format!("{}: cannot write PNG: {e}", path.display());
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
         std::fs::create_dir_all(dir).map_err(|e| err(e.to_string()))?;
@@ -19,8 +56,8 @@ fn write_bytes(path: &Path, width: u32, height: u32, bytes: &[u8]) -> Result<(),
     {
         let file = std::fs::File::create(&tmp).map_err(|e| err(e.to_string()))?;
         let mut enc = png::Encoder::new(BufWriter::new(file), width, height);
-        enc.set_color(png::ColorType::Rgb);
-        enc.set_depth(png::BitDepth::Eight);
+        enc.set_color(color);
+        enc.set_depth(depth);
         let mut w = enc.write_header().map_err(|e| err(e.to_string()))?;
         w.write_image_data(bytes).map_err(|e| err(e.to_string()))?;
     }

@@ -1,0 +1,3 @@
+//! Scene data: posed images (and masks, depth) from datasets or the built-in synthetic generator.
+
+pub mod synth;

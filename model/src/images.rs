@@ -40,6 +40,20 @@ pub fn read_png8(path: &Path) -> Result<(u32, u32, usize, Vec<u8>), String> {
     Ok((info.width, info.height, info.color_type.samples(), buf))
 }
 
+/// Reads a 16-bit grayscale PNG (e.g. depth in millimetres) as (width, height, values).
+pub fn read_gray16(path: &Path) -> Result<(u32, u32, Vec<u16>), String> {
+    let err = |e: String| format!("{}: cannot read PNG: {e}", path.display());
+    let file = std::fs::File::open(path).map_err(|e| err(e.to_string()))?;
+    let mut reader = png::Decoder::new(std::io::BufReader::new(file)).read_info().map_err(|e| err(e.to_string()))?;
+    let mut buf = vec![0; reader.output_buffer_size()];
+    let info = reader.next_frame(&mut buf).map_err(|e| err(e.to_string()))?;
+    if info.bit_depth != png::BitDepth::Sixteen || info.color_type != png::ColorType::Grayscale {
+        return Err(format!("{}: expected a 16-bit grayscale PNG", path.display()));
+    }
+    let values = buf[..info.buffer_size()].chunks(2).map(|b| u16::from_be_bytes([b[0], b[1]])).collect();
+    Ok((info.width, info.height, values))
+}
+
 fn write_png(
     path: &Path,
     width: u32,

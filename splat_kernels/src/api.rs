@@ -154,17 +154,11 @@ pub fn splat(
     let floats = budget / 4;
     let hw = (camera.width * camera.height) as usize;
     let per_pass = c.min((floats / hw).saturating_sub(2)).min(floats / n.max(1)).max(1);
-    let mut groups = vec![];
-    let mut start = 0;
-    while start < c {
-        let len = per_pass.min(c - start);
-        groups.push((start, len));
-        start += len;
-    }
-    let mut feature_maps = Vec::with_capacity(groups.len());
+    let mut feature_maps = Vec::with_capacity(c.div_ceil(per_pass));
     let mut first = None;
-    for &(start, len) in &groups {
-        let (feats, bg) = if groups.len() == 1 {
+    for start in (0..c).step_by(per_pass) {
+        let len = per_pass.min(c - start);
+        let (feats, bg) = if len == c {
             (gaussians.features.clone(), background.clone())
         } else {
             (gaussians.features.clone().narrow(1, start, len), background.clone().narrow(0, start, len))

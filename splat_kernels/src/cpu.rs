@@ -212,12 +212,12 @@ fn eval_power(p: &Projected, px: f32, py: f32) -> (f32, f32, f32) {
     (power, dx, dy)
 }
 
-/// Pixel window `[x0, x1) x [y0, y1)` (tile-local) outside which the Gaussian's alpha is
+/// Pixel window `[x0, x1) x [y0, y1)` (local to the tile whose first pixel is `(ox, oy)`) outside which the Gaussian's alpha is
 /// provably below `alpha_min`: the ellipse `o exp(power) >= alpha_min` and its bounding box,
 /// widened by one pixel against rounding. Skipping pixels outside it changes no result (they
 /// would be skipped by the alpha test anyway); it only saves work for small Gaussians.
 #[inline]
-fn pixel_window(p: &Projected, cfg: &RasterConfig, tx0: u32, ty0: u32, w: usize, h: usize) -> (usize, usize, usize, usize) {
+fn pixel_window(p: &Projected, cfg: &RasterConfig, ox: u32, oy: u32, w: usize, h: usize) -> (usize, usize, usize, usize) {
     let full = (0, w, 0, h);
     if !(cfg.alpha_min > 0.0) {
         return full;
@@ -237,13 +237,13 @@ fn pixel_window(p: &Projected, cfg: &RasterConfig, tx0: u32, ty0: u32, w: usize,
         return full;
     }
     // Pixel centres are at integer + 0.5.
-    let lo = |m: f32, half: f32, t0: u32, n: usize| ((m - half - 0.5 - t0 as f32).floor().max(0.0) as usize).min(n);
-    let hi = |m: f32, half: f32, t0: u32, n: usize| ((m + half - 0.5 - t0 as f32).ceil() + 1.0).clamp(0.0, n as f32) as usize;
+    let lo = |m: f32, half: f32, o: u32, n: usize| ((m - half - 0.5 - o as f32).floor().max(0.0) as usize).min(n);
+    let hi = |m: f32, half: f32, o: u32, n: usize| ((m + half - 0.5 - o as f32).ceil() + 1.0).clamp(0.0, n as f32) as usize;
     (
-        lo(p.mean2d[0], hx, tx0, w),
-        hi(p.mean2d[0], hx, tx0, w),
-        lo(p.mean2d[1], hy, ty0, h),
-        hi(p.mean2d[1], hy, ty0, h),
+        lo(p.mean2d[0], hx, ox, w),
+        hi(p.mean2d[0], hx, ox, w),
+        lo(p.mean2d[1], hy, oy, h),
+        hi(p.mean2d[1], hy, oy, h),
     )
 }
 

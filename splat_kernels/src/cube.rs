@@ -225,8 +225,6 @@ fn project_kernel(
     rects: &mut [u32],
     tile_counts: &[Atomic<u32>],
     n: u32,
-    width: u32,
-    height: u32,
     tiles_x: u32,
     tiles_y: u32,
 ) {
@@ -234,11 +232,8 @@ fn project_kernel(
     if i >= n {
         terminate!();
     }
+    // `rects` and `proj` arrive zeroed: a culled Gaussian keeps an empty rectangle.
     let iu = i as usize;
-    rects[iu * 4] = 0;
-    rects[iu * 4 + 1] = 0;
-    rects[iu * 4 + 2] = 0;
-    rects[iu * 4 + 3] = 0;
     let k = covar(means, log_scales, quats, cam, iu);
     let z = k.z;
     let fx = cam[12];
@@ -299,7 +294,6 @@ fn project_kernel(
             }
         }
     }
-    let _ = width + height;
 }
 
 /// One workgroup of 256: exclusive prefix sum of `counts[0..n]` into `offsets`, total into `total[0]`.
@@ -923,8 +917,6 @@ fn bin(p: &SplatPrims<CubeBackend>, camera: &Camera, config: &RasterConfig) -> D
             buf(&rects),
             buf(&counts),
             n as u32,
-            camera.width,
-            camera.height,
             tx,
             ty,
         );

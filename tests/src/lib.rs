@@ -18,6 +18,8 @@ pub trait SceneExt {
     fn push(&mut self, mean: [f32; 3], log_scale: [f32; 3], quat: [f32; 4], logit: f32, feat: &[f32]);
     /// Burn tensors on `device`.
     fn gaussians(&self, device: &Device) -> (Gaussians, Tensor<1>);
+    /// The same Gaussians and background, Gaussian `order[k]` becoming Gaussian `k`.
+    fn permuted(&self, order: &[usize]) -> Self;
 }
 
 impl SceneExt for Scene {
@@ -42,6 +44,21 @@ impl SceneExt for Scene {
         self.opacity_logits.push(logit);
         self.features.extend_from_slice(feat);
         self.screen_offsets.extend_from_slice(&[0.0, 0.0]);
+    }
+    fn permuted(&self, order: &[usize]) -> Self {
+        let c = self.channels;
+        let mut p = Self::empty(c);
+        p.background = self.background.clone();
+        for &i in order {
+            p.push(
+                self.means[3 * i..3 * i + 3].try_into().unwrap(),
+                self.log_scales[3 * i..3 * i + 3].try_into().unwrap(),
+                self.quats[4 * i..4 * i + 4].try_into().unwrap(),
+                self.opacity_logits[i],
+                &self.features[c * i..c * (i + 1)],
+            );
+        }
+        p
     }
     fn gaussians(&self, device: &Device) -> (Gaussians, Tensor<1>) {
         let n = self.len();
@@ -157,4 +174,11 @@ pub fn fuzz_scene(seed: u64) -> Scene {
         );
     }
     s
+}
+
+/// A fresh, empty temporary directory unique to this process and `tag`.
+pub fn temp_dir(tag: &str) -> std::path::PathBuf {
+    let d = std::env::temp_dir().join(format!("chatsplat-{tag}-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&d);
+    d
 }

@@ -301,17 +301,8 @@ fn wgpu_matches_ndarray_forward_backward_and_hard_cases() {
     // Permutation invariance and culling on wgpu: identical images.
     let cam = front_camera(50, 40, 50.0);
     let scene = random_scene(120, 4, &cam, 11);
-    let mut rev = Scene::empty(4);
-    rev.background = scene.background.clone();
-    for i in (0..scene.len()).rev() {
-        rev.push(
-            scene.means[3 * i..3 * i + 3].try_into().unwrap(),
-            scene.log_scales[3 * i..3 * i + 3].try_into().unwrap(),
-            scene.quats[4 * i..4 * i + 4].try_into().unwrap(),
-            scene.opacity_logits[i],
-            &scene.features[4 * i..4 * i + 4],
-        );
-    }
+    let order: Vec<usize> = (0..scene.len()).rev().collect();
+    let rev = scene.permuted(&order);
     let mut culled = scene.clone();
     culled.push([0.0, 0.0, -2.0], [0.0; 3], [1.0, 0.0, 0.0, 0.0], 3.0, &[1.0; 4]);
     culled.push([50.0, 0.0, 2.0], [-2.0; 3], [1.0, 0.0, 0.0, 0.0], 3.0, &[1.0; 4]);

@@ -185,17 +185,7 @@ fn permuting_gaussians_does_not_change_the_image() {
     for i in (1..n).rev() {
         perm.swap(i, (r.next_u64() % (i as u64 + 1)) as usize);
     }
-    let mut p = Scene::empty(4);
-    p.background = scene.background.clone();
-    for &i in &perm {
-        p.push(
-            scene.means[3 * i..3 * i + 3].try_into().unwrap(),
-            scene.log_scales[3 * i..3 * i + 3].try_into().unwrap(),
-            scene.quats[4 * i..4 * i + 4].try_into().unwrap(),
-            scene.opacity_logits[i],
-            &scene.features[4 * i..4 * i + 4],
-        );
-    }
+    let p = scene.permuted(&perm);
     let cfg = RasterConfig::default();
     let a = cpu::forward(&scene.inputs(), &cam, &cfg);
     let b = cpu::forward(&p.inputs(), &cam, &cfg);

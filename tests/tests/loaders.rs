@@ -3,15 +3,10 @@
 
 #![allow(deprecated)]
 
+use chatsplat_tests::temp_dir;
 use std::path::{Path, PathBuf};
 use train::data::nerfstudio::{LoadOptions, load};
 use train::data::synth::{self, SynthOptions};
-
-fn tmp(tag: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("loaders-{tag}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    d
-}
 
 fn synth_dir(tag: &str) -> (PathBuf, SynthOptions) {
     let o = SynthOptions {
@@ -21,7 +16,7 @@ fn synth_dir(tag: &str) -> (PathBuf, SynthOptions) {
         height: 40,
         ..Default::default()
     };
-    let d = tmp(tag);
+    let d = temp_dir(tag);
     synth::write_dataset(&d, &o, |_, _| {}).unwrap();
     (d, o)
 }
@@ -64,7 +59,7 @@ fn malformed_datasets_give_errors_naming_the_file() {
     let (dir, _) = synth_dir("bad");
     let tf = dir.join("transforms.json");
     let good = std::fs::read_to_string(&tf).unwrap();
-    expect_err(&tmp("missing"), "no transforms.json or transforms_train.json");
+    expect_err(&temp_dir("missing"), "no transforms.json or transforms_train.json");
     std::fs::write(&tf, "{ not json").unwrap();
     expect_err(&dir, "transforms.json: invalid JSON");
     std::fs::write(&tf, good.replacen("\"frames\"", "\"frames_\"", 1)).unwrap();

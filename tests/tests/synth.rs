@@ -6,9 +6,9 @@
 
 use burn::tensor::{Device, Tensor};
 use glam::{Mat4, Vec3, Vec4};
-use model::images::read_png8;
+use model::images::{read_gray16, read_png8};
 use splat_kernels::api::{SplatOptions, splat};
-use std::path::{Path, PathBuf};
+use chatsplat_tests::temp_dir;
 use train::data::synth::{self, SynthOptions};
 
 fn opts() -> SynthOptions {
@@ -21,24 +21,9 @@ fn opts() -> SynthOptions {
     }
 }
 
-fn tmp(tag: &str) -> PathBuf {
-    let d = std::env::temp_dir().join(format!("synth-{tag}-{}", std::process::id()));
-    let _ = std::fs::remove_dir_all(&d);
-    d
-}
-
-fn read_depth_mm(path: &Path) -> Vec<u16> {
-    let file = std::fs::File::open(path).unwrap();
-    let mut reader = png::Decoder::new(std::io::BufReader::new(file)).read_info().unwrap();
-    let mut buf = vec![0; reader.output_buffer_size()];
-    let info = reader.next_frame(&mut buf).unwrap();
-    assert_eq!(info.bit_depth, png::BitDepth::Sixteen);
-    buf[..info.buffer_size()].chunks(2).map(|b| u16::from_be_bytes([b[0], b[1]])).collect()
-}
-
 #[test]
 fn dataset_is_deterministic_complete_and_geometrically_consistent() {
-    let (a, b) = (tmp("a"), tmp("b"));
+    let (a, b) = (temp_dir("a"), temp_dir("b"));
     let mut calls = 0;
     synth::write_dataset(&a, &opts(), |_, _| calls += 1).unwrap();
     synth::write_dataset(&b, &opts(), |_, _| {}).unwrap();
@@ -75,7 +60,7 @@ fn dataset_is_deterministic_complete_and_geometrically_consistent() {
         assert!(p.z > 0.0 && (fx * p.x / p.z).abs() < 0.5 && (fy * p.y / p.z).abs() < 0.5);
         let (_, _, ch, ids) = read_png8(&a.join(f["instance_mask_path"].as_str().unwrap())).unwrap();
         assert_eq!(ch, 1);
-        let depth = read_depth_mm(&a.join(f["depth_file_path"].as_str().unwrap()));
+        let (_, _, depth) = read_gray16(&a.join(f["depth_file_path"].as_str().unwrap())).unwrap();
         let eye = c2w.transform_point3(Vec3::ZERO);
         for o in 0..w * h {
             seen[ids[o] as usize] += 1;

@@ -8,7 +8,7 @@
 //! depth (`depth_file_path`) is 16-bit PNG scaled by `depth_unit_scale_factor`.
 
 use glam::{Mat4, Vec4};
-use model::images::read_png8;
+use model::images::{read_gray16, read_png8};
 use serde_json::Value;
 use splat_kernels::Camera;
 use std::path::{Path, PathBuf};
@@ -214,27 +214,32 @@ fn load_file(file: &Path, dir: &Path, opts: &LoadOptions) -> Result<Vec<View>, S
         let mut camera = Camera::new(cv.inverse(), fx / k as f32, fy / k as f32, dw, dh);
         camera.cx = cx / k as f32;
         camera.cy = cy / k as f32;
-        let sub = |rel: &str| -> Result<(u32, u32, Vec<u8>, PathBuf), String> {
-            let p = dir.join(rel);
-            let (mw, mh, mc, b) = read_png8(&p)?;
-            if (mw, mh) != (w, h) {
-                return Err(err(&p, format!("is {mw}x{mh} but its image is {w}x{h}")));
+        // Masks and depth: same size as the image, downscaled by nearest sample (top-left of each
+        // block) so that ids stay exact.
+        let check_size = |p: &Path, sw: u32, sh: u32| -> Result<(), String> {
+            if (sw, sh) == (w, h) {
+                Ok(())
+            } else {
+                Err(err(p, format!("is {sw}x{sh} but its image is {w}x{h}")))
             }
-            Ok((mw, mh, b.chunks(mc).map(|c| c[0]).collect(), p))
         };
         let instance_ids = match f.get("instance_mask_path").or_else(|| f.get("mask_path")).and_then(Value::as_str) {
             Some(rel) => {
-                let (mw, _, ids, _) = sub(rel)?;
-                // Nearest sample at the top-left of each block keeps ids exact.
-                Some((0..dh).flat_map(|y| (0..dw).map(move |x| (y, x))).map(|(y, x)| ids[((y * k) * mw + x * k) as usize]).collect())
+                let p = dir.join(rel);
+                let (mw, mh, mc, bytes) = read_png8(&p)?;
+                check_size(&p, mw, mh)?;
+                let ids: Vec<u8> = bytes.chunks(mc).map(|c| c[0]).collect();
+                Some(subsample(&ids, w, dw, dh, k))
             }
             None => None,
         };
         let depth = match f.get("depth_file_path").and_then(Value::as_str) {
             Some(rel) => {
                 let p = dir.join(rel);
-                Some(read_depth16(&p, w, h)?.into_iter().map(|d| d as f32 * depth_scale).collect::<Vec<_>>())
-                    .map(|full: Vec<f32>| (0..dh).flat_map(|y| (0..dw).map(move |x| (y, x))).map(|(y, x)| full[((y * k) * w + x * k) as usize]).collect())
+                let (dw16, dh16, mm) = read_gray16(&p)?;
+                check_size(&p, dw16, dh16)?;
+                let full: Vec<f32> = mm.into_iter().map(|d| d as f32 * depth_scale).collect();
+                Some(subsample(&full, w, dw, dh, k))
             }
             None => None,
         };
@@ -249,16 +254,9 @@ fn load_file(file: &Path, dir: &Path, opts: &LoadOptions) -> Result<Vec<View>, S
     Ok(views)
 }
 
-fn read_depth16(path: &Path, w: u32, h: u32) -> Result<Vec<u16>, String> {
-    let file = std::fs::File::open(path).map_err(|e| err(path, format!("cannot read: {e}")))?;
-    let mut reader = png::Decoder::new(std::io::BufReader::new(file)).read_info().map_err(|e| err(path, e))?;
-    let mut buf = vec![0; reader.output_buffer_size()];
-    let info = reader.next_frame(&mut buf).map_err(|e| err(path, e))?;
-    if info.bit_depth != png::BitDepth::Sixteen || info.color_type != png::ColorType::Grayscale {
-        return Err(err(path, "depth must be a 16-bit grayscale PNG"));
-    }
-    if (info.width, info.height) != (w, h) {
-        return Err(err(path, format!("is {}x{} but its image is {w}x{h}", info.width, info.height)));
-    }
-    Ok(buf[..info.buffer_size()].chunks(2).map(|b| u16::from_be_bytes([b[0], b[1]])).collect())
+/// Nearest-sample downscale of a `[h, w]` map (row stride `w`) to `[dh, dw]` by factor `k`.
+fn subsample<T: Copy>(full: &[T], w: u32, dw: u32, dh: u32, k: u32) -> Vec<T> {
+    (0..dh)
+        .flat_map(|y| (0..dw).map(move |x| full[((y * k) * w + x * k) as usize]))
+        .collect()
 }

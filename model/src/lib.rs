@@ -1,11 +1,12 @@
 //! The scene model: a host-side Gaussian cloud, its Inria-layout `.ply` I/O, and the built-in
-//! synthetic scenes used by demos and tests.
+//! synthetic scenes used by demos and tests, and the LLaVA-OneVision port ([`vlm`]).
 
 pub mod cloud;
 pub mod images;
 pub mod ply;
 pub mod rng;
 pub mod synthetic;
+pub mod vlm;
 
 pub use cloud::GaussianCloud;
 

@@ -1,7 +1,7 @@
 //! Shared helpers of the integration tests: seeded random scenes and comparisons.
 #![allow(deprecated)]
 
-use burn::tensor::{Device, Tensor, TensorData};
+use burn::tensor::{Device, DeviceKind, Tensor, TensorData};
 use splat_kernels::cpu::SplatInputsRef;
 use splat_kernels::{Camera, Gaussians};
 
@@ -182,3 +182,24 @@ pub fn temp_dir(tag: &str) -> std::path::PathBuf {
     let _ = std::fs::remove_dir_all(&d);
     d
 }
+
+/// The wgpu device if an adapter works (lavapipe on CPU machines); `None` (and a SKIPPED line)
+/// otherwise, unless CHATSPLAT_REQUIRE_WGPU=1, which turns a missing adapter into a failure.
+pub fn wgpu_device() -> Option<Device> {
+    let device = Device::wgpu(DeviceKind::DefaultDevice);
+    let probe = std::panic::catch_unwind(|| {
+        let t = Tensor::<1>::from_floats([1.0, 2.0], &device);
+        t.into_data().to_vec::<f32>().ok()
+    });
+    match probe {
+        Ok(Some(v)) if v == [1.0, 2.0] => Some(device),
+        _ => {
+            if std::env::var("CHATSPLAT_REQUIRE_WGPU").is_ok_and(|v| v == "1") {
+                panic!("CHATSPLAT_REQUIRE_WGPU=1 but no wgpu adapter works (install mesa-vulkan-drivers)");
+            }
+            eprintln!("SKIPPED: no wgpu adapter on this machine");
+            None
+        }
+    }
+}
+

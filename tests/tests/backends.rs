@@ -4,7 +4,7 @@
 
 #![allow(deprecated)] // burn-ndarray and TensorData::to_vec are deprecated in burn 0.22; the card names ndarray.
 
-use burn::tensor::{Device, DeviceKind, Tensor, TensorData};
+use burn::tensor::{Device, Tensor, TensorData};
 use chatsplat_tests::*;
 use splat_kernels::api::{SplatOptions, splat};
 use splat_kernels::{Camera, RasterConfig, SplatError, cpu, reference};
@@ -197,24 +197,6 @@ fn ndarray_api_rejects_bad_input_with_clear_errors() {
     let mut bad = cam;
     bad.near = -1.0;
     assert!(matches!(splat(&g, &bad, bg, &SplatOptions::default()), Err(SplatError::InvalidCamera(_))));
-}
-
-fn wgpu_device() -> Option<Device> {
-    let device = Device::wgpu(DeviceKind::DefaultDevice);
-    let probe = std::panic::catch_unwind(|| {
-        let t = Tensor::<1>::from_floats([1.0, 2.0], &device);
-        t.into_data().to_vec::<f32>().ok()
-    });
-    match probe {
-        Ok(Some(v)) if v == [1.0, 2.0] => Some(device),
-        _ => {
-            if std::env::var("CHATSPLAT_REQUIRE_WGPU").is_ok_and(|v| v == "1") {
-                panic!("CHATSPLAT_REQUIRE_WGPU=1 but no wgpu adapter works (install mesa-vulkan-drivers)");
-            }
-            eprintln!("SKIPPED: no wgpu adapter on this machine");
-            None
-        }
-    }
 }
 
 fn assert_close(name: &str, got: &[f32], want: &[f32], rel: f32) {

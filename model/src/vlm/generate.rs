@@ -1,0 +1,116 @@
+//! Generation with the KV cache: greedy or temperature / top-p sampling, stop tokens, a token
+//! budget, and a callback that receives printable text as it is produced (streaming).
+
+use super::llava::LlavaOnevision;
+use super::qwen2::KvCache;
+use super::VlmError;
+use crate::rng::Rng;
+use burn::tensor::Tensor;
+
+/// How to pick tokens.
+#[derive(Clone, Debug, PartialEq)]
+pub struct GenerateOptions {
+    pub max_new_tokens: usize,
+    /// 0 = greedy (argmax).
+    pub temperature: f32,
+    /// Nucleus sampling mass (1.0 = off). Ignored when greedy.
+    pub top_p: f32,
+    pub seed: u64,
+    /// Generate exactly `max_new_tokens`, ignoring stop tokens (for parity checks).
+    pub ignore_stop: bool,
+}
+
+impl Default for GenerateOptions {
+    fn default() -> Self {
+        Self { max_new_tokens: 128, temperature: 0.0, top_p: 1.0, seed: 0, ignore_stop: false }
+    }
+}
+
+/// What came out.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Generation {
+    pub ids: Vec<u32>,
+    pub text: String,
+    /// Whether a stop token ended it (the stop token is not in `ids`).
+    pub stopped: bool,
+    /// Prompt length in tokens.
+    pub prompt_tokens: usize,
+}
+
+fn pick(logits: &[f32], opts: &GenerateOptions, rng: &mut Rng) -> u32 {
+    if opts.temperature <= 0.0 {
+        let mut best = 0;
+        for (i, v) in logits.iter().enumerate() {
+            if *v > logits[best] {
+                best = i;
+            }
+        }
+        return best as u32;
+    }
+    let max = logits.iter().cloned().fold(f32::NEG_INFINITY, f32::max);
+    let mut p: Vec<(usize, f64)> = logits.iter().enumerate().map(|(i, v)| (i, (((v - max) / opts.temperature) as f64).exp())).collect();
+    let z: f64 = p.iter().map(|x| x.1).sum();
+    p.sort_by(|a, b| b.1.total_cmp(&a.1));
+    let mut kept = Vec::new();
+    let mut mass = 0.0;
+    for (i, w) in p {
+        kept.push((i, w / z));
+        mass += w / z;
+        if mass >= opts.top_p as f64 {
+            break;
+        }
+    }
+    let mut u = rng.f() as f64 * mass;
+    for (i, w) in &kept {
+        if u < *w {
+            return *i as u32;
+        }
+        u -= w;
+    }
+    kept.last().map(|k| k.0 as u32).unwrap_or(0)
+}
+
+fn last_row(t: Tensor<2>) -> Vec<f32> {
+    let [n, v] = t.dims();
+    t.narrow(0, n - 1, 1).reshape([v]).into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default()
+}
+
+impl LlavaOnevision {
+    /// Generates after a prompt given as input embeddings `[T, D]`; `on_text` receives new text pieces.
+    pub fn generate(&self, prompt: Tensor<2>, opts: &GenerateOptions, mut on_text: impl FnMut(&str)) -> Result<Generation, VlmError> {
+        let prompt_tokens = prompt.dims()[0];
+        let mut cache = KvCache::default();
+        let mut rng = Rng::new(opts.seed);
+        let hidden = self.llm.forward(prompt, &mut cache);
+        let [t, d] = hidden.dims();
+        let mut logits = last_row(self.llm.logits(hidden.narrow(0, t - 1, 1).reshape([1, d])));
+        let mut ids = Vec::new();
+        let mut printed = String::new();
+        let mut stopped = false;
+        for step in 0..opts.max_new_tokens {
+            let next = pick(&logits, opts, &mut rng);
+            if !opts.ignore_stop && self.tokenizer.stop_ids.contains(&next) {
+                stopped = true;
+                break;
+            }
+            ids.push(next);
+            let text = self.tokenizer.decode(&ids, true)?;
+            // Hold back an incomplete UTF-8 sequence (decoded as U+FFFD) until its bytes arrive.
+            if !text.ends_with('\u{fffd}') && text.len() > printed.len() && text.starts_with(&printed) {
+                on_text(&text[printed.len()..]);
+                printed = text;
+            }
+            if step + 1 == opts.max_new_tokens {
+                break;
+            }
+            let x = self.llm.embed(&[next]);
+            let h = self.llm.forward(x, &mut cache);
+            logits = last_row(self.llm.logits(h));
+        }
+        let text = self.tokenizer.decode(&ids, true)?;
+        if text.len() > printed.len() && text.starts_with(&printed) {
+            on_text(&text[printed.len()..]);
+        }
+        Ok(Generation { ids, text, stopped, prompt_tokens })
+    }
+}

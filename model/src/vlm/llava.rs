@@ -1,0 +1,226 @@
+//! `LlavaOnevisionForConditionalGeneration`: vision tower -> projector -> anyres packing with the
+//! image-newline embedding -> spliced into the Qwen2 input embeddings at the `<image>` placeholders.
+
+use super::config::{load_processor_config, parse_llava_config, read_json, LlavaConfig, ProcessorConfig};
+use super::layers::{act, Linear};
+use super::preprocess::{anyres_views, base_view, num_image_tokens, AnyresGrid, ImagePatches, RgbImage};
+use super::qwen2::{KvCache, Qwen2};
+use super::siglip::VisionTower;
+use super::tokenizer::ChatTokenizer;
+use super::weights::WeightStore;
+use super::VlmError;
+use burn::tensor::{Device, Tensor, TensorData};
+use std::path::{Path, PathBuf};
+
+/// The projector: linear, activation, linear.
+#[derive(Clone, Debug)]
+pub struct Projector {
+    l1: Linear,
+    l2: Linear,
+    act: super::config::Act,
+}
+
+impl Projector {
+    /// `[..., vision D]` -> `[..., text D]`.
+    pub fn forward(&self, x: Tensor<3>) -> Tensor<3> {
+        self.l2.forward(act(self.act, self.l1.forward(x)))
+    }
+}
+
+/// A loaded LLaVA-OneVision model directory.
+#[derive(Clone, Debug)]
+pub struct LlavaOnevision {
+    pub dir: PathBuf,
+    pub cfg: LlavaConfig,
+    pub processor: ProcessorConfig,
+    pub vision: VisionTower,
+    pub projector: Projector,
+    /// `[text D]`
+    pub image_newline: Tensor<1>,
+    pub llm: Qwen2,
+    pub tokenizer: ChatTokenizer,
+}
+
+impl LlavaOnevision {
+    /// Loads `config.json`, the image processor config, `tokenizer.json` and the safetensors weights of `dir`.
+    pub fn load(dir: &Path, device: &Device) -> Result<Self, VlmError> {
+        if !dir.is_dir() {
+            return Err(VlmError::config(dir, "is not a directory (expected a Hugging Face LLaVA-OneVision model directory)"));
+        }
+        let cfg_path = dir.join("config.json");
+        if !cfg_path.exists() {
+            return Err(VlmError::config(&cfg_path, "is missing"));
+        }
+        let cfg = parse_llava_config(&cfg_path, &read_json(&cfg_path)?)?;
+        let processor = load_processor_config(dir, &cfg)?;
+        let tokenizer = ChatTokenizer::load(dir, cfg.image_token_id)?;
+        let w = WeightStore::open(dir, device)?;
+        let (dv, dt) = (cfg.vision.hidden_size, cfg.text.hidden_size);
+        let projector = Projector {
+            l1: Linear::load(&w, "multi_modal_projector.linear_1", dv, dt, cfg.projector_bias)?,
+            l2: Linear::load(&w, "multi_modal_projector.linear_2", dt, dt, cfg.projector_bias)?,
+            act: cfg.projector_act,
+        };
+        Ok(Self {
+            vision: VisionTower::load(&w, &cfg)?,
+            projector,
+            image_newline: w.tensor("image_newline", [dt])?,
+            llm: Qwen2::load(&w, &cfg.text)?,
+            tokenizer,
+            processor,
+            cfg,
+            dir: dir.to_path_buf(),
+        })
+    }
+
+    pub fn device(&self) -> &Device {
+        self.llm.device()
+    }
+
+    /// Pixels `[views, 3, S, S]` of preprocessed views on the device.
+    pub fn pixels(&self, patches: &ImagePatches) -> Tensor<4> {
+        let s = self.processor.size.0;
+        Tensor::from_data(TensorData::new(patches.pixel_values(&self.processor), [patches.views.len(), 3, s, s]), self.device())
+    }
+
+    /// The teacher features ChatSplat distils: the selected SigLIP hidden state `[B, tokens, vision D]`.
+    pub fn vision_features(&self, pixels: Tensor<4>) -> Tensor<3> {
+        self.vision.forward(pixels)
+    }
+
+    /// Base-view teacher tokens of an image: resized to the tower's size like the processor, `[tokens, vision D]`.
+    pub fn teacher_tokens(&self, img: &RgbImage) -> Tensor<2> {
+        let view = base_view_unpadded(img, &self.processor);
+        let f = self.vision_features(self.pixels(&view));
+        let [_, t, d] = f.dims();
+        f.reshape([t, d])
+    }
+
+    /// Preprocesses one image for a single-image (anyres) or multi-image (base view) prompt.
+    pub fn preprocess(&self, img: &RgbImage, multi_image: bool) -> ImagePatches {
+        if multi_image { base_view(img, &self.processor) } else { anyres_views(img, &self.processor) }
+    }
+
+    /// Packs projected features `[views, tokens, D]` of one image into its prompt embeddings `[N, D]`.
+    pub fn pack(&self, projected: Tensor<3>, patches: &ImagePatches) -> Tensor<2> {
+        let [v, t, d] = projected.dims();
+        let base = projected.clone().narrow(0, 0, 1).reshape([t, d]);
+        let newline = self.image_newline.clone().unsqueeze_dim::<2>(0);
+        if !patches.anyres || v == 1 {
+            return Tensor::cat(vec![base, newline], 0);
+        }
+        let g = self.cfg.vision.grid();
+        let grid = AnyresGrid::new(&self.cfg, patches.orig_hw);
+        let (ph, pw) = grid.patches;
+        assert_eq!(v - 1, ph * pw, "pack: {} anyres views for a {ph}x{pw} grid", v - 1);
+        // [ph, pw, g, g, D] -> [D, ph*g, pw*g]
+        let map = projected.narrow(0, 1, v - 1).reshape([ph, pw, g, g, d]).permute([4, 0, 2, 1, 3]).reshape([d, ph * g, pw * g]);
+        let (r0, c0, h, w) = grid.crop;
+        let mut map = map.narrow(1, r0, h).narrow(2, c0, w);
+        if let Some((nh, nw)) = grid.shrink {
+            map = bilinear_resize(map, nh, nw);
+        }
+        let [_, h, w] = map.dims();
+        let nl = self.image_newline.clone().reshape([d, 1, 1]).expand([d, h, 1]);
+        let map = Tensor::cat(vec![map, nl], 2).reshape([d, h * (w + 1)]).transpose();
+        Tensor::cat(vec![base, map], 0)
+    }
+
+    /// Prompt embeddings `[N, text D]` of one image.
+    pub fn image_embeds(&self, patches: &ImagePatches) -> Tensor<2> {
+        let f = self.vision_features(self.pixels(patches));
+        self.pack(self.projector.forward(f), patches)
+    }
+
+    /// Number of `<image>` placeholders one image expands to.
+    pub fn num_image_tokens(&self, patches: &ImagePatches) -> usize {
+        num_image_tokens(&self.cfg, patches)
+    }
+
+    /// Input embeddings `[T, D]` of `ids`, each run of image tokens replaced by the next entry of `images`.
+    pub fn embed_prompt(&self, ids: &[u32], images: &[Tensor<2>]) -> Result<Tensor<2>, VlmError> {
+        let mut parts = Vec::new();
+        let mut i = 0;
+        let mut next_image = images.iter();
+        while i < ids.len() {
+            let is_img = ids[i] == self.cfg.image_token_id;
+            let mut j = i;
+            while j < ids.len() && (ids[j] == self.cfg.image_token_id) == is_img {
+                j += 1;
+            }
+            if is_img {
+                let mut run = j - i;
+                while run > 0 {
+                    let img = next_image.next().ok_or_else(|| VlmError::prompt(format!("the prompt has more image placeholders than the {} image(s) given", images.len())))?;
+                    let n = img.dims()[0];
+                    if n > run {
+                        return Err(VlmError::prompt(format!("an image needs {n} placeholder tokens but only {run} follow")));
+                    }
+                    parts.push(img.clone());
+                    run -= n;
+                }
+            } else {
+                parts.push(self.llm.embed(&ids[i..j]));
+            }
+            i = j;
+        }
+        if next_image.next().is_some() {
+            return Err(VlmError::prompt("more images than image placeholders in the prompt"));
+        }
+        Ok(Tensor::cat(parts, 0))
+    }
+
+    /// Expands every `<image>` id into the number of placeholders its image takes.
+    pub fn expand_image_tokens(&self, ids: &[u32], counts: &[usize]) -> Result<Vec<u32>, VlmError> {
+        let mut out = Vec::with_capacity(ids.len() + counts.iter().sum::<usize>());
+        let mut c = counts.iter();
+        for &id in ids {
+            if id == self.cfg.image_token_id {
+                let n = *c.next().ok_or_else(|| VlmError::prompt(format!("the prompt has more <image> tags than the {} image(s) given", counts.len())))?;
+                out.extend(std::iter::repeat_n(id, n));
+            } else {
+                out.push(id);
+            }
+        }
+        if c.next().is_some() {
+            return Err(VlmError::prompt(format!("{} image(s) given but the prompt has fewer <image> tags", counts.len())));
+        }
+        Ok(out)
+    }
+
+    /// Logits `[T, vocab]` of a whole prompt given as input embeddings.
+    pub fn logits(&self, embeds: Tensor<2>) -> Tensor<2> {
+        let mut cache = KvCache::default();
+        self.llm.logits(self.llm.forward(embeds, &mut cache))
+    }
+}
+
+/// The base view of one image for teacher extraction: a plain resize to the tower's input (what
+/// the processor does to the base view of an anyres image).
+pub fn base_view_unpadded(img: &RgbImage, cfg: &ProcessorConfig) -> ImagePatches {
+    ImagePatches { views: vec![super::preprocess::resize(img, cfg.size.1, cfg.size.0, cfg.resample)], orig_hw: (img.height, img.width), anyres: false }
+}
+
+/// torch `F.interpolate(x[None], size, mode="bilinear", align_corners=False)[0]` for `[C, H, W]`.
+pub fn bilinear_resize(x: Tensor<3>, out_h: usize, out_w: usize) -> Tensor<3> {
+    let [c, h, w] = x.dims();
+    let device = x.device();
+    // Separable: rows then columns, each a dense [out, in] interpolation matrix.
+    let weights = |n_in: usize, n_out: usize| -> Tensor<2> {
+        let scale = n_in as f32 / n_out as f32;
+        let mut m = vec![0f32; n_out * n_in];
+        for o in 0..n_out {
+            let src = ((o as f32 + 0.5) * scale - 0.5).max(0.0);
+            let i0 = (src.floor() as usize).min(n_in - 1);
+            let i1 = if i0 < n_in - 1 { i0 + 1 } else { i0 };
+            let l1 = src - i0 as f32;
+            m[o * n_in + i0] += 1.0 - l1;
+            m[o * n_in + i1] += l1;
+        }
+        Tensor::from_data(TensorData::new(m, [n_out, n_in]), &device)
+    };
+    let rows = weights(h, out_h); // [oh, h]
+    let cols = weights(w, out_w).transpose(); // [w, ow]
+    let y = rows.unsqueeze_dim::<3>(0).expand([c, out_h, h]).matmul(x); // [c, oh, w]
+    y.matmul(cols.unsqueeze_dim::<3>(0).expand([c, w, out_w]))
+}

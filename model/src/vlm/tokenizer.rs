@@ -1,0 +1,92 @@
+//! The model's `tokenizer.json` through the Hugging Face `tokenizers` crate, and the
+//! LLaVA-OneVision chat template (Qwen2 `<|im_start|>` / `<|im_end|>` turns, `<image>\n` per image
+//! at the start of a user turn), written out in Rust instead of evaluated as Jinja.
+
+use super::VlmError;
+use std::path::Path;
+
+/// One turn of a conversation.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Turn {
+    /// `user`, `assistant` or `system`.
+    pub role: String,
+    /// Images attached to this turn (each becomes `<image>\n` before the text).
+    pub images: usize,
+    pub text: String,
+}
+
+impl Turn {
+    pub fn user(images: usize, text: impl Into<String>) -> Self {
+        Self { role: "user".into(), images, text: text.into() }
+    }
+    pub fn assistant(text: impl Into<String>) -> Self {
+        Self { role: "assistant".into(), images: 0, text: text.into() }
+    }
+}
+
+/// The llava-hf LLaVA-OneVision chat template.
+pub fn chat_template(turns: &[Turn], add_generation_prompt: bool) -> String {
+    let mut s = String::new();
+    for t in turns {
+        s.push_str("<|im_start|>");
+        s.push_str(&t.role);
+        s.push('\n');
+        for _ in 0..t.images {
+            s.push_str("<image>\n");
+        }
+        s.push_str(&t.text);
+        s.push_str("<|im_end|>\n");
+    }
+    if add_generation_prompt {
+        s.push_str("<|im_start|>assistant\n");
+    }
+    s
+}
+
+/// The tokenizer plus the ids the chat needs.
+#[derive(Clone)]
+pub struct ChatTokenizer {
+    inner: tokenizers::Tokenizer,
+    pub image_token_id: u32,
+    /// `<|im_end|>` and `<|endoftext|>` when present: generation stops on them.
+    pub stop_ids: Vec<u32>,
+}
+
+impl std::fmt::Debug for ChatTokenizer {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        write!(f, "ChatTokenizer(vocab {}, image {})", self.inner.get_vocab_size(true), self.image_token_id)
+    }
+}
+
+impl ChatTokenizer {
+    pub fn load(dir: &Path, image_token_id: u32) -> Result<Self, VlmError> {
+        let path = dir.join("tokenizer.json");
+        if !path.exists() {
+            return Err(VlmError::config(&path, "is missing"));
+        }
+        let inner = tokenizers::Tokenizer::from_file(&path).map_err(|e| VlmError::config(&path, format!("cannot load tokenizer: {e}")))?;
+        match inner.id_to_token(image_token_id) {
+            Some(t) if t == "<image>" => {}
+            other => {
+                return Err(VlmError::config(&path, format!("image_token_index {image_token_id} of config.json is {other:?} here, not \"<image>\"")));
+            }
+        }
+        let stop_ids = ["<|im_end|>", "<|endoftext|>"].iter().filter_map(|t| inner.token_to_id(t)).collect();
+        Ok(Self { inner, image_token_id, stop_ids })
+    }
+
+    /// Token ids of `text` (special tokens such as `<image>` are recognised).
+    pub fn encode(&self, text: &str) -> Result<Vec<u32>, VlmError> {
+        let enc = self.inner.encode(text, true).map_err(|e| VlmError::prompt(format!("tokenizer: {e}")))?;
+        Ok(enc.get_ids().to_vec())
+    }
+
+    /// Text of `ids` (special tokens kept unless `skip_special`).
+    pub fn decode(&self, ids: &[u32], skip_special: bool) -> Result<String, VlmError> {
+        self.inner.decode(ids, skip_special).map_err(|e| VlmError::prompt(format!("tokenizer: {e}")))
+    }
+
+    pub fn vocab_size(&self) -> usize {
+        self.inner.get_vocab_size(true)
+    }
+}

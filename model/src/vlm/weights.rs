@@ -1,0 +1,143 @@
+//! Hugging Face safetensors checkpoints: a single `model.safetensors` or shards listed in
+//! `model.safetensors.index.json`, memory-mapped, converted from bf16/f16/f32 to f32 on load.
+//! Both key layouts are accepted: the llava-hf hub one (`language_model.model.layers.0...`,
+//! `vision_tower.vision_model...`) and the transformers-5 in-memory one (`model.language_model.layers.0...`).
+
+use super::VlmError;
+use burn::tensor::{Device, Tensor, TensorData};
+use safetensors::{Dtype, SafeTensors};
+use std::collections::BTreeMap;
+use std::path::{Path, PathBuf};
+
+struct Shard {
+    path: PathBuf,
+    map: memmap2::Mmap,
+}
+
+/// The tensors of a model directory, read on demand.
+pub struct WeightStore {
+    shards: Vec<Shard>,
+    /// tensor name -> shard index
+    names: BTreeMap<String, usize>,
+    device: Device,
+}
+
+impl WeightStore {
+    /// Opens `model.safetensors.index.json` (sharded) or `model.safetensors` in `dir`.
+    pub fn open(dir: &Path, device: &Device) -> Result<Self, VlmError> {
+        let index = dir.join("model.safetensors.index.json");
+        let files: Vec<PathBuf> = if index.exists() {
+            let v = super::config::read_json(&index)?;
+            let map = v
+                .get("weight_map")
+                .and_then(|m| m.as_object())
+                .ok_or_else(|| VlmError::weights(&index, "has no weight_map object"))?;
+            let mut files: Vec<String> = map.values().filter_map(|f| f.as_str().map(str::to_string)).collect();
+            files.sort();
+            files.dedup();
+            files.into_iter().map(|f| dir.join(f)).collect()
+        } else if dir.join("model.safetensors").exists() {
+            vec![dir.join("model.safetensors")]
+        } else {
+            return Err(VlmError::weights(dir, "no model.safetensors or model.safetensors.index.json"));
+        };
+        let mut shards = Vec::new();
+        let mut names = BTreeMap::new();
+        for path in files {
+            let file = std::fs::File::open(&path).map_err(|e| VlmError::io(&path, e))?;
+            // SAFETY: the file is opened read-only and only read through this map; a concurrent
+            // writer could change what we read, as with any reader of the file.
+            let map = unsafe { memmap2::Mmap::map(&file) }.map_err(|e| VlmError::io(&path, e))?;
+            let st = SafeTensors::deserialize(&map).map_err(|e| VlmError::weights(&path, format!("not a valid safetensors file: {e}")))?;
+            for name in st.names() {
+                names.insert(name.to_string(), shards.len());
+            }
+            drop(st);
+            shards.push(Shard { path, map });
+        }
+        Ok(Self { shards, names, device: device.clone() })
+    }
+
+    /// Every tensor name present.
+    pub fn names(&self) -> impl Iterator<Item = &str> {
+        self.names.keys().map(String::as_str)
+    }
+
+    fn resolve(&self, name: &str) -> Option<String> {
+        aliases(name).into_iter().find(|n| self.names.contains_key(n))
+    }
+
+    /// Whether the checkpoint has `name` (under any accepted key layout).
+    pub fn contains(&self, name: &str) -> bool {
+        self.resolve(name).is_some()
+    }
+
+    /// Reads `name` as f32 host data and checks its shape.
+    pub fn host(&self, name: &str, shape: &[usize]) -> Result<Vec<f32>, VlmError> {
+        let key = self.resolve(name).ok_or_else(|| {
+            let where_ = self.shards.first().map(|s| s.path.parent().unwrap_or(Path::new(".")).to_path_buf()).unwrap_or_default();
+            VlmError::weights(&where_, format!("tensor {name} is missing"))
+        })?;
+        let shard = &self.shards[self.names[&key]];
+        let st = SafeTensors::deserialize(&shard.map).map_err(|e| VlmError::weights(&shard.path, e.to_string()))?;
+        let view = st.tensor(&key).map_err(|e| VlmError::weights(&shard.path, format!("{key}: {e}")))?;
+        if view.shape() != shape {
+            return Err(VlmError::weights(&shard.path, format!("tensor {key} has shape {:?}, the config expects {shape:?}", view.shape())));
+        }
+        let bytes = view.data();
+        let out: Vec<f32> = match view.dtype() {
+            Dtype::F32 => bytes.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect(),
+            Dtype::BF16 => bytes.chunks_exact(2).map(|b| half::bf16::from_le_bytes([b[0], b[1]]).to_f32()).collect(),
+            Dtype::F16 => bytes.chunks_exact(2).map(|b| half::f16::from_le_bytes([b[0], b[1]]).to_f32()).collect(),
+            other => return Err(VlmError::weights(&shard.path, format!("tensor {key} has dtype {other:?}; expected F32, BF16 or F16"))),
+        };
+        if let Some(i) = out.iter().position(|x| !x.is_finite()) {
+            return Err(VlmError::weights(&shard.path, format!("tensor {key} has a non-finite value at flat index {i}")));
+        }
+        Ok(out)
+    }
+
+    /// Reads `name` onto the device with shape `D`.
+    pub fn tensor<const D: usize>(&self, name: &str, shape: [usize; D]) -> Result<Tensor<D>, VlmError> {
+        let data = self.host(name, &shape)?;
+        Ok(Tensor::from_data(TensorData::new(data, shape), &self.device))
+    }
+
+    /// A torch `nn.Linear` weight `[out, in]`, returned transposed as `[in, out]` for `x.matmul(w)`.
+    pub fn linear_weight(&self, name: &str, d_in: usize, d_out: usize) -> Result<Tensor<2>, VlmError> {
+        let w = self.host(name, &[d_out, d_in])?;
+        let mut t = vec![0f32; w.len()];
+        for o in 0..d_out {
+            for i in 0..d_in {
+                t[i * d_out + o] = w[o * d_in + i];
+            }
+        }
+        Ok(Tensor::from_data(TensorData::new(t, [d_in, d_out]), &self.device))
+    }
+
+    pub fn device(&self) -> &Device {
+        &self.device
+    }
+}
+
+/// The key layouts one canonical (llava-hf hub) name may be stored under: the hub layout, the
+/// transformers-5 in-memory layout (`model.` prefix, `model.language_model.*`, top-level `lm_head`),
+/// and SigLIP with or without its `vision_model.` wrapper (transformers 5 saves it without).
+fn aliases(name: &str) -> Vec<String> {
+    let mut base = vec![name.to_string()];
+    if let Some(rest) = name.strip_prefix("vision_tower.vision_model.") {
+        base.push(format!("vision_tower.{rest}"));
+    }
+    let mut out = Vec::new();
+    for n in base {
+        if let Some(rest) = n.strip_prefix("language_model.model.") {
+            out.push(format!("model.language_model.{rest}"));
+        } else if n == "language_model.lm_head.weight" {
+            out.push("lm_head.weight".into());
+        } else if n.starts_with("vision_tower.") || n.starts_with("multi_modal_projector.") || n == "image_newline" {
+            out.push(format!("model.{n}"));
+        }
+        out.insert(0, n);
+    }
+    out
+}

@@ -1,0 +1,287 @@
+//! LLaVA-OneVision port: parity with transformers on the tiny fixture in
+//! checkpoints/tiny-llava-ov (built by checkpoints/make_tiny_vlm.py), on ndarray and wgpu;
+//! preprocessing, chat template and tokenizer against the strings and ids transformers produced;
+//! loader errors on broken directories.
+#![allow(deprecated)] // burn-ndarray is deprecated in burn 0.22 in favour of burn-flex.
+
+use burn::tensor::{Device, Tensor, TensorData};
+use chatsplat_tests::{max_abs_diff, temp_dir, wgpu_device};
+use model::vlm::preprocess::{anyres_views, base_view};
+use model::vlm::weights::WeightStore;
+use model::vlm::{chat_template, GenerateOptions, LlavaOnevision, RgbImage, Turn, VlmError};
+use safetensors::{Dtype, SafeTensors};
+use std::collections::HashMap;
+use std::path::{Path, PathBuf};
+
+fn fixture() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../checkpoints/tiny-llava-ov")
+}
+
+enum Ref {
+    F32(Vec<usize>, Vec<f32>),
+    I64(Vec<i64>),
+    U8(Vec<u8>),
+}
+
+fn reference() -> (HashMap<String, Ref>, serde_json::Value) {
+    let bytes = std::fs::read(fixture().join("reference.safetensors")).expect("reference.safetensors");
+    let st = SafeTensors::deserialize(&bytes).expect("valid reference");
+    let mut out = HashMap::new();
+    for (name, v) in st.tensors() {
+        let d = v.data();
+        let r = match v.dtype() {
+            Dtype::F32 => Ref::F32(v.shape().to_vec(), d.chunks_exact(4).map(|b| f32::from_le_bytes(b.try_into().unwrap())).collect()),
+            Dtype::I64 => Ref::I64(d.chunks_exact(8).map(|b| i64::from_le_bytes(b.try_into().unwrap())).collect()),
+            Dtype::U8 => Ref::U8(d.to_vec()),
+            other => panic!("unexpected dtype {other:?}"),
+        };
+        out.insert(name, r);
+    }
+    let meta: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(fixture().join("reference.json")).unwrap()).unwrap();
+    (out, meta)
+}
+
+fn f32s<'a>(r: &'a HashMap<String, Ref>, k: &str) -> (&'a [usize], &'a [f32]) {
+    match &r[k] {
+        Ref::F32(s, v) => (s, v),
+        _ => panic!("{k} is not f32"),
+    }
+}
+fn ids(r: &HashMap<String, Ref>, k: &str) -> Vec<u32> {
+    match &r[k] {
+        Ref::I64(v) => v.iter().map(|&x| x as u32).collect(),
+        _ => panic!("{k} is not i64"),
+    }
+}
+fn bytes<'a>(r: &'a HashMap<String, Ref>, k: &str) -> &'a [u8] {
+    match &r[k] {
+        Ref::U8(v) => v,
+        _ => panic!("{k} is not u8"),
+    }
+}
+
+fn host<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+    t.into_data().to_vec::<f32>().expect("f32")
+}
+
+fn image(name: &str) -> RgbImage {
+    RgbImage::read_png(&fixture().join(name)).expect("fixture image")
+}
+
+/// Views as HF lays out pixel_values: [views, 3, H, W] u8.
+fn chw(views: &[RgbImage]) -> Vec<u8> {
+    let mut out = Vec::new();
+    for v in views {
+        for c in 0..3 {
+            out.extend(v.data.chunks_exact(3).map(|p| p[c]));
+        }
+    }
+    out
+}
+
+#[test]
+fn preprocessing_is_bit_exact_with_the_hf_pil_processor() {
+    let (r, _) = reference();
+    let dev = Device::ndarray();
+    let m = LlavaOnevision::load(&fixture(), &dev).unwrap();
+    // Single image, 300x700: anyres picks 384x768 -> base view + 2 patches.
+    let p = anyres_views(&image("image_wide.png"), &m.processor);
+    assert_eq!(p.views.len(), 3);
+    let want = bytes(&r, "single_patches_u8");
+    let got = chw(&p.views);
+    let diff = got.iter().zip(want).filter(|(a, b)| a != b).count();
+    assert_eq!(diff, 0, "{diff} of {} anyres pixels differ from transformers", want.len());
+    // Two images: each padded to a square with the mean colour, base view only.
+    let views: Vec<RgbImage> = ["image_a.png", "image_b.png"].iter().map(|n| base_view(&image(n), &m.processor).views.remove(0)).collect();
+    let want = bytes(&r, "multi_patches_u8");
+    let got = chw(&views);
+    let diff = got.iter().zip(want).filter(|(a, b)| a != b).count();
+    assert_eq!(diff, 0, "{diff} multi-image pixels differ");
+}
+
+#[test]
+fn chat_template_and_token_ids_match_transformers() {
+    let (r, meta) = reference();
+    let q1 = meta["question_single"].as_str().unwrap();
+    let q2 = meta["question_multi"].as_str().unwrap();
+    let one = chat_template(&[Turn::user(1, q1)], true);
+    assert_eq!(one, meta["prompt_single"].as_str().unwrap());
+    let two = chat_template(&[Turn::user(2, q2)], true);
+    assert_eq!(two, meta["prompt_multi"].as_str().unwrap());
+    let follow = chat_template(&[Turn::user(1, q1), Turn::assistant("A red sphere."), Turn::user(0, "Where is it?")], true);
+    assert_eq!(follow, meta["prompt_followup"].as_str().unwrap());
+
+    let dev = Device::ndarray();
+    let m = LlavaOnevision::load(&fixture(), &dev).unwrap();
+    let p = m.preprocess(&image("image_wide.png"), false);
+    let n = m.num_image_tokens(&p);
+    assert_eq!(n as u64, meta["single_num_image_tokens"].as_u64().unwrap());
+    let got = m.expand_image_tokens(&m.tokenizer.encode(&one).unwrap(), &[n]).unwrap();
+    assert_eq!(got, ids(&r, "single_input_ids"));
+    let counts: Vec<usize> = ["image_a.png", "image_b.png"].iter().map(|f| m.num_image_tokens(&m.preprocess(&image(f), true))).collect();
+    let got = m.expand_image_tokens(&m.tokenizer.encode(&two).unwrap(), &counts).unwrap();
+    assert_eq!(got, ids(&r, "multi_input_ids"));
+    // A tag/image mismatch is an error, not a silent misalignment.
+    assert!(m.expand_image_tokens(&m.tokenizer.encode(&two).unwrap(), &[n]).is_err());
+}
+
+fn assert_close(what: &str, got: &[f32], want: &[f32], tol: f32) {
+    assert_eq!(got.len(), want.len(), "{what}: length");
+    let err = max_abs_diff(got, want);
+    assert!(err <= tol, "{what}: max abs error {err} > {tol}");
+    eprintln!("{what}: max abs error {err:.2e}");
+}
+
+fn parity(dev: &Device) {
+    let (r, meta) = reference();
+    let m = LlavaOnevision::load(&fixture(), dev).unwrap();
+    let p = m.preprocess(&image("image_wide.png"), false);
+    let feats = m.vision_features(m.pixels(&p));
+    let (shape, want) = f32s(&r, "single_vision_features");
+    assert_eq!(feats.dims().to_vec(), shape.to_vec());
+    assert_close("vision features", &host(feats.clone()), want, 1e-4);
+    let proj = m.projector.forward(feats);
+    assert_close("projector", &host(proj.clone()), f32s(&r, "single_projected").1, 1e-4);
+    let packed = m.pack(proj, &p);
+    assert_close("packed image embeds", &host(packed.clone()), f32s(&r, "single_packed").1, 1e-4);
+
+    let prompt_ids = ids(&r, "single_input_ids");
+    let embeds = m.embed_prompt(&prompt_ids, &[packed]).unwrap();
+    assert_close("logits", &host(m.logits(embeds.clone())), f32s(&r, "single_logits").1, 1e-4);
+
+    let want_ids = ids(&r, "single_greedy_ids");
+    let opts = GenerateOptions { max_new_tokens: want_ids.len(), ignore_stop: true, ..Default::default() };
+    let mut streamed = String::new();
+    let g = m.generate(embeds, &opts, |s| streamed.push_str(s)).unwrap();
+    assert_eq!(g.ids, want_ids, "greedy continuation");
+    assert_eq!(streamed, g.text, "streamed pieces add up to the text");
+    assert_eq!(g.text, m.tokenizer.decode(&want_ids, true).unwrap());
+    let _ = meta;
+
+    // Two images in one prompt: base views + newline each, logits at the end of the prompt.
+    let imgs: Vec<Tensor<2>> = ["image_a.png", "image_b.png"].iter().map(|f| m.image_embeds(&m.preprocess(&image(f), true))).collect();
+    let packed2 = Tensor::cat(imgs.clone(), 0);
+    assert_close("multi-image embeds", &host(packed2), f32s(&r, "multi_packed").1, 1e-4);
+    let ids2 = ids(&r, "multi_input_ids");
+    let logits = m.logits(m.embed_prompt(&ids2, &imgs).unwrap());
+    let t = logits.dims()[0];
+    assert_close("multi-image logits (last 4)", &host(logits.narrow(0, t - 4, 4)), f32s(&r, "multi_logits_last").1, 1e-4);
+}
+
+#[test]
+fn ndarray_matches_transformers() {
+    parity(&Device::ndarray());
+}
+
+#[test]
+fn wgpu_matches_transformers() {
+    let Some(dev) = wgpu_device() else { return };
+    parity(&dev);
+}
+
+fn copy_fixture(name: &str) -> PathBuf {
+    let dir = temp_dir(name);
+    std::fs::create_dir_all(&dir).unwrap();
+    for e in std::fs::read_dir(fixture()).unwrap() {
+        let e = e.unwrap();
+        std::fs::copy(e.path(), dir.join(e.file_name())).unwrap();
+    }
+    dir
+}
+
+fn load_err(dir: &Path) -> String {
+    match LlavaOnevision::load(dir, &Device::ndarray()) {
+        Ok(_) => panic!("{} loaded but should not", dir.display()),
+        Err(e) => e.to_string(),
+    }
+}
+
+#[test]
+fn loader_errors_name_the_file_and_the_problem() {
+    let missing = load_err(Path::new("/nonexistent/llava"));
+    assert!(missing.contains("/nonexistent/llava") && missing.contains("not a directory"), "{missing}");
+
+    // A truncated shard.
+    let dir = copy_fixture("vlm-truncated");
+    let shard = dir.join("model-00002-of-00004.safetensors");
+    let len = std::fs::metadata(&shard).unwrap().len();
+    let f = std::fs::OpenOptions::new().write(true).open(&shard).unwrap();
+    f.set_len(len / 2).unwrap();
+    let e = load_err(&dir);
+    assert!(e.contains("model-00002-of-00004.safetensors") && e.contains("not a valid safetensors"), "{e}");
+
+    // Garbage bytes instead of a header.
+    std::fs::write(&shard, b"\xff\xff\xff\xff\xff\xff\xff\x7fnot a header").unwrap();
+    let e = load_err(&dir);
+    assert!(e.contains("model-00002-of-00004.safetensors"), "{e}");
+
+    // Unknown architecture.
+    let dir = copy_fixture("vlm-arch");
+    let cfg = dir.join("config.json");
+    let text = std::fs::read_to_string(&cfg).unwrap().replace("LlavaOnevisionForConditionalGeneration", "MllamaForConditionalGeneration").replace("\"llava_onevision\"", "\"mllama\"");
+    std::fs::write(&cfg, text).unwrap();
+    let e = load_err(&dir);
+    assert!(e.contains("config.json") && e.contains("unsupported architecture") && e.contains("Mllama"), "{e}");
+
+    // A config that disagrees with the weights: the tensor is named with both shapes.
+    let dir = copy_fixture("vlm-shape");
+    let cfg = dir.join("config.json");
+    let text = std::fs::read_to_string(&cfg).unwrap().replace("\"intermediate_size\": 64", "\"intermediate_size\": 65");
+    std::fs::write(&cfg, text).unwrap();
+    let e = load_err(&dir);
+    assert!(e.contains("fc1.weight") && e.contains("[64, 32]") && e.contains("[65, 32]"), "{e}");
+
+    // Unsupported options are refused by name.
+    let dir = copy_fixture("vlm-rope");
+    let cfg = dir.join("config.json");
+    let text = std::fs::read_to_string(&cfg).unwrap().replace("\"rope_type\": \"default\"", "\"rope_type\": \"yarn\"");
+    std::fs::write(&cfg, text).unwrap();
+    let e = load_err(&dir);
+    assert!(e.contains("rope type \"yarn\""), "{e}");
+
+    // Invalid JSON and a missing tokenizer.
+    let dir = copy_fixture("vlm-json");
+    std::fs::write(dir.join("config.json"), "{ not json").unwrap();
+    let e = load_err(&dir);
+    assert!(e.contains("config.json") && e.contains("not valid JSON"), "{e}");
+    let dir = copy_fixture("vlm-tok");
+    std::fs::remove_file(dir.join("tokenizer.json")).unwrap();
+    let e = load_err(&dir);
+    assert!(e.contains("tokenizer.json") && e.contains("missing"), "{e}");
+}
+
+#[test]
+fn weights_convert_bf16_f16_and_reject_other_dtypes() {
+    let dir = temp_dir("vlm-dtypes");
+    std::fs::create_dir_all(&dir).unwrap();
+    let vals = [1.5f32, -0.25, 3.0e-3, 65504.0];
+    let f32b: Vec<u8> = vals.iter().flat_map(|v| v.to_le_bytes()).collect();
+    let f16b: Vec<u8> = vals.iter().flat_map(|v| half::f16::from_f32(*v).to_le_bytes()).collect();
+    let bf16b: Vec<u8> = vals.iter().flat_map(|v| half::bf16::from_f32(*v).to_le_bytes()).collect();
+    let i32b: Vec<u8> = [1i32, 2, 3, 4].iter().flat_map(|v| v.to_le_bytes()).collect();
+    let views = vec![
+        ("a", safetensors::tensor::TensorView::new(Dtype::F32, vec![2, 2], &f32b).unwrap()),
+        ("b", safetensors::tensor::TensorView::new(Dtype::F16, vec![2, 2], &f16b).unwrap()),
+        ("c", safetensors::tensor::TensorView::new(Dtype::BF16, vec![4], &bf16b).unwrap()),
+        ("d", safetensors::tensor::TensorView::new(Dtype::I32, vec![4], &i32b).unwrap()),
+    ];
+    safetensors::serialize_to_file(views, None, &dir.join("model.safetensors")).unwrap();
+    let w = WeightStore::open(&dir, &Device::ndarray()).unwrap();
+    assert_eq!(w.host("a", &[2, 2]).unwrap(), vals);
+    let b = w.host("b", &[2, 2]).unwrap();
+    for (g, v) in b.iter().zip(vals) {
+        assert!((g - v).abs() <= v.abs() * 1e-3, "f16 {g} vs {v}");
+    }
+    let c = w.host("c", &[4]).unwrap();
+    for (g, v) in c.iter().zip(vals) {
+        assert!((g - v).abs() <= v.abs() * 8e-3, "bf16 {g} vs {v}");
+    }
+    let e = w.host("d", &[4]).unwrap_err().to_string();
+    assert!(e.contains("dtype I32"), "{e}");
+    let e = w.host("a", &[4]).unwrap_err().to_string();
+    assert!(e.contains("[2, 2]") && e.contains("[4]"), "{e}");
+    let e = w.host("zzz", &[1]).unwrap_err();
+    assert!(matches!(e, VlmError::Weights { .. }) && e.to_string().contains("zzz is missing"));
+    // The transformers-5 key layout resolves to the same tensors.
+    let _ = TensorData::new(vec![0f32], [1]);
+}

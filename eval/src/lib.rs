@@ -35,3 +35,36 @@ pub fn catch_backend<T>(what: &str, f: impl FnOnce() -> T) -> Result<T, String> 
         format!("{what} failed: {msg}")
     })
 }
+
+/// Draws a one-line progress bar on stderr: `label [#####     ] done/total unit, rate, eta`.
+pub struct Progress {
+    label: String,
+    unit: &'static str,
+    start: std::time::Instant,
+}
+
+impl Progress {
+    pub fn new(label: impl Into<String>, unit: &'static str) -> Self {
+        Self { label: label.into(), unit, start: std::time::Instant::now() }
+    }
+
+    pub fn update(&self, done: usize, total: usize) {
+        use std::io::Write;
+        let total = total.max(1);
+        let bar = 30 * done.min(total) / total;
+        let secs = self.start.elapsed().as_secs_f64();
+        let rate = done as f64 / secs.max(1e-9);
+        let eta = if done > 0 { (total - done.min(total)) as f64 / rate } else { 0.0 };
+        eprint!(
+            "\r{} [{}{}] {done}/{total} {} ({rate:.2}/s, eta {eta:.0} s)   ",
+            self.label,
+            "#".repeat(bar),
+            " ".repeat(30 - bar),
+            self.unit
+        );
+        let _ = std::io::stderr().flush();
+        if done >= total {
+            eprintln!();
+        }
+    }
+}

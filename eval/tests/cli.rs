@@ -73,3 +73,37 @@ fn synth_writes_a_dataset_and_rejects_zero_views() {
     assert!(!st.status.success());
     assert!(String::from_utf8_lossy(&st.stderr).contains("views, width and height must be positive"));
 }
+
+fn fixture() -> std::path::PathBuf {
+    std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../checkpoints/tiny-llava-ov")
+}
+
+#[test]
+fn ask_streams_an_answer_from_the_tiny_vlm_and_rejects_bad_paths() {
+    let st = chatsplat()
+        .args(["ask", "--max-new-tokens", "6", "--vlm"])
+        .arg(fixture())
+        .arg("--image")
+        .arg(fixture().join("image_a.png"))
+        .arg("What is on the table?")
+        .output()
+        .unwrap();
+    assert!(st.status.success(), "{}", String::from_utf8_lossy(&st.stderr));
+    let err = String::from_utf8_lossy(&st.stderr);
+    assert!(err.contains("prompt tokens") && err.contains("new tokens"), "{err}");
+    assert!(!st.stdout.is_empty());
+
+    let st = chatsplat().args(["ask", "--vlm", "/nonexistent/vlm", "--image"]).arg(fixture().join("image_a.png")).arg("q").output().unwrap();
+    assert!(!st.status.success());
+    let err = String::from_utf8_lossy(&st.stderr);
+    assert!(err.contains("/nonexistent/vlm") && !err.contains("panicked"), "{err}");
+
+    let st = chatsplat().args(["ask", "--vlm"]).arg(fixture()).args(["--image", "/nonexistent/x.png", "q"]).output().unwrap();
+    assert!(!st.status.success());
+    assert!(String::from_utf8_lossy(&st.stderr).contains("/nonexistent/x.png"));
+
+    let st = chatsplat().args(["extract", "--vlm"]).arg(fixture()).args(["--data", "/nonexistent/scene"]).output().unwrap();
+    assert!(!st.status.success());
+    let err = String::from_utf8_lossy(&st.stderr);
+    assert!(err.contains("/nonexistent/scene") && !err.contains("panicked"), "{err}");
+}

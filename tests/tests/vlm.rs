@@ -285,3 +285,82 @@ fn weights_convert_bf16_f16_and_reject_other_dtypes() {
     // The transformers-5 key layout resolves to the same tensors.
     let _ = TensorData::new(vec![0f32], [1]);
 }
+
+#[test]
+fn object_images_keep_only_the_object_cropped_with_a_margin_and_squared() {
+    use train::teacher::object_image;
+    let (w, h) = (40, 20);
+    let data: Vec<u8> = (0..w * h * 3).map(|i| (i % 251) as u8 + 1).collect();
+    let img = RgbImage::new(w, h, data);
+    let mut ids = vec![0u8; w * h];
+    for y in 5..15 {
+        for x in 10..30 {
+            ids[y * w + x] = if (x + y) % 7 == 0 { 3 } else { 2 };
+        }
+    }
+    let (obj, bbox) = object_image(&img, &ids, 2, 0.1).unwrap();
+    // box 10..30 x 5..15 grown by 2 and 1 pixels; squared to the longer side.
+    assert_eq!(bbox, [8, 4, 32, 16]);
+    assert_eq!((obj.width, obj.height), (24, 24));
+    let oy = (24 - 12) / 2;
+    for y in 0..24 {
+        for x in 0..24 {
+            let px = &obj.data[(y * 24 + x) * 3..(y * 24 + x) * 3 + 3];
+            let (sx, sy) = (x + 8, y as isize - oy as isize + 4);
+            let inside = sy >= 0 && (sy as usize) < h && ids[sy as usize * w + sx] == 2;
+            if inside {
+                let s = (sy as usize * w + sx) * 3;
+                assert_eq!(px, &img.data[s..s + 3], "object pixel ({x},{y})");
+            } else {
+                assert_eq!(px, [0, 0, 0], "blanked pixel ({x},{y})");
+            }
+        }
+    }
+    assert!(object_image(&img, &ids, 9, 0.1).is_none());
+}
+
+#[test]
+fn teacher_extraction_writes_f16_tokens_and_resumes() {
+    use train::teacher::{extract, read_tokens, view_file, ExtractOptions};
+    let data = temp_dir("vlm-extract");
+    let opts = train::data::synth::SynthOptions { views: 3, width: 64, height: 48, ..Default::default() };
+    train::data::synth::write_dataset(&data, &opts, |_, _| {}).unwrap();
+    let dev = Device::ndarray();
+    let m = LlavaOnevision::load(&fixture(), &dev).unwrap();
+    let out = data.join("teacher");
+    let eo = ExtractOptions { min_object_pixels: 16, ..Default::default() };
+    let mut planned = 0;
+    let s = extract(&m, &data, &out, &eo, |p| planned = p.views.len(), |_, _| {}).unwrap();
+    assert_eq!((s.written, s.skipped), (planned, 0));
+    assert!(planned >= 2 && s.images > planned, "{s:?}: objects must be encoded too");
+    let index: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("teacher.json")).unwrap()).unwrap();
+    let v0 = &index["views"][0];
+    let objects: Vec<u64> = v0["objects"].as_array().unwrap().iter().map(|x| x.as_u64().unwrap()).collect();
+    assert!(!objects.is_empty());
+    // The stored view tokens are the tower's output for that image, rounded to f16.
+    let ds = train::data::nerfstudio::load(&data, &eo.load).unwrap();
+    let img = RgbImage::from_f32(64, 48, &ds.train[0].rgb);
+    let want = host(m.teacher_tokens(&img));
+    let (shape, got) = read_tokens(&out.join(view_file(0)), "view").unwrap();
+    assert_eq!(shape, vec![27, 27, 32]);
+    for (g, w) in got.iter().zip(&want) {
+        assert!((g - w).abs() <= w.abs() * 1e-3 + 1e-4, "f16 token {g} vs {w}");
+    }
+    for id in &objects {
+        let (shape, t) = read_tokens(&out.join(view_file(0)), &format!("object_{id}")).unwrap();
+        assert_eq!(shape, vec![27, 27, 32]);
+        assert!(max_abs_diff(&t, &got) > 1e-3, "object {id} tokens must differ from the view's");
+    }
+    // Resume: a deleted and a truncated file are redone, the rest skipped.
+    std::fs::remove_file(out.join(view_file(0))).unwrap();
+    let f1 = out.join(view_file(1));
+    let len = std::fs::metadata(&f1).unwrap().len();
+    std::fs::OpenOptions::new().write(true).open(&f1).unwrap().set_len(len / 3).unwrap();
+    let s = extract(&m, &data, &out, &eo, |_| {}, |_, _| {}).unwrap();
+    assert_eq!((s.written, s.skipped), (2, planned - 2));
+    let (_, again) = read_tokens(&out.join(view_file(0)), "view").unwrap();
+    assert_eq!(again, got, "extraction is deterministic");
+    // A dataset path that does not exist is a clear error.
+    let e = extract(&m, Path::new("/nonexistent/scene"), &out, &eo, |_| {}, |_, _| {}).unwrap_err();
+    assert!(e.contains("/nonexistent/scene"), "{e}");
+}

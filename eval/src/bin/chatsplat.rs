@@ -3,7 +3,7 @@
 
 use burn::tensor::{Tensor, TensorData};
 use clap::{Parser, Subcommand};
-use eval::{BackendChoice, catch_backend, images};
+use eval::{BackendChoice, Progress, catch_backend, images};
 use glam::Vec3;
 use model::GaussianCloud;
 use splat_kernels::api::{SplatOptions, splat};
@@ -25,6 +25,134 @@ enum Command {
     /// Write the built-in synthetic tabletop as a dataset: ray-cast RGB views, instance masks,
     /// depth, transforms.json and scene.json.
     Synth(SynthArgs),
+    /// Plain LLaVA-OneVision on one image (the paper's baseline: the VLM fed with a rendered view).
+    Ask(AskArgs),
+    /// Teacher tokens for the language field: SigLIP patch features of every training view and of
+    /// every masked object, as f16 safetensors (resumable).
+    Extract(ExtractArgs),
+}
+
+#[derive(clap::Args)]
+struct AskArgs {
+    /// Local Hugging Face directory of llava-hf/llava-onevision-qwen2-{0.5b,7b}-ov-hf (or the tiny fixture).
+    #[arg(long)]
+    vlm: PathBuf,
+    /// PNG image to ask about.
+    #[arg(long)]
+    image: PathBuf,
+    /// The question.
+    question: String,
+    #[arg(long, default_value_t = 256)]
+    max_new_tokens: usize,
+    /// 0 = greedy.
+    #[arg(long, default_value_t = 0.0)]
+    temperature: f32,
+    #[arg(long, default_value_t = 1.0)]
+    top_p: f32,
+    #[arg(long, default_value_t = 0)]
+    seed: u64,
+    #[arg(long, value_enum, default_value_t = BackendChoice::Ndarray)]
+    backend: BackendChoice,
+}
+
+fn ask(a: AskArgs) -> Result<(), String> {
+    use model::vlm::{chat_template, GenerateOptions, LlavaOnevision, RgbImage, Turn};
+    use std::io::Write;
+    let img = RgbImage::read_png(&a.image)?;
+    if !(0.0..=1.0).contains(&a.top_p) || a.top_p == 0.0 || a.temperature < 0.0 || !a.temperature.is_finite() {
+        return Err("--top-p must be in (0, 1] and --temperature >= 0".into());
+    }
+    let device = a.backend.device();
+    let t0 = std::time::Instant::now();
+    let m = catch_backend("loading the model", || LlavaOnevision::load(&a.vlm, &device))?.map_err(|e| e.to_string())?;
+    eprintln!("loaded {} in {:.1} s", a.vlm.display(), t0.elapsed().as_secs_f64());
+    let prompt = chat_template(&[Turn::user(1, a.question.clone())], true);
+    let opts = GenerateOptions { max_new_tokens: a.max_new_tokens, temperature: a.temperature, top_p: a.top_p, seed: a.seed, ignore_stop: false };
+    let t1 = std::time::Instant::now();
+    let out = catch_backend("generation", || -> Result<_, model::vlm::VlmError> {
+        let patches = m.preprocess(&img, false);
+        let ids = m.expand_image_tokens(&m.tokenizer.encode(&prompt)?, &[m.num_image_tokens(&patches)])?;
+        let embeds = m.embed_prompt(&ids, &[m.image_embeds(&patches)])?;
+        m.generate(embeds, &opts, |piece| {
+            print!("{piece}");
+            let _ = std::io::stdout().flush();
+        })
+    })?
+    .map_err(|e| e.to_string())?;
+    println!();
+    let secs = t1.elapsed().as_secs_f64();
+    eprintln!(
+        "{} prompt tokens, {} new tokens{} in {secs:.2} s on {:?}",
+        out.prompt_tokens,
+        out.ids.len(),
+        if out.stopped { " (stopped at <|im_end|>)" } else { "" },
+        a.backend
+    );
+    Ok(())
+}
+
+#[derive(clap::Args)]
+struct ExtractArgs {
+    /// Local Hugging Face LLaVA-OneVision directory (the teacher).
+    #[arg(long)]
+    vlm: PathBuf,
+    /// Scene dataset (nerfstudio transforms.json or Blender layout, e.g. from `chatsplat synth`).
+    #[arg(long)]
+    data: PathBuf,
+    /// Output directory (default: DATA/teacher).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Integer image downscale before extraction.
+    #[arg(long, default_value_t = 1)]
+    downscale: u32,
+    /// Object crop margin as a fraction of the object's box, per side.
+    #[arg(long, default_value_t = 0.1)]
+    margin: f32,
+    #[arg(long, value_enum, default_value_t = BackendChoice::Ndarray)]
+    backend: BackendChoice,
+}
+
+fn extract(a: ExtractArgs) -> Result<(), String> {
+    use train::teacher::{extract, ExtractOptions};
+    if a.downscale == 0 || !(0.0..=2.0).contains(&a.margin) {
+        return Err("--downscale must be >= 1 and --margin in [0, 2]".into());
+    }
+    let out = a.out.clone().unwrap_or_else(|| a.data.join("teacher"));
+    let device = a.backend.device();
+    let m = catch_backend("loading the model", || model::vlm::LlavaOnevision::load(&a.vlm, &device))?.map_err(|e| e.to_string())?;
+    let opts = ExtractOptions { margin: a.margin, load: train::data::nerfstudio::LoadOptions { downscale: a.downscale, ..Default::default() }, ..Default::default() };
+    let bar = Progress::new("extract", "views");
+    let t0 = std::time::Instant::now();
+    let summary = catch_backend("extraction", || {
+        extract(
+            &m,
+            &a.data,
+            &out,
+            &opts,
+            |plan| {
+                let objects: usize = plan.views.iter().map(|v| v.objects.len()).sum();
+                eprintln!(
+                    "{} training views + {objects} object crops -> {} images of {}x{} tokens; about {:.1} MB of f16 in {}",
+                    plan.views.len(),
+                    plan.views.len() + objects,
+                    plan.tokens_per_image,
+                    plan.dim,
+                    plan.bytes as f64 / 1e6,
+                    out.display()
+                );
+            },
+            |done, total| bar.update(done, total),
+        )
+    })??;
+    println!(
+        "teacher tokens: {} view files written, {} already complete (skipped), {} images encoded in {:.1} s -> {}",
+        summary.written,
+        summary.skipped,
+        summary.images,
+        t0.elapsed().as_secs_f64(),
+        out.join("teacher.json").display()
+    );
+    Ok(())
 }
 
 #[derive(clap::Args)]
@@ -45,7 +173,6 @@ struct SynthArgs {
 }
 
 fn synth(a: SynthArgs) -> Result<(), String> {
-    use std::io::Write;
     let opts = train::data::synth::SynthOptions {
         seed: a.seed,
         views: a.views,
@@ -54,12 +181,8 @@ fn synth(a: SynthArgs) -> Result<(), String> {
         ..Default::default()
     };
     let t0 = std::time::Instant::now();
-    train::data::synth::write_dataset(&a.out, &opts, |done, total| {
-        let bar = 30 * done / total;
-        eprint!("\rsynth [{}{}] {done}/{total} views", "#".repeat(bar), " ".repeat(30 - bar));
-        let _ = std::io::stderr().flush();
-    })?;
-    eprintln!();
+    let bar = Progress::new("synth", "views");
+    train::data::synth::write_dataset(&a.out, &opts, |done, total| bar.update(done, total))?;
     println!(
         "wrote {} views of seed {} ({}x{}) with masks, depth, transforms.json and scene.json to {} in {:.1} s",
         a.views,
@@ -206,6 +329,8 @@ fn main() -> ExitCode {
     let result = match cli.command {
         Command::Render(a) => render(a),
         Command::Synth(a) => synth(a),
+        Command::Ask(a) => ask(a),
+        Command::Extract(a) => extract(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

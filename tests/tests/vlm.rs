@@ -364,3 +364,65 @@ fn teacher_extraction_writes_f16_tokens_and_resumes() {
     let e = extract(&m, Path::new("/nonexistent/scene"), &out, &eo, |_| {}, |_, _| {}).unwrap_err();
     assert!(e.contains("/nonexistent/scene"), "{e}");
 }
+
+#[test]
+fn sampling_follows_temperature_and_top_p() {
+    use model::rng::Rng;
+    use model::vlm::generate::pick;
+    let logits = [0.0f32, 3f32.ln(), -1e9, 0.5];
+    let greedy = GenerateOptions::default();
+    let mut rng = Rng::new(1);
+    assert_eq!(pick(&logits, &greedy, &mut rng), 1);
+    // A tiny nucleus keeps only the top token.
+    let nucleus = GenerateOptions { temperature: 1.0, top_p: 1e-6, ..Default::default() };
+    assert!((0..100).all(|_| pick(&logits, &nucleus, &mut rng) == 1));
+    // Temperature 1 over {0, ln 3} (+ a third option): frequencies follow the softmax.
+    let two = [0.0f32, 3f32.ln()];
+    let t1 = GenerateOptions { temperature: 1.0, ..Default::default() };
+    let n = 4000;
+    let ones = (0..n).filter(|_| pick(&two, &t1, &mut rng) == 1).count();
+    let f = ones as f64 / n as f64;
+    assert!((f - 0.75).abs() < 0.03, "P(token 1) = {f}, expected 0.75");
+    // A high temperature flattens it, a low one sharpens it.
+    let hot = GenerateOptions { temperature: 100.0, ..Default::default() };
+    let f_hot = (0..n).filter(|_| pick(&two, &hot, &mut rng) == 1).count() as f64 / n as f64;
+    assert!((f_hot - 0.5).abs() < 0.04, "{f_hot}");
+    // top_p = 0.7 over {0.25, 0.75}: only the 0.75 token survives.
+    let p7 = GenerateOptions { temperature: 1.0, top_p: 0.7, ..Default::default() };
+    assert!((0..200).all(|_| pick(&two, &p7, &mut rng) == 1));
+    // Same seed, same draws.
+    let draw = |seed| {
+        let mut r = Rng::new(seed);
+        (0..50).map(|_| pick(&logits, &t1, &mut r)).collect::<Vec<_>>()
+    };
+    assert_eq!(draw(5), draw(5));
+}
+
+#[test]
+fn parameter_count_formula_matches_the_checkpoint() {
+    // Every tensor the port uses, counted from the files, equals LlavaConfig::parameter_counts.
+    let dev = Device::ndarray();
+    let m = LlavaOnevision::load(&fixture(), &dev).unwrap();
+    let mut used = 0usize;
+    for e in std::fs::read_dir(fixture()).unwrap() {
+        let p = e.unwrap().path();
+        let name = p.file_name().unwrap().to_string_lossy().to_string();
+        if !(name.starts_with("model-") && name.ends_with(".safetensors")) {
+            continue;
+        }
+        let bytes = std::fs::read(&p).unwrap();
+        let st = SafeTensors::deserialize(&bytes).unwrap();
+        for (n, v) in st.tensors() {
+            if n.contains("post_layernorm") || n.contains(".head.") {
+                continue; // SigLIP's final norm and pooling head are not used by LLaVA
+            }
+            used += v.shape().iter().product::<usize>();
+        }
+    }
+    assert_eq!(m.cfg.parameter_counts().total(), used);
+    // The published models come out at their advertised sizes.
+    let p05 = model::vlm::LlavaConfig::onevision_0_5b().parameter_counts();
+    let p7 = model::vlm::LlavaConfig::onevision_7b().parameter_counts();
+    assert!((0.85e9..0.95e9).contains(&(p05.total() as f64)), "{p05:?}");
+    assert!((7.9e9..8.1e9).contains(&(p7.total() as f64)), "{p7:?}");
+}

@@ -37,7 +37,8 @@ pub struct Generation {
     pub prompt_tokens: usize,
 }
 
-fn pick(logits: &[f32], opts: &GenerateOptions, rng: &mut Rng) -> u32 {
+/// Picks the next token from `logits`: argmax when greedy, else temperature + nucleus (top-p) sampling.
+pub fn pick(logits: &[f32], opts: &GenerateOptions, rng: &mut Rng) -> u32 {
     if opts.temperature <= 0.0 {
         let mut best = 0;
         for (i, v) in logits.iter().enumerate() {

@@ -93,6 +93,25 @@ fn ask_streams_an_answer_from_the_tiny_vlm_and_rejects_bad_paths() {
     assert!(err.contains("prompt tokens") && err.contains("new tokens"), "{err}");
     assert!(!st.stdout.is_empty());
 
+    // Two images: the multi-image layout (730 placeholder tokens each in the fixture).
+    let st = chatsplat()
+        .args(["ask", "--max-new-tokens", "2", "--vlm"])
+        .arg(fixture())
+        .arg("--image")
+        .arg(fixture().join("image_a.png"))
+        .arg("--image")
+        .arg(fixture().join("image_b.png"))
+        .arg("Which is brighter?")
+        .output()
+        .unwrap();
+    assert!(st.status.success(), "{}", String::from_utf8_lossy(&st.stderr));
+    let err = String::from_utf8_lossy(&st.stderr);
+    let n: usize = err
+        .lines()
+        .find_map(|l| l.split(" prompt tokens").next().filter(|_| l.contains(" prompt tokens")).and_then(|s| s.trim().parse().ok()))
+        .unwrap_or_else(|| panic!("no prompt token count in {err}"));
+    assert!(n > 2 * 730 && n < 2 * 730 + 40, "two base views + newline = 1460 image tokens plus the text, got {n}");
+
     let st = chatsplat().args(["ask", "--vlm", "/nonexistent/vlm", "--image"]).arg(fixture().join("image_a.png")).arg("q").output().unwrap();
     assert!(!st.status.success());
     let err = String::from_utf8_lossy(&st.stderr);

@@ -37,9 +37,10 @@ struct AskArgs {
     /// Local Hugging Face directory of llava-hf/llava-onevision-qwen2-{0.5b,7b}-ov-hf (or the tiny fixture).
     #[arg(long)]
     vlm: PathBuf,
-    /// PNG image to ask about.
-    #[arg(long)]
-    image: PathBuf,
+    /// PNG image to ask about; repeat for a multi-image prompt (one base view + newline per image,
+    /// LLaVA-OneVision's multi-image layout).
+    #[arg(long, required = true)]
+    image: Vec<PathBuf>,
     /// The question.
     question: String,
     #[arg(long, default_value_t = 256)]
@@ -58,7 +59,7 @@ struct AskArgs {
 fn ask(a: AskArgs) -> Result<(), String> {
     use model::vlm::{chat_template, GenerateOptions, LlavaOnevision, RgbImage, Turn};
     use std::io::Write;
-    let img = RgbImage::read_png(&a.image)?;
+    let imgs = a.image.iter().map(|p| RgbImage::read_png(p)).collect::<Result<Vec<_>, _>>()?;
     if !(0.0..=1.0).contains(&a.top_p) || a.top_p == 0.0 || a.temperature < 0.0 || !a.temperature.is_finite() {
         return Err("--top-p must be in (0, 1] and --temperature >= 0".into());
     }
@@ -66,13 +67,16 @@ fn ask(a: AskArgs) -> Result<(), String> {
     let t0 = std::time::Instant::now();
     let m = catch_backend("loading the model", || LlavaOnevision::load(&a.vlm, &device))?.map_err(|e| e.to_string())?;
     eprintln!("loaded {} in {:.1} s", a.vlm.display(), t0.elapsed().as_secs_f64());
-    let prompt = chat_template(&[Turn::user(1, a.question.clone())], true);
+    let prompt = chat_template(&[Turn::user(imgs.len(), a.question.clone())], true);
     let opts = GenerateOptions { max_new_tokens: a.max_new_tokens, temperature: a.temperature, top_p: a.top_p, seed: a.seed, ignore_stop: false };
     let t1 = std::time::Instant::now();
     let out = catch_backend("generation", || -> Result<_, model::vlm::VlmError> {
-        let patches = m.preprocess(&img, false);
-        let ids = m.expand_image_tokens(&m.tokenizer.encode(&prompt)?, &[m.num_image_tokens(&patches)])?;
-        let embeds = m.embed_prompt(&ids, &[m.image_embeds(&patches)])?;
+        let multi = imgs.len() > 1;
+        let patches: Vec<_> = imgs.iter().map(|i| m.preprocess(i, multi)).collect();
+        let counts: Vec<usize> = patches.iter().map(|p| m.num_image_tokens(p)).collect();
+        let ids = m.expand_image_tokens(&m.tokenizer.encode(&prompt)?, &counts)?;
+        let images: Vec<_> = patches.iter().map(|p| m.image_embeds(p)).collect();
+        let embeds = m.embed_prompt(&ids, &images)?;
         m.generate(embeds, &opts, |piece| {
             print!("{piece}");
             let _ = std::io::stdout().flush();

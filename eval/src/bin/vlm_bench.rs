@@ -44,7 +44,7 @@ fn memory_table(name: &str, cfg: &LlavaConfig) {
     // Largest transient: the vision tower's attention scores for an anyres image of 10 views.
     let attn = 10 * cfg.vision.num_heads * cfg.vision.tokens() * cfg.vision.tokens();
     println!(
-        "| {name} | {:.1} M | {:.1} M | {:.1} M | {:.1} M | {} | {} | {} | {} |",
+        "| {name} | {:.3} M | {:.3} M | {:.3} M | {:.3} M | {} | {} | {} | {} |",
         p.vision as f64 / 1e6,
         p.projector as f64 / 1e6,
         p.text as f64 / 1e6,

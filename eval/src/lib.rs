@@ -49,6 +49,11 @@ impl Progress {
     }
 
     pub fn update(&self, done: usize, total: usize) {
+        self.update_with(done, total, "");
+    }
+
+    /// As [`update`](Self::update), with extra text (loss, PSNR...) after the counts.
+    pub fn update_with(&self, done: usize, total: usize, extra: &str) {
         use std::io::Write;
         let total = total.max(1);
         let bar = 30 * done.min(total) / total;
@@ -56,7 +61,7 @@ impl Progress {
         let rate = done as f64 / secs.max(1e-9);
         let eta = if done > 0 { (total - done.min(total)) as f64 / rate } else { 0.0 };
         eprint!(
-            "\r{} [{}{}] {done}/{total} {} ({rate:.2}/s, eta {eta:.0} s)   ",
+            "\r{} [{}{}] {done}/{total} {} ({rate:.2}/s, eta {eta:.0} s) {extra}   ",
             self.label,
             "#".repeat(bar),
             " ".repeat(30 - bar),

@@ -5,6 +5,7 @@ pub mod cloud;
 pub mod images;
 pub mod ply;
 pub mod rng;
+pub mod splats;
 pub mod synthetic;
 pub mod vlm;
 

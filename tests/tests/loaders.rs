@@ -1,5 +1,5 @@
-//! nerfstudio / Blender loaders: the synthetic dataset round-trips, real lego loads, malformed
-//! inputs give errors naming the file and the problem.
+//! nerfstudio / Blender loaders: the synthetic dataset round-trips, real lego (PNG) and fox (JPEG)
+//! load, malformed inputs give errors naming the file and the problem.
 
 #![allow(deprecated)]
 
@@ -73,7 +73,7 @@ fn malformed_datasets_give_errors_naming_the_file() {
     expect_err(&dir, "frame 4: image");
     std::fs::write(&tf, good.replacen("images/frame_0000.png", "images/frame_0000.jpg", 1)).unwrap();
     std::fs::write(dir.join("images/frame_0000.jpg"), b"\xff\xd8").unwrap();
-    expect_err(&dir, "frame_0000.jpg: JPEG images are not supported yet");
+    expect_err(&dir, "frame_0000.jpg: cannot decode JPEG");
     std::fs::remove_dir_all(&dir).ok();
 }
 
@@ -100,4 +100,53 @@ fn lego_from_shared_datasets_loads_at_quarter_resolution() {
     // White background composited over the RGBA alpha: the image corners are white.
     let rgb = &ds.train[0].rgb;
     assert!(rgb[..3].iter().all(|&x| x > 0.99));
+}
+
+#[test]
+fn fox_jpegs_from_shared_datasets_decode() {
+    let fox = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../shared/datasets/fox");
+    let names = ["0001.jpg", "0002.jpg"];
+    if !names.iter().all(|n| fox.join("images").join(n).is_file()) {
+        eprintln!("SKIPPED: ../shared absent (../shared/datasets/fox/images)");
+        return;
+    }
+    // fox's own transforms.json has lens distortion, which the loader refuses; point a
+    // distortion-free transforms.json at two of its JPEGs (absolute paths).
+    let dir = temp_dir("fox-jpeg");
+    std::fs::create_dir_all(&dir).unwrap();
+    let frames: Vec<serde_json::Value> = names
+        .iter()
+        .map(|n| {
+            serde_json::json!({
+                "file_path": fox.join("images").join(n).to_str().unwrap(),
+                "transform_matrix": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 3], [0, 0, 0, 1]],
+            })
+        })
+        .collect();
+    let tf = serde_json::json!({ "fl_x": 1375.52, "fl_y": 1374.49, "cx": 554.558, "cy": 965.268, "w": 1080, "h": 1920, "frames": frames });
+    std::fs::write(dir.join("transforms.json"), tf.to_string()).unwrap();
+    let mean = |rgb: &[f32]| -> [f32; 3] {
+        let n = (rgb.len() / 3) as f32;
+        std::array::from_fn(|q| rgb.iter().skip(q).step_by(3).sum::<f32>() / n)
+    };
+    let mut means = vec![];
+    for k in [4, 8] {
+        let ds = load(&dir, &LoadOptions { downscale: k, holdout_every: 0, ..Default::default() }).unwrap();
+        assert_eq!(ds.train.len(), 2);
+        let v = &ds.train[0];
+        assert_eq!((v.camera.width, v.camera.height), (1080 / k, 1920 / k));
+        assert!((v.camera.fx - 1375.52 / k as f32).abs() < 1e-3);
+        assert!(v.rgb.iter().all(|x| (0.0..=1.0).contains(x)));
+        // A colour photo: not gray, not flat.
+        assert!(v.rgb.chunks(3).any(|p| (p[0] - p[2]).abs() > 0.1), "decoded as gray");
+        let m = mean(&v.rgb);
+        let var = v.rgb.iter().skip(1).step_by(3).map(|g| (g - m[1]).powi(2)).sum::<f32>() / (v.rgb.len() / 3) as f32;
+        assert!(var > 1e-3, "flat image (green variance {var})");
+        means.push(m);
+    }
+    // The box filter keeps the mean colour (both factors divide 1080x1920 exactly).
+    for q in 0..3 {
+        assert!((means[0][q] - means[1][q]).abs() < 1e-4, "mean colour changes with downscale: {means:?}");
+    }
+    std::fs::remove_dir_all(&dir).ok();
 }

@@ -3,4 +3,5 @@
 //! optimise with burn optimizers (see ARCHITECTURE.md). `data` holds the scene sources; `teacher` extracts LLaVA-OneVision teacher tokens.
 
 pub mod data;
+pub mod geometry;
 pub mod teacher;

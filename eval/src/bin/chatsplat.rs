@@ -27,9 +27,107 @@ enum Command {
     Synth(SynthArgs),
     /// Plain LLaVA-OneVision on one image (the paper's baseline: the VLM fed with a rendered view).
     Ask(AskArgs),
+    /// Geometry stage: fit 3D Gaussians with a 16-channel identity field to a posed dataset.
+    Train(TrainArgs),
+    /// Export a run's Gaussians as an Inria-layout .ply (with identity features as extra properties).
+    ExportPly(ExportPlyArgs),
     /// Teacher tokens for the language field: SigLIP patch features of every training view and of
     /// every masked object, as f16 safetensors (resumable).
     Extract(ExtractArgs),
+}
+
+#[derive(clap::Args)]
+struct TrainArgs {
+    /// Dataset directory (nerfstudio transforms.json or Blender layout; `chatsplat synth` writes one).
+    #[arg(long)]
+    data: PathBuf,
+    /// Run directory (checkpoints, config.json, renders/, point_cloud.ply, metrics.json).
+    #[arg(long, default_value = "out/run")]
+    out: PathBuf,
+    #[arg(long)]
+    iters: Option<usize>,
+    #[arg(long, value_enum, default_value_t = BackendChoice::Ndarray)]
+    backend: BackendChoice,
+    /// Integer image downscale.
+    #[arg(long, default_value_t = 1)]
+    downscale: u32,
+    /// Continue from the run directory's last checkpoint.
+    #[arg(long)]
+    resume: bool,
+    /// A config.json with any GeometryConfig fields (others keep their defaults).
+    #[arg(long)]
+    config: Option<PathBuf>,
+    /// RGBA background: white or black.
+    #[arg(long, default_value = "white")]
+    background: String,
+}
+
+fn train_cmd(a: TrainArgs) -> Result<(), String> {
+    use train::data::nerfstudio::{load, Background, LoadOptions};
+    use train::geometry::{run, GeometryConfig};
+    let (bg, bgc) = match a.background.as_str() {
+        "white" => (Background::White, [1.0; 3]),
+        "black" => (Background::Black, [0.0; 3]),
+        other => return Err(format!("--background {other}: expected white or black")),
+    };
+    if a.downscale == 0 {
+        return Err("--downscale must be >= 1".into());
+    }
+    let mut cfg = match &a.config {
+        Some(p) => {
+            let text = std::fs::read_to_string(p).map_err(|e| format!("{}: {e}", p.display()))?;
+            serde_json::from_str::<GeometryConfig>(&text).map_err(|e| format!("{}: invalid config: {e}", p.display()))?
+        }
+        None => GeometryConfig { background: bgc, ..Default::default() },
+    };
+    if let Some(n) = a.iters {
+        cfg.iters = n;
+    }
+    let ds = load(&a.data, &LoadOptions { downscale: a.downscale, background: bg, ..Default::default() })?;
+    eprintln!("{}: {} training / {} held-out views of {}x{}", a.data.display(), ds.train.len(), ds.test.len(), ds.train[0].camera.width, ds.train[0].camera.height);
+    let device = a.backend.device();
+    let bar = Progress::new("train", "it");
+    let mut last = std::time::Instant::now();
+    let s = catch_backend("training", || {
+        run(&ds, &a.out, cfg, &device, a.resume, |p| {
+            if last.elapsed().as_millis() > 250 || p.iter == p.iters {
+                bar.update_with(p.iter, p.iters, &format!("loss {:.4} psnr {:.2} N {}", p.loss, p.psnr, p.gaussians));
+                last = std::time::Instant::now();
+            }
+        })
+    })??;
+    if let Some(at) = s.resumed_from {
+        println!("resumed from iteration {at}");
+    }
+    println!(
+        "{} Gaussians; {} views: PSNR {:.2} dB, SSIM {:.4}{}; {:.3} s/iter on {:?} -> {}",
+        s.gaussians,
+        s.eval.views,
+        s.eval.psnr,
+        s.eval.ssim,
+        s.eval.miou.map(|m| format!(", identity mIoU {m:.3}")).unwrap_or_default(),
+        s.seconds_per_iter,
+        a.backend,
+        a.out.display()
+    );
+    Ok(())
+}
+
+#[derive(clap::Args)]
+struct ExportPlyArgs {
+    /// Run directory written by `chatsplat train`.
+    #[arg(long)]
+    run: PathBuf,
+    #[arg(long)]
+    out: PathBuf,
+}
+
+fn export_ply(a: ExportPlyArgs) -> Result<(), String> {
+    let t = train::geometry::GeometryTrainer::load(&a.run, &burn::tensor::Device::ndarray())?;
+    let (cloud, _) = t.model.to_cloud();
+    model::ply::write(&a.out, &cloud).map_err(|e| e.to_string())?;
+    println!("{} Gaussians (iteration {}) -> {}", cloud.len(), t.iter, a.out.display());
+    Ok(())
 }
 
 #[derive(clap::Args)]
@@ -334,6 +432,8 @@ fn main() -> ExitCode {
         Command::Render(a) => render(a),
         Command::Synth(a) => synth(a),
         Command::Ask(a) => ask(a),
+        Command::Train(a) => train_cmd(a),
+        Command::ExportPly(a) => export_ply(a),
         Command::Extract(a) => extract(a),
     };
     match result {

@@ -1,4 +1,136 @@
 //! Scene data: posed images (and masks, depth) from datasets or the built-in synthetic generator.
+//!
+//! Every loader produces the same [`Dataset`] of [`View`]s with OpenCV-convention
+//! [`Camera`]s (x right, y down, z forward; pixel `(x, y)` covers `[x, x+1) x [y, y+1)`), RGB as
+//! `[H, W, 3]` floats in [0, 1], optional `[H, W]` 8-bit instance ids (0 = background) and
+//! optional `[H, W]` camera-space depth (0 = none). Errors are `String`s of the form
+//! `"<path>: <problem>"`.
+//!
+//! | format | module | marker |
+//! |---|---|---|
+//! | nerfstudio / Blender | [`nerfstudio`] | `transforms.json`, `transforms_train.json` |
+//! | COLMAP (undistorted) | [`colmap`] | `sparse/0/` or `sparse/` |
+//! | LLFF | [`llff`] | `poses_bounds.npy` |
+//! | Replica (Semantic-NeRF renders) | [`replica`] | `traj_w_c.txt` |
+//!
+//! [`load_any`] picks the loader from those markers.
 
+pub mod colmap;
+pub(crate) mod image;
+pub mod llff;
 pub mod nerfstudio;
+pub mod replica;
 pub mod synth;
+
+use splat_kernels::Camera;
+use std::path::{Path, PathBuf};
+
+/// How RGBA images are flattened.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Background {
+    White,
+    Black,
+}
+
+impl Background {
+    /// The background intensity in [0, 1].
+    pub fn value(self) -> f32 {
+        match self {
+            Background::White => 1.0,
+            Background::Black => 0.0,
+        }
+    }
+}
+
+/// Loader options (shared by every format).
+#[derive(Clone, Debug)]
+pub struct LoadOptions {
+    /// Integer downscale factor (box filter for colours, nearest sample for ids and depth);
+    /// 1 keeps the full resolution. Intrinsics are divided by it.
+    pub downscale: u32,
+    /// Background for RGBA images.
+    pub background: Background,
+    /// Without a test split on disk, every `holdout_every`-th view is held out (0: none): views
+    /// `every-1, 2*every-1, ...` in the loader's view order.
+    pub holdout_every: usize,
+}
+
+impl Default for LoadOptions {
+    fn default() -> Self {
+        Self {
+            downscale: 1,
+            background: Background::White,
+            holdout_every: 8,
+        }
+    }
+}
+
+/// One posed view.
+#[derive(Clone, Debug)]
+pub struct View {
+    pub image_path: PathBuf,
+    pub camera: Camera,
+    /// `[H, W, 3]` in [0, 1].
+    pub rgb: Vec<f32>,
+    /// `[H, W]` instance ids, when the dataset has masks.
+    pub instance_ids: Option<Vec<u8>>,
+    /// `[H, W]` camera-space depth in scene units (0 = none), when the dataset has depth.
+    pub depth: Option<Vec<f32>>,
+}
+
+/// A loaded dataset.
+#[derive(Clone, Debug)]
+pub struct Dataset {
+    pub train: Vec<View>,
+    pub test: Vec<View>,
+}
+
+/// Splits `views` (in order) into train and test: every `every`-th view is held out (0: none).
+pub(crate) fn split(views: Vec<View>, every: usize) -> Dataset {
+    let (mut train, mut test) = (vec![], vec![]);
+    for (i, v) in views.into_iter().enumerate() {
+        if every > 0 && i % every == every - 1 {
+            test.push(v);
+        } else {
+            train.push(v);
+        }
+    }
+    Dataset { train, test }
+}
+
+/// Rejects a zero downscale factor.
+pub(crate) fn check_options(opts: &LoadOptions) -> Result<(), String> {
+    if opts.downscale == 0 {
+        Err("downscale must be at least 1".into())
+    } else {
+        Ok(())
+    }
+}
+
+/// Loads a scene directory in whichever supported format it holds, checking for (in this order):
+///
+/// 1. `transforms.json` or `transforms_train.json`: [`nerfstudio`];
+/// 2. `poses_bounds.npy`: [`llff`] (LLFF scenes usually also carry the COLMAP model they were
+///    made from, with the original, distorted cameras, so this marker wins over `sparse/`);
+/// 3. a `sparse/` directory: [`colmap`] (its sparse points are dropped; call
+///    [`colmap::load`] to keep them);
+/// 4. `traj_w_c.txt`: [`replica`].
+pub fn load_any(dir: &Path, opts: &LoadOptions) -> Result<Dataset, String> {
+    if dir.join("transforms.json").is_file() || dir.join("transforms_train.json").is_file() {
+        nerfstudio::load(dir, opts)
+    } else if dir.join("poses_bounds.npy").is_file() {
+        llff::load(dir, opts)
+    } else if dir.join("sparse").is_dir() {
+        colmap::load(dir, opts).map(|(ds, _)| ds)
+    } else if dir.join("traj_w_c.txt").is_file() {
+        replica::load(dir, opts)
+    } else if !dir.is_dir() {
+        Err(image::err(dir, "not a directory"))
+    } else {
+        Err(image::err(
+            dir,
+            "no known scene format: looked for transforms.json or transforms_train.json (nerfstudio), \
+             poses_bounds.npy (LLFF), sparse/ (COLMAP) and traj_w_c.txt (Replica)",
+        ))
+    }
+}

@@ -1,0 +1,221 @@
+//! The trainable scene: Gaussians as a burn `Module` — means, log-scales, quaternions, opacity
+//! logits, spherical-harmonic colour (degree 0-3), a 16-channel identity feature and the
+//! identity classifier (linear 16 -> number of objects), as in Gaussian Grouping. Every
+//! per-Gaussian parameter is a rank-2 tensor `[N, width]`, so densification and optimizer-state
+//! bookkeeping treat them uniformly (see [`SplatModel::rows`]).
+
+use crate::cloud::{GaussianCloud, SH_C0};
+use burn::module::{Module, Param};
+use burn::tensor::{Device, Tensor, TensorData};
+use splat_kernels::{Camera, Gaussians};
+
+/// Identity feature width (Gaussian Grouping).
+pub const IDENTITY_DIM: usize = 16;
+/// Higher-order SH coefficients per colour channel at degree 3.
+pub const SH_REST: usize = 15;
+
+const C1: f32 = 0.488_602_5;
+const C2: [f32; 5] = [1.092_548_4, -1.092_548_4, 0.315_391_57, -1.092_548_4, 0.546_274_2];
+const C3: [f32; 7] = [-0.590_043_6, 2.890_611_4, -0.457_045_8, 0.373_176_33, -0.457_045_8, 1.445_305_7, -0.590_043_6];
+
+/// Names of the per-Gaussian parameters, in [`SplatModel::rows`] order.
+pub const ROW_PARAMS: [&str; 7] = ["means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest", "identity"];
+
+/// The scene being optimised.
+#[derive(Module, Debug)]
+pub struct SplatModel {
+    /// `[N, 3]`
+    pub means: Param<Tensor<2>>,
+    /// `[N, 3]` natural-log standard deviations.
+    pub log_scales: Param<Tensor<2>>,
+    /// `[N, 4]` (w, x, y, z).
+    pub quats: Param<Tensor<2>>,
+    /// `[N, 1]`
+    pub opacity_logits: Param<Tensor<2>>,
+    /// `[N, 3]` SH band 0 (colour = 0.5 + C0 * dc + ...).
+    pub sh_dc: Param<Tensor<2>>,
+    /// `[N, 45]`: SH coefficient k = 1..15 of channel c at column (k-1)*3 + c.
+    pub sh_rest: Param<Tensor<2>>,
+    /// `[N, 16]` identity features.
+    pub identity: Param<Tensor<2>>,
+    /// `[16, K]` identity classifier weight.
+    pub classifier_w: Param<Tensor<2>>,
+    /// `[1, K]` identity classifier bias.
+    pub classifier_b: Param<Tensor<2>>,
+}
+
+impl SplatModel {
+    /// Builds the model from tensors (per-Gaussian rows first, then classifier weight and bias).
+    pub fn from_tensors(t: [Tensor<2>; 9]) -> Self {
+        let [means, log_scales, quats, opacity_logits, sh_dc, sh_rest, identity, classifier_w, classifier_b] = t;
+        Self {
+            means: Param::from_tensor(means),
+            log_scales: Param::from_tensor(log_scales),
+            quats: Param::from_tensor(quats),
+            opacity_logits: Param::from_tensor(opacity_logits),
+            sh_dc: Param::from_tensor(sh_dc),
+            sh_rest: Param::from_tensor(sh_rest),
+            identity: Param::from_tensor(identity),
+            classifier_w: Param::from_tensor(classifier_w),
+            classifier_b: Param::from_tensor(classifier_b),
+        }
+    }
+
+    /// All tensors, in [`from_tensors`](Self::from_tensors) order.
+    pub fn tensors(&self) -> [Tensor<2>; 9] {
+        [
+            self.means.val(),
+            self.log_scales.val(),
+            self.quats.val(),
+            self.opacity_logits.val(),
+            self.sh_dc.val(),
+            self.sh_rest.val(),
+            self.identity.val(),
+            self.classifier_w.val(),
+            self.classifier_b.val(),
+        ]
+    }
+
+    pub fn len(&self) -> usize {
+        self.means.val().dims()[0]
+    }
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+    pub fn num_classes(&self) -> usize {
+        self.classifier_w.val().dims()[1]
+    }
+
+    /// Row widths of the per-Gaussian parameters.
+    pub fn row_widths() -> [usize; 7] {
+        [3, 3, 4, 1, 3, 3 * SH_REST, IDENTITY_DIM]
+    }
+
+    /// A model from a host cloud; identity comes from the cloud's `identity` extra (zeros if
+    /// absent), the classifier from `classifier` (`[16 * K + K]`, or a zero classifier with `classes`).
+    pub fn from_cloud(cloud: &GaussianCloud, classifier: Option<&[f32]>, classes: usize, device: &Device) -> Self {
+        let n = cloud.len();
+        let t = |v: Vec<f32>, w: usize| Tensor::<2>::from_data(TensorData::new(v, [n, w]), device);
+        let mut rest = vec![0f32; n * 3 * SH_REST];
+        // Inria order: f_rest_{c * per + k}, per = rest_per_gaussian / 3.
+        let per = cloud.rest_per_gaussian / 3;
+        for i in 0..n {
+            for c in 0..3 {
+                for k in 0..per.min(SH_REST) {
+                    rest[i * 45 + k * 3 + c] = cloud.sh_rest[i * cloud.rest_per_gaussian + c * per + k];
+                }
+            }
+        }
+        let identity = match cloud.extra.get("identity") {
+            Some((w, v)) if *w == IDENTITY_DIM => v.clone(),
+            _ => vec![0.0; n * IDENTITY_DIM],
+        };
+        let (w, b) = match classifier {
+            Some(c) if c.len() == (IDENTITY_DIM + 1) * classes => (c[..IDENTITY_DIM * classes].to_vec(), c[IDENTITY_DIM * classes..].to_vec()),
+            _ => (vec![0.0; IDENTITY_DIM * classes], vec![0.0; classes]),
+        };
+        Self::from_tensors([
+            t(cloud.means.concat(), 3),
+            t(cloud.log_scales.concat(), 3),
+            t(cloud.quats.concat(), 4),
+            t(cloud.opacity_logits.clone(), 1),
+            t(cloud.sh_dc.concat(), 3),
+            t(rest, 3 * SH_REST),
+            t(identity, IDENTITY_DIM),
+            Tensor::from_data(TensorData::new(w, [IDENTITY_DIM, classes]), device),
+            Tensor::from_data(TensorData::new(b, [1, classes]), device),
+        ])
+    }
+
+    /// The host cloud (Inria layout, SH up to degree 3, identity as the `identity` extra) and the
+    /// classifier as `[16 * K weights, K biases]`.
+    pub fn to_cloud(&self) -> (GaussianCloud, Vec<f32>) {
+        let [means, log_scales, quats, opacity, dc, rest, identity, w, b] = self.tensors().map(host);
+        let n = means.len() / 3;
+        let rows = |v: &[f32], k: usize| -> Vec<[f32; 3]> { (0..k).map(|i| [v[3 * i], v[3 * i + 1], v[3 * i + 2]]).collect() };
+        let mut sh_rest = vec![0f32; n * 45];
+        for i in 0..n {
+            for c in 0..3 {
+                for k in 0..SH_REST {
+                    sh_rest[i * 45 + c * SH_REST + k] = rest[i * 45 + k * 3 + c];
+                }
+            }
+        }
+        let mut cloud = GaussianCloud {
+            means: rows(&means, n),
+            log_scales: rows(&log_scales, n),
+            quats: (0..n).map(|i| [quats[4 * i], quats[4 * i + 1], quats[4 * i + 2], quats[4 * i + 3]]).collect(),
+            opacity_logits: opacity,
+            sh_dc: rows(&dc, n),
+            sh_rest,
+            rest_per_gaussian: 45,
+            extra: Default::default(),
+        };
+        cloud.extra.insert("identity".into(), (IDENTITY_DIM, identity));
+        let mut cls = w;
+        cls.extend(b);
+        (cloud, cls)
+    }
+
+    /// View-dependent colours `[N, 3]` at SH degree `degree` (0..=3) seen from `camera`.
+    pub fn colors(&self, camera: &Camera, degree: usize) -> Tensor<2> {
+        sh_colors(self.means.val(), self.sh_dc.val(), self.sh_rest.val(), camera, degree)
+    }
+
+    /// The splat inputs with features = [RGB (3) | identity (16)].
+    pub fn gaussians(&self, camera: &Camera, degree: usize) -> Gaussians {
+        let colors = self.colors(camera, degree);
+        let n = self.len();
+        Gaussians {
+            means: self.means.val(),
+            log_scales: self.log_scales.val(),
+            quats: self.quats.val(),
+            opacity_logits: self.opacity_logits.val().reshape([n]),
+            features: Tensor::cat(vec![colors, self.identity.val()], 1),
+        }
+    }
+}
+
+/// Reads a tensor to the host as f32.
+pub fn host<const D: usize>(t: Tensor<D>) -> Vec<f32> {
+    t.into_data().convert::<f32>().try_to_vec::<f32>().expect("f32 tensor")
+}
+
+/// Evaluates real SH (3DGS convention, `0.5 + ...`, clamped at 0) for each Gaussian's viewing direction.
+/// `sh_dc` `[N,3]`, `sh_rest` `[N,45]` (k-major), result `[N,3]`.
+pub fn sh_colors(means: Tensor<2>, sh_dc: Tensor<2>, sh_rest: Tensor<2>, camera: &Camera, degree: usize) -> Tensor<2> {
+    let mut c = sh_dc * SH_C0;
+    if degree > 0 {
+        let n = means.dims()[0];
+        let center = camera.world_to_cam.inverse().w_axis.truncate();
+        let device = means.device();
+        let eye = Tensor::<2>::from_data(TensorData::new(center.to_array().to_vec(), [1, 3]), &device);
+        let d = means - eye;
+        let d = d.clone() / (d.powf_scalar(2.0).sum_dim(1).sqrt() + 1e-12);
+        let x = d.clone().narrow(1, 0, 1);
+        let y = d.clone().narrow(1, 1, 1);
+        let z = d.narrow(1, 2, 1);
+        let k = |i: usize| sh_rest.clone().narrow(1, (i - 1) * 3, 3);
+        c = c - k(1) * y.clone() * C1 + k(2) * z.clone() * C1 - k(3) * x.clone() * C1;
+        if degree > 1 {
+            let (xx, yy, zz) = (x.clone() * x.clone(), y.clone() * y.clone(), z.clone() * z.clone());
+            let (xy, yz, xz) = (x.clone() * y.clone(), y.clone() * z.clone(), x.clone() * z.clone());
+            c = c + k(4) * xy.clone() * C2[0]
+                + k(5) * yz * C2[1]
+                + k(6) * (zz.clone() * 2.0 - xx.clone() - yy.clone()) * C2[2]
+                + k(7) * xz * C2[3]
+                + k(8) * (xx.clone() - yy.clone()) * C2[4];
+            if degree > 2 {
+                c = c + k(9) * y.clone() * (xx.clone() * 3.0 - yy.clone()) * C3[0]
+                    + k(10) * xy * z.clone() * C3[1]
+                    + k(11) * y.clone() * (zz.clone() * 4.0 - xx.clone() - yy.clone()) * C3[2]
+                    + k(12) * z.clone() * (zz.clone() * 2.0 - xx.clone() * 3.0 - yy.clone() * 3.0) * C3[3]
+                    + k(13) * x.clone() * (zz.clone() * 4.0 - xx.clone() - yy.clone()) * C3[4]
+                    + k(14) * z * (xx.clone() - yy.clone()) * C3[5]
+                    + k(15) * x * (xx - yy * 3.0) * C3[6];
+            }
+        }
+        let _ = n;
+    }
+    (c + 0.5).clamp_min(0.0)
+}

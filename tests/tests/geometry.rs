@@ -1,0 +1,164 @@
+//! The geometry stage on a tiny built-in synthetic scene: training raises PSNR and learns the
+//! identity masks, checkpoint/resume reproduces the run exactly, densification keeps burn Adam's
+//! moments aligned with their Gaussians, `.ply` export/import round-trips bit-exactly.
+#![allow(deprecated)]
+
+use burn::tensor::{Device, Tensor, TensorData};
+use chatsplat_tests::temp_dir;
+use model::splats::{host, SplatModel};
+use train::data::nerfstudio::{load, Dataset, LoadOptions};
+use train::geometry::{ssim, view_at, GeometryConfig, GeometryTrainer};
+
+fn tiny_scene(tag: &str, views: usize) -> Dataset {
+    let dir = temp_dir(tag);
+    let opts = train::data::synth::SynthOptions { views, width: 48, height: 40, ..Default::default() };
+    train::data::synth::write_dataset(&dir, &opts, |_, _| {}).unwrap();
+    load(&dir, &LoadOptions { holdout_every: 8, ..Default::default() }).unwrap()
+}
+
+fn cfg(iters: usize) -> GeometryConfig {
+    GeometryConfig {
+        iters,
+        init_per_view: 400,
+        densify_from: 30,
+        densify_every: 30,
+        densify_until: 1000,
+        opacity_reset_every: 0,
+        sh_degree_every: 60,
+        checkpoint_every: 0,
+        max_gaussians: 5000,
+        ..Default::default()
+    }
+}
+
+fn train(t: &mut GeometryTrainer, ds: &Dataset, iters: usize) {
+    for _ in 0..iters {
+        let v = &ds.train[view_at(t.iter, ds.train.len(), t.cfg.seed)];
+        t.step(v).unwrap();
+    }
+}
+
+#[test]
+fn ssim_is_one_for_equal_images_and_drops_with_noise() {
+    let dev = Device::ndarray();
+    let mut r = model::rng::Rng::new(3);
+    let a: Vec<f32> = (0..32 * 24 * 3).map(|_| r.f()).collect();
+    let noisy: Vec<f32> = a.iter().map(|v| (v + 0.8 * (r.f() - 0.5)).clamp(0.0, 1.0)).collect();
+    let t = |v: &Vec<f32>| Tensor::<3>::from_data(TensorData::new(v.clone(), [24, 32, 3]), &dev);
+    let same = host(ssim(t(&a), t(&a)))[0];
+    let diff = host(ssim(t(&a), t(&noisy)))[0];
+    assert!((same - 1.0).abs() < 1e-5, "{same}");
+    assert!(diff < 0.95 && diff > 0.0, "{diff}");
+}
+
+#[test]
+fn short_training_raises_psnr_and_learns_identity() {
+    let ds = tiny_scene("geo-train", 10);
+    let dev = Device::ndarray();
+    let mut t = GeometryTrainer::new(&ds, cfg(150), &dev).unwrap();
+    let before = t.evaluate(&ds.train).unwrap();
+    let n0 = t.model.len();
+    train(&mut t, &ds, 150);
+    let after = t.evaluate(&ds.train).unwrap();
+    let held = t.evaluate(&ds.test).unwrap();
+    eprintln!("PSNR {:.2} -> {:.2} dB (held-out {:.2}), mIoU {:?} -> {:?}, N {n0} -> {}", before.psnr, after.psnr, held.psnr, before.miou, after.miou, t.model.len());
+    // Deterministic run (CPU path): measured 14.65 -> 18.30 dB, mIoU 0.14 -> 0.82.
+    assert!(after.psnr > before.psnr + 3.0, "PSNR {} -> {}", before.psnr, after.psnr);
+    assert!(after.miou.unwrap() > 0.6, "mIoU {:?}", after.miou);
+    assert!(held.psnr > before.psnr + 3.0, "held-out PSNR {}", held.psnr);
+    assert_ne!(t.model.len(), n0, "densification changed the Gaussian count");
+}
+
+#[test]
+fn checkpoint_resume_gives_the_same_parameters() {
+    let ds = tiny_scene("geo-resume", 6);
+    let dev = Device::ndarray();
+    let dir = temp_dir("geo-resume-run");
+    let mut a = GeometryTrainer::new(&ds, cfg(80), &dev).unwrap();
+    train(&mut a, &ds, 25);
+    a.save(&dir).unwrap();
+    train(&mut a, &ds, 15); // crosses a densification step (iteration 30)
+    let mut b = GeometryTrainer::load(&dir, &dev).unwrap();
+    assert_eq!(b.iter, 25);
+    train(&mut b, &ds, 15);
+    assert_eq!(a.model.len(), b.model.len());
+    for (x, y) in a.model.tensors().into_iter().zip(b.model.tensors()) {
+        assert_eq!(host(x), host(y), "resumed run diverged");
+    }
+    // A damaged checkpoint is a clear error, not a panic.
+    let ck = dir.join("checkpoint.safetensors");
+    let len = std::fs::metadata(&ck).unwrap().len();
+    std::fs::OpenOptions::new().write(true).open(&ck).unwrap().set_len(len / 2).unwrap();
+    let e = GeometryTrainer::load(&dir, &dev).err().unwrap();
+    assert!(e.contains("checkpoint.safetensors"), "{e}");
+}
+
+#[test]
+fn densification_keeps_adam_moments_aligned() {
+    let ds = tiny_scene("geo-densify", 4);
+    let dev = Device::ndarray();
+    let mut c = cfg(100);
+    c.densify_from = 10_000; // only the explicit call below densifies
+    let mut t = GeometryTrainer::new(&ds, c, &dev).unwrap();
+    train(&mut t, &ds, 5);
+    let n = t.model.len();
+    let before: Vec<Vec<f32>> = t.model.tensors()[..7].iter().map(|x| host(x.clone())).collect();
+    // Parameters that got gradients have Adam state (sh_rest is unused at SH degree 0).
+    let tracked: Vec<usize> = (0..7).filter(|&p| t.states[p].is_some()).collect();
+    assert!(tracked.contains(&0) && tracked.contains(&3) && tracked.contains(&6), "{tracked:?}");
+    let m1: Vec<Vec<f32>> = (0..7).map(|p| t.states[p].as_ref().map(|s| host(s.momentum.moment_1.clone())).unwrap_or_default()).collect();
+    // Gaussian 0: large gradient + small -> clone; 1: large gradient + big -> split; 2: transparent -> pruned.
+    t.grad_sum = vec![0.0; n];
+    t.grad_count = vec![1; n];
+    t.grad_sum[0] = 1.0;
+    t.grad_sum[1] = 1.0;
+    let mut tensors = t.model.tensors();
+    let mut ls = before[1].clone();
+    ls[0..3].copy_from_slice(&[-9.0; 3]);
+    ls[3..6].copy_from_slice(&[2.0; 3]);
+    tensors[1] = Tensor::from_data(TensorData::new(ls.clone(), [n, 3]), &dev);
+    let mut op = before[3].clone();
+    op[2] = -20.0;
+    tensors[3] = Tensor::from_data(TensorData::new(op, [n, 1]), &dev);
+    t.model = SplatModel::from_tensors(tensors);
+    t.densify(false);
+    let m = t.model.len();
+    assert_eq!(m, n + 1, "clone adds one, split replaces one by two, prune removes one");
+    let after: Vec<Vec<f32>> = t.model.tensors()[..7].iter().map(|x| host(x.clone())).collect();
+    let m1_after: Vec<Vec<f32>> = (0..7).map(|p| t.states[p].as_ref().map(|s| host(s.momentum.moment_1.clone())).unwrap_or_default()).collect();
+    let widths = SplatModel::row_widths();
+    // Output order: kept 0, clone of 0, split children of 1 (x2), then 3.. kept (2 pruned).
+    for p in 0..7 {
+        let w = widths[p];
+        assert_eq!(after[p].len(), m * w);
+        assert_eq!(&after[p][4 * w..], &before[p][3 * w..]);
+        if !tracked.contains(&p) {
+            continue;
+        }
+        assert_eq!(m1_after[p].len(), m * w, "moments of {p} follow the Gaussian count");
+        assert_eq!(&m1_after[p][..w], &m1[p][..w], "kept Gaussian 0 keeps its moments");
+        assert!(m1_after[p][w..4 * w].iter().all(|v| *v == 0.0), "new Gaussians start with zero moments");
+        assert_eq!(&m1_after[p][4 * w..], &m1[p][3 * w..], "the rest keep theirs, shifted past the pruned one");
+    }
+    assert_eq!(&after[0][3..6], &before[0][0..3], "the clone sits on its source");
+    let shrunk = 2.0 - 1.6f32.ln();
+    assert!((after[1][6] - shrunk).abs() < 1e-6 && (after[1][9] - shrunk).abs() < 1e-6, "split children shrink by 1.6");
+    assert_ne!(&after[0][6..9], &after[0][9..12], "split children are sampled apart");
+}
+
+#[test]
+fn ply_export_import_round_trips_bit_exactly() {
+    let ds = tiny_scene("geo-ply", 3);
+    let dev = Device::ndarray();
+    let mut t = GeometryTrainer::new(&ds, cfg(10), &dev).unwrap();
+    train(&mut t, &ds, 3);
+    let (cloud, cls) = t.model.to_cloud();
+    let path = temp_dir("geo-ply-out").with_extension("ply");
+    model::ply::write(&path, &cloud).unwrap();
+    let back = model::ply::read(&path).unwrap();
+    assert_eq!(back, cloud);
+    let m2 = SplatModel::from_cloud(&back, Some(&cls), t.model.num_classes(), &dev);
+    for (x, y) in t.model.tensors().into_iter().zip(m2.tensors()) {
+        assert_eq!(host(x), host(y));
+    }
+}

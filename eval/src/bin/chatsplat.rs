@@ -38,7 +38,8 @@ enum Command {
 
 #[derive(clap::Args)]
 struct TrainArgs {
-    /// Dataset directory (nerfstudio transforms.json or Blender layout; `chatsplat synth` writes one).
+    /// Dataset directory: nerfstudio transforms.json / Blender, COLMAP (sparse/0), LLFF
+    /// (poses_bounds.npy) or Replica (traj_w_c.txt); `chatsplat synth` writes one.
     #[arg(long)]
     data: PathBuf,
     /// Run directory (checkpoints, config.json, renders/, point_cloud.ply, metrics.json).
@@ -63,7 +64,7 @@ struct TrainArgs {
 }
 
 fn train_cmd(a: TrainArgs) -> Result<(), String> {
-    use train::data::nerfstudio::{load, Background, LoadOptions};
+    use train::data::{load_any, Background, LoadOptions};
     use train::geometry::{run, GeometryConfig};
     let (bg, bgc) = match a.background.as_str() {
         "white" => (Background::White, [1.0; 3]),
@@ -83,7 +84,7 @@ fn train_cmd(a: TrainArgs) -> Result<(), String> {
     if let Some(n) = a.iters {
         cfg.iters = n;
     }
-    let ds = load(&a.data, &LoadOptions { downscale: a.downscale, background: bg, ..Default::default() })?;
+    let ds = load_any(&a.data, &LoadOptions { downscale: a.downscale, background: bg, ..Default::default() })?;
     eprintln!("{}: {} training / {} held-out views of {}x{}", a.data.display(), ds.train.len(), ds.test.len(), ds.train[0].camera.width, ds.train[0].camera.height);
     let device = a.backend.device();
     let bar = Progress::new("train", "it");

@@ -162,3 +162,38 @@ fn ply_export_import_round_trips_bit_exactly() {
         assert_eq!(host(x), host(y));
     }
 }
+
+#[test]
+fn colmap_points_initialise_the_gaussians() {
+    use train::data::colmap::SparsePoints;
+    use train::geometry::{initial_cloud, SceneExtent};
+    let ds = tiny_scene("geo-init", 3);
+    let pts = SparsePoints { xyz: vec![[0.1, 0.2, 0.3], [-1.0, 0.5, 2.0]], rgb: vec![[255, 0, 0], [0, 128, 255]] };
+    let cams: Vec<_> = ds.train.iter().map(|v| &v.camera).collect();
+    let c = initial_cloud(&ds.train, Some(&pts), &SceneExtent::from_cameras(&cams), &cfg(1));
+    assert_eq!(c.means, pts.xyz);
+    let rgb = c.colors();
+    assert!((rgb[0][0] - 1.0).abs() < 1e-5 && rgb[0][1].abs() < 1e-5 && (rgb[1][1] - 128.0 / 255.0).abs() < 1e-5);
+    // Without points, the synthetic scene's depth maps are back-projected onto its surfaces:
+    // every initial point lies inside the table's footprint (x, z within the table half-size) or above it.
+    let d = initial_cloud(&ds.train, None, &SceneExtent::from_cameras(&cams), &cfg(1));
+    assert!(d.len() > 100);
+    let half = model::synthetic::TABLE_HALF;
+    let inside = d.means.iter().filter(|m| m[0].abs() <= half * 1.05 + 0.05 && m[2].abs() <= half * 1.05 + 0.05).count();
+    assert!(inside as f32 > 0.95 * d.len() as f32, "{inside} of {} depth points on the table", d.len());
+}
+
+#[test]
+fn wgpu_training_lowers_the_loss() {
+    let Some(dev) = chatsplat_tests::wgpu_device() else { return };
+    let ds = tiny_scene("geo-wgpu", 4);
+    let mut c = cfg(40);
+    c.densify_from = 20;
+    c.densify_every = 20;
+    let mut t = GeometryTrainer::new(&ds, c, &dev).unwrap();
+    let before = t.evaluate(&ds.train).unwrap();
+    train(&mut t, &ds, 40);
+    let after = t.evaluate(&ds.train).unwrap();
+    eprintln!("wgpu PSNR {:.2} -> {:.2}", before.psnr, after.psnr);
+    assert!(after.psnr > before.psnr + 1.0, "PSNR {} -> {}", before.psnr, after.psnr);
+}

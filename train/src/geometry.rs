@@ -6,6 +6,7 @@
 //! the SH degree rises over time; densification clones small and splits large Gaussians by the
 //! accumulated screen-space gradient, prunes transparent ones and periodically resets opacity.
 
+use crate::data::colmap::SparsePoints;
 use crate::data::nerfstudio::{Dataset, View};
 use burn::optim::{Adam, AdamConfig, AdamState, AdaptiveMomentumState, Optimizer};
 use burn::tensor::{Device, Int, Tensor, TensorData, activation};
@@ -134,9 +135,10 @@ fn logit(p: f32) -> f32 {
     (p / (1.0 - p)).ln()
 }
 
-/// Initial Gaussians: back-projected depth pixels when the views have depth, else `cfg.init_points`
+/// Initial Gaussians: the sparse SfM points when given (COLMAP), else back-projected depth pixels
+/// when the views have depth, else `cfg.init_points`
 /// random points in a box around the cameras' look-at region with random colours.
-pub fn initial_cloud(views: &[View], extent: &SceneExtent, cfg: &GeometryConfig) -> GaussianCloud {
+pub fn initial_cloud(views: &[View], points: Option<&SparsePoints>, extent: &SceneExtent, cfg: &GeometryConfig) -> GaussianCloud {
     let mut rng = Rng::new(cfg.seed ^ 0x1517);
     let mut cloud = GaussianCloud::default();
     let push = |p: glam::Vec3, rgb: [f32; 3], cloud: &mut GaussianCloud| {
@@ -144,7 +146,11 @@ pub fn initial_cloud(views: &[View], extent: &SceneExtent, cfg: &GeometryConfig)
         cloud.sh_dc.push(rgb.map(|c| (c - 0.5) / model::cloud::SH_C0));
     };
     let with_depth = views.iter().any(|v| v.depth.is_some());
-    if with_depth {
+    if let Some(sp) = points.filter(|p| !p.xyz.is_empty()) {
+        for (p, c) in sp.xyz.iter().zip(&sp.rgb) {
+            push(glam::Vec3::from(*p), c.map(|v| v as f32 / 255.0), &mut cloud);
+        }
+    } else if with_depth {
         for v in views {
             let Some(depth) = &v.depth else { continue };
             let c = &v.camera;
@@ -277,12 +283,17 @@ pub struct StepStats {
 impl GeometryTrainer {
     /// A fresh run: initial cloud from the training views, classes = 1 + the largest mask id.
     pub fn new(ds: &Dataset, cfg: GeometryConfig, device: &Device) -> Result<Self, String> {
+        Self::new_with_points(ds, None, cfg, device)
+    }
+
+    /// As [`new`](Self::new), initialised from sparse SfM points when given.
+    pub fn new_with_points(ds: &Dataset, points: Option<&SparsePoints>, cfg: GeometryConfig, device: &Device) -> Result<Self, String> {
         if ds.train.is_empty() {
             return Err("the dataset has no training views".into());
         }
         let cams: Vec<&Camera> = ds.train.iter().map(|v| &v.camera).collect();
         let extent = SceneExtent::from_cameras(&cams);
-        let cloud = initial_cloud(&ds.train, &extent, &cfg);
+        let cloud = initial_cloud(&ds.train, points, &extent, &cfg);
         let classes = classes_of(ds);
         // Identity features and classifier start random: with both at zero the cross-entropy
         // gradient of each is zero (a saddle), and only the bias would learn.
@@ -662,6 +673,7 @@ pub struct RunSummary {
 /// `point_cloud.ply` (Inria layout + identity), `classifier.json` and `metrics.json`.
 pub fn run(
     ds: &Dataset,
+    points: Option<&SparsePoints>,
     out: &Path,
     cfg: GeometryConfig,
     device: &Device,
@@ -674,7 +686,7 @@ pub fn run(
         let at = t.iter;
         (t, Some(at))
     } else {
-        (GeometryTrainer::new(ds, cfg, device)?, None)
+        (GeometryTrainer::new_with_points(ds, points, cfg, device)?, None)
     };
     let start = std::time::Instant::now();
     let first = t.iter;

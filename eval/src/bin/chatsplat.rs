@@ -84,13 +84,20 @@ fn train_cmd(a: TrainArgs) -> Result<(), String> {
     if let Some(n) = a.iters {
         cfg.iters = n;
     }
-    let ds = load_any(&a.data, &LoadOptions { downscale: a.downscale, background: bg, ..Default::default() })?;
+    let lo = LoadOptions { downscale: a.downscale, background: bg, ..Default::default() };
+    // COLMAP projects initialise from their sparse points.
+    let (ds, points) = if a.data.join("sparse").is_dir() && !a.data.join("poses_bounds.npy").is_file() {
+        let (ds, p) = train::data::colmap::load(&a.data, &lo)?;
+        (ds, Some(p))
+    } else {
+        (load_any(&a.data, &lo)?, None)
+    };
     eprintln!("{}: {} training / {} held-out views of {}x{}", a.data.display(), ds.train.len(), ds.test.len(), ds.train[0].camera.width, ds.train[0].camera.height);
     let device = a.backend.device();
     let bar = Progress::new("train", "it");
     let mut last = std::time::Instant::now();
     let s = catch_backend("training", || {
-        run(&ds, &a.out, cfg, &device, a.resume, |p| {
+        run(&ds, points.as_ref(), &a.out, cfg, &device, a.resume, |p| {
             if last.elapsed().as_millis() > 250 || p.iter == p.iters {
                 bar.update_with(p.iter, p.iters, &format!("loss {:.4} psnr {:.2} N {}", p.loss, p.psnr, p.gaussians));
                 last = std::time::Instant::now();

@@ -6,6 +6,8 @@
 //!   (output `floor(W/k) x floor(H/k)`; a partial last block is dropped).
 //! * Masks and depth maps are downscaled by taking the top-left sample of each `k x k` block,
 //!   so ids stay exact and depth is never blended across edges.
+//! * A [`Remap`] (e.g. lens undistortion) resamples at full resolution, before the downscale:
+//!   colours bilinearly (clamped to the edge), ids and depth by nearest sample (0 outside).
 
 use super::Background;
 use std::io::{BufReader, Read};
@@ -108,15 +110,9 @@ impl Image8 {
             for sy in 0..k {
                 let row = (y * k + sy) * w + x * k;
                 for px in self.bytes[row * ch..(row + k) * ch].chunks_exact(ch) {
-                    let (c, a) = match ch {
-                        1 => ([px[0]; 3], 255),
-                        2 => ([px[0]; 3], px[1]),
-                        3 => ([px[0], px[1], px[2]], 255),
-                        _ => ([px[0], px[1], px[2]], px[3]),
-                    };
-                    let a = a as f32 / 255.0;
+                    let c = composite(px, bg);
                     for q in 0..3 {
-                        acc[q] += c[q] as f32 / 255.0 * a + bg * (1.0 - a);
+                        acc[q] += c[q];
                     }
                 }
             }
@@ -125,6 +121,142 @@ impl Image8 {
             }
         }
         Ok((dw, dh, rgb))
+    }
+
+    /// Like [`Image8::to_rgb`], but the full-resolution image is first resampled through `remap`
+    /// (bilinearly, on the colours composited over `background`) and then box-filtered by `k`.
+    pub(crate) fn to_rgb_remapped(
+        &self,
+        path: &Path,
+        k: u32,
+        background: Background,
+        remap: &Remap,
+    ) -> Result<(u32, u32, Vec<f32>), String> {
+        if (remap.width, remap.height) != (self.width, self.height) {
+            return Err(err(
+                path,
+                format!("resampling map is {}x{} but the image is {}x{}", remap.width, remap.height, self.width, self.height),
+            ));
+        }
+        let w = self.width as usize;
+        let (dw, dh) = downscaled_size(path, self.width, self.height, k)?;
+        let (k, dw, dh) = (k as usize, dw as usize, dh as usize);
+        let bg = background.value();
+        // Composite once per source pixel, then interpolate the colours.
+        let full: Vec<[f32; 3]> = self.bytes.chunks_exact(self.channels).map(|px| composite(px, bg)).collect();
+        let (sx, sy) = (remap.step_x, remap.step_y);
+        let mut rgb = vec![0.0f32; dw * dh * 3];
+        for y in 0..dh * k {
+            let block_row = &mut rgb[(y / k) * dw * 3..(y / k + 1) * dw * 3];
+            for (x, t) in remap.taps[y * w..y * w + dw * k].iter().enumerate() {
+                let i = t.index as usize;
+                let (a, b, c, d) = (full[i], full[i + sx], full[i + sy], full[i + sy + sx]);
+                let out = &mut block_row[(x / k) * 3..(x / k) * 3 + 3];
+                for q in 0..3 {
+                    let top = a[q] + (b[q] - a[q]) * t.wx;
+                    let bottom = c[q] + (d[q] - c[q]) * t.wx;
+                    out[q] += top + (bottom - top) * t.wy;
+                }
+            }
+        }
+        let norm = 1.0 / (k * k) as f32;
+        for v in &mut rgb {
+            *v = (*v * norm).clamp(0.0, 1.0);
+        }
+        Ok((dw as u32, dh as u32, rgb))
+    }
+}
+
+/// One pixel (1 to 4 channels) as RGB floats, alpha composited over the background `bg`.
+#[inline]
+fn composite(px: &[u8], bg: f32) -> [f32; 3] {
+    let (c, a) = match px.len() {
+        1 => ([px[0]; 3], 255),
+        2 => ([px[0]; 3], px[1]),
+        3 => ([px[0], px[1], px[2]], 255),
+        _ => ([px[0], px[1], px[2]], px[3]),
+    };
+    let a = a as f32 / 255.0;
+    [0, 1, 2].map(|q| c[q] as f32 / 255.0 * a + bg * (1.0 - a))
+}
+
+/// The bilinear footprint of one output pixel: the top-left source tap (row-major index) and the
+/// weights of the right and lower neighbours.
+#[derive(Clone, Copy)]
+struct Tap {
+    index: u32,
+    wx: f32,
+    wy: f32,
+}
+
+/// A precomputed resampling of a `width x height` image through a coordinate map (e.g. lens
+/// undistortion), built once and applied to any number of images of that size.
+///
+/// Output pixel `(i, j)` takes its value from the source at the continuous position
+/// `(u, v) = map(i + 0.5, j + 0.5)`, where source pixel `(x, y)` covers `[x, x+1) x [y, y+1)`:
+///
+/// * colours ([`Image8::to_rgb_remapped`]) are sampled bilinearly at array coordinates
+///   `(u - 0.5, v - 0.5)`; positions outside the source take the nearest edge pixel (clamp);
+/// * ids and depth ([`Remap::nearest`]) take the source pixel containing `(u, v)`, or 0
+///   (`T::default()`) when `(u, v)` lies outside the source.
+pub(crate) struct Remap {
+    width: u32,
+    height: u32,
+    /// Per output pixel, row-major.
+    taps: Vec<Tap>,
+    /// Per output pixel: the nearest source pixel, or `u32::MAX` outside the source.
+    nearest: Vec<u32>,
+    /// Index offsets of the right and lower taps (0 for an image 1 pixel wide / high).
+    step_x: usize,
+    step_y: usize,
+}
+
+impl Remap {
+    /// Evaluates `map` once per output pixel centre.
+    pub(crate) fn new(width: u32, height: u32, mut map: impl FnMut(f64, f64) -> (f64, f64)) -> Self {
+        let (w, h) = (width as usize, height as usize);
+        assert!(w > 0 && h > 0 && (w * h) < u32::MAX as usize, "remap of a {w}x{h} image");
+        // Clamps an array coordinate into [0, len - 1] (NaN -> 0) and splits it into the left
+        // tap (at most len - 2, so that the right tap exists) and the right tap's weight.
+        let axis = |s: f64, len: usize| -> (usize, f32) {
+            let s = if s.is_nan() { 0.0 } else { s.clamp(0.0, (len - 1) as f64) };
+            let i0 = (s.floor() as usize).min(len.saturating_sub(2));
+            (i0, (s - i0 as f64) as f32)
+        };
+        let mut taps = Vec::with_capacity(w * h);
+        let mut nearest = Vec::with_capacity(w * h);
+        for j in 0..h {
+            for i in 0..w {
+                let (u, v) = map(i as f64 + 0.5, j as f64 + 0.5);
+                let (x0, wx) = axis(u - 0.5, w);
+                let (y0, wy) = axis(v - 0.5, h);
+                taps.push(Tap {
+                    index: (y0 * w + x0) as u32,
+                    wx,
+                    wy,
+                });
+                let inside = (0.0..w as f64).contains(&u) && (0.0..h as f64).contains(&v);
+                nearest.push(if inside { (v as usize * w + u as usize) as u32 } else { u32::MAX });
+            }
+        }
+        Self {
+            width,
+            height,
+            taps,
+            nearest,
+            step_x: usize::from(w > 1),
+            step_y: if h > 1 { w } else { 0 },
+        }
+    }
+
+    /// A `[height, width]` id or depth map resampled by nearest sample; `T::default()` (0)
+    /// where the source position lies outside the image.
+    pub(crate) fn nearest<T: Copy + Default>(&self, src: &[T]) -> Vec<T> {
+        assert_eq!(src.len(), self.nearest.len(), "remap of a map of another size");
+        self.nearest
+            .iter()
+            .map(|&s| if s == u32::MAX { T::default() } else { src[s as usize] })
+            .collect()
     }
 }
 
@@ -148,25 +280,33 @@ pub(crate) fn check_size(path: &Path, got: (u32, u32), image: (u32, u32)) -> Res
 /// An 8-bit id mask (first channel of any 8-bit PNG) the size `(w, h)` of its image, downscaled
 /// by nearest sample to `[h/k, w/k]`.
 pub(crate) fn read_ids8(path: &Path, w: u32, h: u32, k: u32) -> Result<Vec<u8>, String> {
+    Ok(subsample(&read_ids8_full(path, w, h)?, w, w / k, h / k, k))
+}
+
+/// [`read_ids8`] at full resolution: `[h, w]` ids.
+pub(crate) fn read_ids8_full(path: &Path, w: u32, h: u32) -> Result<Vec<u8>, String> {
     let (mw, mh, mc, bytes) = model::images::read_png8(path)?;
     check_size(path, (mw, mh), (w, h))?;
     if mc == 0 || bytes.len() != mw as usize * mh as usize * mc {
         return Err(err(path, "mask has an unexpected pixel layout"));
     }
-    let ids: Vec<u8> = bytes.chunks_exact(mc).map(|c| c[0]).collect();
-    Ok(subsample(&ids, w, w / k, h / k, k))
+    Ok(bytes.chunks_exact(mc).map(|c| c[0]).collect())
 }
 
 /// A 16-bit grayscale PNG the size `(w, h)` of its image, times `scale`, downscaled by nearest
 /// sample to `[h/k, w/k]`.
 pub(crate) fn read_depth16(path: &Path, w: u32, h: u32, k: u32, scale: f32) -> Result<Vec<f32>, String> {
+    Ok(subsample(&read_depth16_full(path, w, h, scale)?, w, w / k, h / k, k))
+}
+
+/// [`read_depth16`] at full resolution: `[h, w]` depths.
+pub(crate) fn read_depth16_full(path: &Path, w: u32, h: u32, scale: f32) -> Result<Vec<f32>, String> {
     let (dw, dh, raw) = model::images::read_gray16(path)?;
     check_size(path, (dw, dh), (w, h))?;
     if raw.len() != w as usize * h as usize {
         return Err(err(path, "depth map has an unexpected pixel layout"));
     }
-    let full: Vec<f32> = raw.into_iter().map(|d| d as f32 * scale).collect();
-    Ok(subsample(&full, w, w / k, h / k, k))
+    Ok(raw.into_iter().map(|d| d as f32 * scale).collect())
 }
 
 /// A label image: the first channel of an 8- or 16-bit PNG (lower bit depths are expanded to 8).

@@ -103,6 +103,7 @@ impl GeometryConfig {
                 let t = (iter as f64 / self.iters.max(1) as f64).min(1.0);
                 self.lr_means * self.lr_means_final_ratio.powf(t)
             }
+            // (the trainer multiplies the means' rate by the scene radius, as 3DGS does)
             1 => self.lr_log_scales,
             2 => self.lr_quats,
             3 => self.lr_opacity,
@@ -114,20 +115,34 @@ impl GeometryConfig {
     }
 }
 
-/// Scene bounds used for initialisation and densification: centre and radius.
+/// Scene bounds used for initialisation and densification.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct SceneExtent {
+    /// Mean of the camera centres.
     pub center: glam::Vec3,
+    /// 1.1 x the largest camera distance from `center` (3DGS's `cameras_extent`): scales the
+    /// means' learning rate and the clone/split size threshold.
     pub radius: f32,
+    /// The point closest (least squares) to every camera's optical axis: what they look at.
+    pub focus: glam::Vec3,
 }
 
 impl SceneExtent {
-    /// From camera centres (as 3DGS: radius = 1.1 x the largest distance to their mean).
     pub fn from_cameras(cams: &[&Camera]) -> Self {
         let centers: Vec<glam::Vec3> = cams.iter().map(|c| c.world_to_cam.inverse().w_axis.truncate()).collect();
         let mean = centers.iter().fold(glam::Vec3::ZERO, |a, b| a + *b) / centers.len().max(1) as f32;
         let r = centers.iter().map(|c| (*c - mean).length()).fold(0.0f32, f32::max);
-        Self { center: mean, radius: (1.1 * r).max(1e-3) }
+        // Least-squares point nearest to all optical axes: sum (I - d d^T) p = sum (I - d d^T) c.
+        let (mut a, mut b) = (glam::DMat3::ZERO, glam::DVec3::ZERO);
+        for (cam, c) in cams.iter().zip(&centers) {
+            let d = cam.world_to_cam.inverse().z_axis.truncate().normalize().as_dvec3();
+            let m = glam::DMat3::IDENTITY - glam::DMat3::from_cols(d * d.x, d * d.y, d * d.z);
+            a += m;
+            b += m * c.as_dvec3();
+        }
+        let focus = if a.determinant().abs() > 1e-6 { (a.inverse() * b).as_vec3() } else { mean };
+        let focus = if focus.is_finite() { focus } else { mean };
+        Self { center: mean, radius: (1.1 * r).max(1e-3), focus }
     }
 }
 
@@ -171,10 +186,10 @@ pub fn initial_cloud(views: &[View], points: Option<&SparsePoints>, extent: &Sce
         }
     }
     if cloud.means.is_empty() {
-        // Cameras look at the centre of their ring; the content sits well inside it.
+        // A box around what the cameras look at; the content sits well inside their ring.
         let half = extent.radius * 0.35;
         for _ in 0..cfg.init_points {
-            let p = extent.center + glam::Vec3::new(rng.range(-half, half), rng.range(-half, half), rng.range(-half, half));
+            let p = extent.focus + glam::Vec3::new(rng.range(-half, half), rng.range(-half, half), rng.range(-half, half));
             push(p, [rng.f(), rng.f(), rng.f()], &mut cloud);
         }
     }
@@ -378,7 +393,7 @@ impl GeometryTrainer {
         let mut new = self.model.tensors();
         for (i, p) in params.iter().enumerate() {
             let Some(g) = p.grad(&grads) else { continue };
-            let lr = self.cfg.lr(i, self.iter);
+            let lr = self.cfg.lr(i, self.iter) * if i == 0 { self.extent.radius as f64 } else { 1.0 };
             let (t, s) = self.adam.step(lr, new[i].clone(), g, self.states[i].take());
             new[i] = t;
             self.states[i] = s;
@@ -543,6 +558,7 @@ impl GeometryTrainer {
             "adam_time": self.states.iter().map(|s| s.as_ref().map(|s| s.momentum.time)).collect::<Vec<_>>(),
             "extent_center": self.extent.center.to_array(),
             "extent_radius": self.extent.radius,
+            "extent_focus": self.extent.focus.to_array(),
             "gaussians": n,
         });
         let write = |name: &str, f: &dyn Fn(&Path) -> Result<(), String>| -> Result<(), String> {
@@ -588,11 +604,11 @@ impl GeometryTrainer {
         }
         let model = SplatModel::from_tensors(ts.try_into().map_err(|_| "9 tensors".to_string())?);
         let n = model.len();
-        let c = state["extent_center"].as_array().map(|a| a.iter().filter_map(|x| x.as_f64()).map(|x| x as f32).collect::<Vec<_>>()).unwrap_or_default();
-        let extent = SceneExtent {
-            center: if c.len() == 3 { glam::Vec3::new(c[0], c[1], c[2]) } else { glam::Vec3::ZERO },
-            radius: state["extent_radius"].as_f64().unwrap_or(1.0) as f32,
+        let v3 = |key: &str| -> glam::Vec3 {
+            let c: Vec<f32> = state[key].as_array().map(|a| a.iter().filter_map(|x| x.as_f64()).map(|x| x as f32).collect()).unwrap_or_default();
+            if c.len() == 3 { glam::Vec3::new(c[0], c[1], c[2]) } else { glam::Vec3::ZERO }
         };
+        let extent = SceneExtent { center: v3("extent_center"), radius: state["extent_radius"].as_f64().unwrap_or(1.0) as f32, focus: v3("extent_focus") };
         let mut t = Self::with_model(model, cfg, extent, device);
         t.states = states;
         t.iter = state["iter"].as_u64().ok_or_else(|| format!("{}: no iter", dir.join("state.json").display()))? as usize;

@@ -186,7 +186,6 @@ pub fn host<const D: usize>(t: Tensor<D>) -> Vec<f32> {
 pub fn sh_colors(means: Tensor<2>, sh_dc: Tensor<2>, sh_rest: Tensor<2>, camera: &Camera, degree: usize) -> Tensor<2> {
     let mut c = sh_dc * SH_C0;
     if degree > 0 {
-        let n = means.dims()[0];
         let center = camera.world_to_cam.inverse().w_axis.truncate();
         let device = means.device();
         let eye = Tensor::<2>::from_data(TensorData::new(center.to_array().to_vec(), [1, 3]), &device);
@@ -215,7 +214,6 @@ pub fn sh_colors(means: Tensor<2>, sh_dc: Tensor<2>, sh_rest: Tensor<2>, camera:
                     + k(15) * x * (xx - yy * 3.0) * C3[6];
             }
         }
-        let _ = n;
     }
     (c + 0.5).clamp_min(0.0)
 }

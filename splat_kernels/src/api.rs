@@ -204,16 +204,32 @@ pub struct ScreenGradAccumulator {
 }
 
 impl ScreenGradAccumulator {
-    /// Adds one view's `[N, 2]` gradient of the screen offsets.
+    /// Adds one view's `[N, 2]` gradient of the screen offsets (pixel units).
     pub fn add(&mut self, grad: Tensor<2>) {
+        self.add_scaled(grad, 1.0, 1.0);
+    }
+
+    /// As [`add`](Self::add), measuring the gradient in NDC units as 3DGS's densification
+    /// threshold does: d/d(ndc) = d/d(pixel) x (size / 2) per axis.
+    pub fn add_ndc(&mut self, grad: Tensor<2>, width: u32, height: u32) {
+        self.add_scaled(grad, 0.5 * width as f32, 0.5 * height as f32);
+    }
+
+    /// Clears the statistics for `n` Gaussians (after densification changed the count).
+    pub fn reset(&mut self, n: usize) {
+        self.norm_sum = vec![0.0; n];
+        self.count = vec![0; n];
+    }
+
+    fn add_scaled(&mut self, grad: Tensor<2>, sx: f32, sy: f32) {
         let n = grad.dims()[0];
         if self.norm_sum.len() != n {
-            self.norm_sum = vec![0.0; n];
-            self.count = vec![0; n];
+            self.reset(n);
         }
         let g = grad.into_data().to_vec::<f32>().expect("f32 gradient");
         for i in 0..n {
-            let norm = (g[2 * i] * g[2 * i] + g[2 * i + 1] * g[2 * i + 1]).sqrt();
+            let (gx, gy) = (g[2 * i] * sx, g[2 * i + 1] * sy);
+            let norm = (gx * gx + gy * gy).sqrt();
             if norm > 0.0 {
                 self.norm_sum[i] += norm;
                 self.count[i] += 1;

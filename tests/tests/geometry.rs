@@ -4,8 +4,8 @@
 #![allow(deprecated)]
 
 use burn::tensor::{Device, Tensor, TensorData};
-use chatsplat_tests::temp_dir;
-use model::splats::{host, SplatModel};
+use chatsplat_tests::{host, temp_dir};
+use model::splats::SplatModel;
 use train::data::nerfstudio::{load, Dataset, LoadOptions};
 use train::geometry::{ssim, view_at, GeometryConfig, GeometryTrainer};
 
@@ -108,10 +108,10 @@ fn densification_keeps_adam_moments_aligned() {
     assert!(tracked.contains(&0) && tracked.contains(&3) && tracked.contains(&6), "{tracked:?}");
     let m1: Vec<Vec<f32>> = (0..7).map(|p| t.states[p].as_ref().map(|s| host(s.momentum.moment_1.clone())).unwrap_or_default()).collect();
     // Gaussian 0: large gradient + small -> clone; 1: large gradient + big -> split; 2: transparent -> pruned.
-    t.grad_sum = vec![0.0; n];
-    t.grad_count = vec![1; n];
-    t.grad_sum[0] = 1.0;
-    t.grad_sum[1] = 1.0;
+    t.screen.norm_sum = vec![0.0; n];
+    t.screen.count = vec![1; n];
+    t.screen.norm_sum[0] = 1.0;
+    t.screen.norm_sum[1] = 1.0;
     let mut tensors = t.model.tensors();
     let mut ls = before[1].clone();
     ls[0..3].copy_from_slice(&[-9.0; 3]);

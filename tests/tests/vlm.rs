@@ -5,7 +5,7 @@
 #![allow(deprecated)] // burn-ndarray is deprecated in burn 0.22 in favour of burn-flex.
 
 use burn::tensor::{Device, Tensor, TensorData};
-use chatsplat_tests::{max_abs_diff, temp_dir, wgpu_device};
+use chatsplat_tests::{host, max_abs_diff, temp_dir, wgpu_device};
 use model::vlm::preprocess::{anyres_views, base_view};
 use model::vlm::weights::WeightStore;
 use model::vlm::{chat_template, GenerateOptions, LlavaOnevision, RgbImage, Turn, VlmError};
@@ -58,10 +58,6 @@ fn bytes<'a>(r: &'a HashMap<String, Ref>, k: &str) -> &'a [u8] {
         Ref::U8(v) => v,
         _ => panic!("{k} is not u8"),
     }
-}
-
-fn host<const D: usize>(t: Tensor<D>) -> Vec<f32> {
-    t.into_data().to_vec::<f32>().expect("f32")
 }
 
 fn image(name: &str) -> RgbImage {
@@ -133,7 +129,7 @@ fn assert_close(what: &str, got: &[f32], want: &[f32], tol: f32) {
 }
 
 fn parity(dev: &Device) {
-    let (r, meta) = reference();
+    let (r, _) = reference();
     let m = LlavaOnevision::load(&fixture(), dev).unwrap();
     let p = m.preprocess(&image("image_wide.png"), false);
     let feats = m.vision_features(m.pixels(&p));
@@ -156,7 +152,6 @@ fn parity(dev: &Device) {
     assert_eq!(g.ids, want_ids, "greedy continuation");
     assert_eq!(streamed, g.text, "streamed pieces add up to the text");
     assert_eq!(g.text, m.tokenizer.decode(&want_ids, true).unwrap());
-    let _ = meta;
 
     // Two images in one prompt: base views + newline each, logits at the end of the prompt.
     let imgs: Vec<Tensor<2>> = ["image_a.png", "image_b.png"].iter().map(|f| m.image_embeds(&m.preprocess(&image(f), true))).collect();

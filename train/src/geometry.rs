@@ -11,10 +11,10 @@ use crate::data::nerfstudio::{Dataset, View};
 use burn::optim::{Adam, AdamConfig, AdamState, AdaptiveMomentumState, Optimizer};
 use burn::tensor::{Device, Int, Tensor, TensorData, activation};
 use model::rng::Rng;
-use model::splats::{host, SplatModel, IDENTITY_DIM, ROW_PARAMS, SH_REST};
+use model::splats::{host, SplatModel, IDENTITY_DIM, ROW_PARAMS};
 use model::GaussianCloud;
 use serde::{Deserialize, Serialize};
-use splat_kernels::api::{splat, SplatOptions};
+use splat_kernels::api::{splat, ScreenGradAccumulator, SplatOptions};
 use splat_kernels::Camera;
 use std::path::Path;
 
@@ -281,11 +281,30 @@ pub struct GeometryTrainer {
     pub states: Vec<Option<AdamState<2>>>,
     pub iter: usize,
     pub extent: SceneExtent,
-    /// Accumulated screen-space gradient norm (NDC) and view count per Gaussian since the last densification.
-    pub grad_sum: Vec<f32>,
-    pub grad_count: Vec<u32>,
+    /// Screen-space gradient norms (NDC) per Gaussian since the last densification.
+    pub screen: ScreenGradAccumulator,
     device: Device,
     adam: Adam,
+}
+
+/// Tensor names in checkpoints: the per-Gaussian rows, then the classifier.
+const PARAM_NAMES: [&str; 9] = [
+    ROW_PARAMS[0], ROW_PARAMS[1], ROW_PARAMS[2], ROW_PARAMS[3], ROW_PARAMS[4], ROW_PARAMS[5], ROW_PARAMS[6],
+    "classifier_w", "classifier_b",
+];
+
+/// The splat background `[3 + 16]`: the RGB background, zero identity.
+fn background(rgb: [f32; 3], device: &Device) -> Tensor<1> {
+    let mut bg = rgb.to_vec();
+    bg.extend([0.0; IDENTITY_DIM]);
+    Tensor::from_data(TensorData::new(bg, [3 + IDENTITY_DIM]), device)
+}
+
+/// Identity logits `[H*W, K]` of a rendered `[H, W, 3 + 16]` feature map.
+fn identity_logits(model: &SplatModel, features: Tensor<3>) -> Tensor<2> {
+    let [h, w, _] = features.dims();
+    let feat = features.narrow(2, 3, IDENTITY_DIM).reshape([h * w, IDENTITY_DIM]);
+    feat.matmul(model.classifier_w.val()) + model.classifier_b.val()
 }
 
 /// Statistics of one training step.
@@ -327,8 +346,7 @@ impl GeometryTrainer {
             states: vec![None; 9],
             iter: 0,
             extent,
-            grad_sum: vec![0.0; model.len()],
-            grad_count: vec![0; model.len()],
+            screen: ScreenGradAccumulator { norm_sum: vec![0.0; model.len()], count: vec![0; model.len()] },
             model,
             cfg,
             device: device.clone(),
@@ -351,9 +369,7 @@ impl GeometryTrainer {
         let n = ad_model.len();
         let densifying = self.iter < self.cfg.densify_until;
         let offsets = Tensor::<2>::zeros([n, 2], &ad).require_grad();
-        let mut bg = self.cfg.background.to_vec();
-        bg.extend([0.0; IDENTITY_DIM]);
-        let bg = Tensor::<1>::from_data(TensorData::new(bg, [3 + IDENTITY_DIM]), &ad);
+        let bg = background(self.cfg.background, &ad);
         let opts = SplatOptions { validate: false, screen_offsets: densifying.then(|| offsets.clone()), ..Default::default() };
         let out = splat(&ad_model.gaussians(cam, self.sh_degree()), cam, bg, &opts).map_err(|e| e.to_string())?;
         let rgb = out.features.clone().narrow(2, 0, 3);
@@ -365,9 +381,7 @@ impl GeometryTrainer {
         }
         if let (Some(ids), true) = (&view.instance_ids, self.cfg.identity_weight > 0.0) {
             let k = ad_model.num_classes();
-            let feat = out.features.narrow(2, 3, IDENTITY_DIM).reshape([h * w, IDENTITY_DIM]);
-            let logits = feat.matmul(ad_model.classifier_w.val()) + ad_model.classifier_b.val();
-            let logp = activation::log_softmax(logits, 1);
+            let logp = activation::log_softmax(identity_logits(&ad_model, out.features), 1);
             let target: Vec<i64> = ids.iter().map(|&i| (i as usize).min(k - 1) as i64).collect();
             let target = Tensor::<1, Int>::from_data(TensorData::new(target, [h * w]), &ad).reshape([h * w, 1]);
             let ce = logp.gather(1, target).mean().neg();
@@ -378,16 +392,7 @@ impl GeometryTrainer {
         let grads = loss.backward();
         if densifying {
             if let Some(g) = offsets.grad(&grads) {
-                let g = host(g);
-                // pixels -> NDC, as 3DGS measures the threshold
-                let (sx, sy) = (0.5 * w as f32, 0.5 * h as f32);
-                for i in 0..n {
-                    let norm = ((g[2 * i] * sx).powi(2) + (g[2 * i + 1] * sy).powi(2)).sqrt();
-                    if norm > 0.0 {
-                        self.grad_sum[i] += norm;
-                        self.grad_count[i] += 1;
-                    }
-                }
+                self.screen.add_ndc(g, cam.width, cam.height);
             }
         }
         let mut new = self.model.tensors();
@@ -422,8 +427,8 @@ impl GeometryTrainer {
         let mut plan: Vec<(usize, u8)> = Vec::with_capacity(n);
         let room = self.cfg.max_gaussians.saturating_sub(n);
         let mut added = 0;
-        for i in 0..n {
-            let g = if self.grad_count[i] > 0 { self.grad_sum[i] / self.grad_count[i] as f32 } else { 0.0 };
+        let mean_grad = self.screen.mean();
+        for (i, &g) in mean_grad.iter().enumerate() {
             let keep = opacity(i) >= self.cfg.prune_opacity;
             let grow = g >= self.cfg.densify_grad_threshold && added < room;
             if grow && scale_of(i) <= big {
@@ -494,20 +499,15 @@ impl GeometryTrainer {
             }
         }
         self.model = SplatModel::from_tensors(new_t);
-        self.grad_sum = vec![0.0; m];
-        self.grad_count = vec![0; m];
+        self.screen.reset(m);
     }
 
     /// Renders a view for evaluation.
     pub fn render(&self, cam: &Camera) -> Result<ViewRender, String> {
-        let mut bg = self.cfg.background.to_vec();
-        bg.extend([0.0; IDENTITY_DIM]);
-        let bg = Tensor::<1>::from_data(TensorData::new(bg, [3 + IDENTITY_DIM]), &self.device);
+        let bg = background(self.cfg.background, &self.device);
         let opts = SplatOptions { validate: false, ..Default::default() };
         let out = splat(&self.model.gaussians(cam, self.sh_degree()), cam, bg, &opts).map_err(|e| e.to_string())?;
-        let [h, w, _] = out.features.dims();
-        let feat = out.features.clone().narrow(2, 3, IDENTITY_DIM).reshape([h * w, IDENTITY_DIM]);
-        let logits = feat.matmul(self.model.classifier_w.val()) + self.model.classifier_b.val();
+        let logits = identity_logits(&self.model, out.features.clone());
         let ids: Vec<u8> = logits.argmax(1).into_data().convert::<i64>().try_to_vec::<i64>().map_err(|e| format!("{e:?}"))?.into_iter().map(|i| i as u8).collect();
         Ok(ViewRender { rgb: host(out.features.narrow(2, 0, 3)), ids, alpha: host(out.alpha) })
     }
@@ -535,19 +535,18 @@ impl GeometryTrainer {
     /// `dir/config.json` / `dir/state.json`, each through a temporary file and a rename.
     pub fn save(&self, dir: &Path) -> Result<(), String> {
         std::fs::create_dir_all(dir).map_err(|e| format!("{}: cannot create: {e}", dir.display()))?;
-        let names = ["means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest", "identity", "classifier_w", "classifier_b"];
         let mut tensors: Vec<(String, Vec<usize>, Vec<f32>)> = Vec::new();
         for (i, t) in self.model.tensors().into_iter().enumerate() {
             let d = t.dims();
-            tensors.push((names[i].to_string(), d.to_vec(), host(t)));
+            tensors.push((PARAM_NAMES[i].to_string(), d.to_vec(), host(t)));
             if let Some(s) = &self.states[i] {
-                tensors.push((format!("adam.{}.m1", names[i]), d.to_vec(), host(s.momentum.moment_1.clone())));
-                tensors.push((format!("adam.{}.m2", names[i]), d.to_vec(), host(s.momentum.moment_2.clone())));
+                tensors.push((format!("adam.{}.m1", PARAM_NAMES[i]), d.to_vec(), host(s.momentum.moment_1.clone())));
+                tensors.push((format!("adam.{}.m2", PARAM_NAMES[i]), d.to_vec(), host(s.momentum.moment_2.clone())));
             }
         }
         let n = self.model.len();
-        tensors.push(("grad_sum".into(), vec![n], self.grad_sum.clone()));
-        tensors.push(("grad_count".into(), vec![n], self.grad_count.iter().map(|&c| c as f32).collect()));
+        tensors.push(("grad_sum".into(), vec![n], self.screen.norm_sum.clone()));
+        tensors.push(("grad_count".into(), vec![n], self.screen.count.iter().map(|&c| c as f32).collect()));
         let bytes: Vec<(String, Vec<usize>, Vec<u8>)> = tensors.into_iter().map(|(n, s, v)| (n, s, v.iter().flat_map(|x| x.to_le_bytes()).collect())).collect();
         let views: Vec<(String, safetensors::tensor::TensorView)> = bytes
             .iter()
@@ -584,7 +583,6 @@ impl GeometryTrainer {
             let t = st.tensor(name).map_err(|e| format!("{}: {name}: {e}", ck_path.display()))?;
             Ok((t.shape().to_vec(), t.data().chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect()))
         };
-        let names = ["means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest", "identity", "classifier_w", "classifier_b"];
         let to2 = |(s, v): (Vec<usize>, Vec<f32>)| -> Result<Tensor<2>, String> {
             if s.len() != 2 {
                 return Err(format!("{}: expected a rank-2 tensor, got {s:?}", ck_path.display()));
@@ -594,7 +592,7 @@ impl GeometryTrainer {
         let mut ts = Vec::new();
         let mut states = Vec::new();
         let times = state["adam_time"].as_array().cloned().unwrap_or_default();
-        for (i, name) in names.iter().enumerate() {
+        for (i, name) in PARAM_NAMES.iter().enumerate() {
             ts.push(to2(get(name)?)?);
             let time = times.get(i).and_then(|t| t.as_u64());
             states.push(match (time, get(&format!("adam.{name}.m1")), get(&format!("adam.{name}.m2"))) {
@@ -617,8 +615,7 @@ impl GeometryTrainer {
         if gs.len() != n || gc.len() != n {
             return Err(format!("{}: statistics do not match {n} Gaussians", ck_path.display()));
         }
-        t.grad_sum = gs;
-        t.grad_count = gc.into_iter().map(|c| c as u32).collect();
+        t.screen = ScreenGradAccumulator { norm_sum: gs, count: gc.into_iter().map(|c| c as u32).collect() };
         Ok(t)
     }
 }
@@ -656,14 +653,6 @@ pub fn view_at(iter: usize, views: usize, seed: u64) -> usize {
     }
     order[iter % views.max(1)]
 }
-
-/// Names of the per-Gaussian parameters (re-exported for tools).
-pub fn param_names() -> [&'static str; 7] {
-    ROW_PARAMS
-}
-
-/// The SH coefficient count of the degree-3 rest bands.
-pub const SH_REST_COEFFS: usize = SH_REST;
 
 /// Progress of a run, reported after every iteration.
 #[derive(Clone, Copy, Debug)]

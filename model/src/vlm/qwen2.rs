@@ -111,7 +111,7 @@ impl Qwen2 {
 
     /// Runs `x` (`[T, D]` input embeddings) after the cached tokens; returns the final-norm hidden states `[T, D]`.
     pub fn forward(&self, x: Tensor<2>, cache: &mut KvCache) -> Tensor<2> {
-        let [t, d] = x.dims();
+        let [t, _] = x.dims();
         let (h, kvh, hd) = (self.cfg.num_heads, self.cfg.num_kv_heads, self.cfg.head_dim);
         let start = cache.len;
         let (cos, sin) = self.rope(start, t);
@@ -157,7 +157,6 @@ impl Qwen2 {
             x = x + mlp;
         }
         cache.len = total;
-        let _ = d;
         self.norm.forward(x)
     }
 

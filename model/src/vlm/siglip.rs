@@ -38,15 +38,8 @@ impl VisionTower {
         let v = cfg.vision.clone();
         let (d, f, p) = (v.hidden_size, v.intermediate_size, v.patch_size);
         let pre = "vision_tower.vision_model";
-        let conv = w.host(&format!("{pre}.embeddings.patch_embedding.weight"), &[d, 3, p, p])?;
-        let k = 3 * p * p;
-        let mut t = vec![0f32; conv.len()];
-        for o in 0..d {
-            for i in 0..k {
-                t[i * d + o] = conv[o * k + i];
-            }
-        }
-        let patch_weight = Tensor::from_data(burn::tensor::TensorData::new(t, [k, d]), w.device());
+        // [D, 3, p, p] -> [3 p p, D], rows ordered (channel, y, x) like the unfolded patches.
+        let patch_weight = w.transposed(&format!("{pre}.embeddings.patch_embedding.weight"), &[d, 3, p, p])?;
         let mut layers = Vec::new();
         for i in 0..cfg.vision_layers_needed() {
             let l = format!("{pre}.encoder.layers.{i}");

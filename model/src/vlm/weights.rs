@@ -105,7 +105,15 @@ impl WeightStore {
 
     /// A torch `nn.Linear` weight `[out, in]`, returned transposed as `[in, out]` for `x.matmul(w)`.
     pub fn linear_weight(&self, name: &str, d_in: usize, d_out: usize) -> Result<Tensor<2>, VlmError> {
-        let w = self.host(name, &[d_out, d_in])?;
+        self.transposed(name, &[d_out, d_in])
+    }
+
+    /// A weight stored with `shape = [out, in...]`, flattened to `[out, prod(in)]` and returned
+    /// transposed as `[prod(in), out]` (linear layers; a conv kernel `[out, c, k, k]` over unfolded patches).
+    pub fn transposed(&self, name: &str, shape: &[usize]) -> Result<Tensor<2>, VlmError> {
+        let w = self.host(name, shape)?;
+        let d_out = shape[0];
+        let d_in: usize = shape[1..].iter().product();
         let mut t = vec![0f32; w.len()];
         for o in 0..d_out {
             for i in 0..d_in {

@@ -4,6 +4,10 @@
 
 pub use model::images;
 
+pub mod chat;
+pub mod plot;
+pub mod vqa;
+
 use burn::tensor::{Device, DeviceKind};
 
 /// The compute backends the tools can run on.
@@ -36,16 +40,23 @@ pub fn catch_backend<T>(what: &str, f: impl FnOnce() -> T) -> Result<T, String> 
     })
 }
 
-/// Draws a one-line progress bar on stderr: `label [#####     ] done/total unit, rate, eta`.
+/// A progress bar on stderr (indicatif): `label [#####     ] done/total unit, rate, eta, extra`.
+/// Hidden automatically when stderr is not a terminal.
 pub struct Progress {
-    label: String,
-    unit: &'static str,
-    start: std::time::Instant,
+    bar: indicatif::ProgressBar,
 }
 
 impl Progress {
     pub fn new(label: impl Into<String>, unit: &'static str) -> Self {
-        Self { label: label.into(), unit, start: std::time::Instant::now() }
+        let bar = indicatif::ProgressBar::new(1);
+        let style = indicatif::ProgressStyle::with_template(&format!(
+            "{{prefix}} [{{bar:30}}] {{pos}}/{{len}} {unit} ({{per_sec}}, eta {{eta}}) {{msg}}"
+        ))
+        .expect("valid template")
+        .progress_chars("#> ");
+        bar.set_style(style);
+        bar.set_prefix(label.into());
+        Self { bar }
     }
 
     pub fn update(&self, done: usize, total: usize) {
@@ -54,22 +65,11 @@ impl Progress {
 
     /// As [`update`](Self::update), with extra text (loss, PSNR...) after the counts.
     pub fn update_with(&self, done: usize, total: usize, extra: &str) {
-        use std::io::Write;
-        let total = total.max(1);
-        let bar = 30 * done.min(total) / total;
-        let secs = self.start.elapsed().as_secs_f64();
-        let rate = done as f64 / secs.max(1e-9);
-        let eta = if done > 0 { (total - done.min(total)) as f64 / rate } else { 0.0 };
-        eprint!(
-            "\r{} [{}{}] {done}/{total} {} ({rate:.2}/s, eta {eta:.0} s) {extra}   ",
-            self.label,
-            "#".repeat(bar),
-            " ".repeat(30 - bar),
-            self.unit
-        );
-        let _ = std::io::stderr().flush();
+        self.bar.set_length(total.max(1) as u64);
+        self.bar.set_position(done as u64);
+        self.bar.set_message(extra.to_string());
         if done >= total {
-            eprintln!();
+            self.bar.finish();
         }
     }
 }

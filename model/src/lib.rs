@@ -3,6 +3,7 @@
 
 pub mod cloud;
 pub mod images;
+pub mod language;
 pub mod ply;
 pub mod rng;
 pub mod splats;

@@ -6,6 +6,7 @@
 //! the SH degree rises over time; densification clones small and splits large Gaussians by the
 //! accumulated screen-space gradient, prunes transparent ones and periodically resets opacity.
 
+use crate::ckpt::{self, AdamTensors};
 use crate::data::colmap::SparsePoints;
 use crate::data::nerfstudio::{Dataset, View};
 use burn::optim::{Adam, AdamConfig, AdamState, AdaptiveMomentumState, Optimizer};
@@ -54,6 +55,9 @@ pub struct GeometryConfig {
     pub percent_dense: f32,
     pub opacity_reset_every: usize,
     pub prune_opacity: f32,
+    /// After the first opacity reset, prune Gaussians whose largest scale exceeds this fraction
+    /// of the scene radius (3DGS: 0.1); 0 disables.
+    pub prune_world_size: f32,
     pub max_gaussians: usize,
     /// RGB background (the dataset's RGBA background).
     pub background: [f32; 3],
@@ -88,6 +92,7 @@ impl Default for GeometryConfig {
             percent_dense: 0.01,
             opacity_reset_every: 3000,
             prune_opacity: 0.005,
+            prune_world_size: 0.1,
             max_gaussians: 1_000_000,
             background: [1.0, 1.0, 1.0],
             checkpoint_every: 1000,
@@ -428,8 +433,10 @@ impl GeometryTrainer {
         let room = self.cfg.max_gaussians.saturating_sub(n);
         let mut added = 0;
         let mean_grad = self.screen.mean();
+        let too_big = self.cfg.prune_world_size * self.extent.radius;
+        let prune_big = self.cfg.prune_world_size > 0.0 && self.cfg.opacity_reset_every > 0 && self.iter > self.cfg.opacity_reset_every;
         for (i, &g) in mean_grad.iter().enumerate() {
-            let keep = opacity(i) >= self.cfg.prune_opacity;
+            let keep = opacity(i) >= self.cfg.prune_opacity && !(prune_big && scale_of(i) > too_big);
             let grow = g >= self.cfg.densify_grad_threshold && added < room;
             if grow && scale_of(i) <= big {
                 if keep {
@@ -535,23 +542,14 @@ impl GeometryTrainer {
     /// `dir/config.json` / `dir/state.json`, each through a temporary file and a rename.
     pub fn save(&self, dir: &Path) -> Result<(), String> {
         std::fs::create_dir_all(dir).map_err(|e| format!("{}: cannot create: {e}", dir.display()))?;
-        let mut tensors: Vec<(String, Vec<usize>, Vec<f32>)> = Vec::new();
+        let mut tensors = Vec::new();
         for (i, t) in self.model.tensors().into_iter().enumerate() {
-            let d = t.dims();
-            tensors.push((PARAM_NAMES[i].to_string(), d.to_vec(), host(t)));
-            if let Some(s) = &self.states[i] {
-                tensors.push((format!("adam.{}.m1", PARAM_NAMES[i]), d.to_vec(), host(s.momentum.moment_1.clone())));
-                tensors.push((format!("adam.{}.m2", PARAM_NAMES[i]), d.to_vec(), host(s.momentum.moment_2.clone())));
-            }
+            tensors.push((PARAM_NAMES[i].to_string(), t.dims().to_vec(), host(t)));
+            tensors.extend(AdamTensors::of(PARAM_NAMES[i], self.states[i].as_ref()).tensors());
         }
         let n = self.model.len();
         tensors.push(("grad_sum".into(), vec![n], self.screen.norm_sum.clone()));
         tensors.push(("grad_count".into(), vec![n], self.screen.count.iter().map(|&c| c as f32).collect()));
-        let bytes: Vec<(String, Vec<usize>, Vec<u8>)> = tensors.into_iter().map(|(n, s, v)| (n, s, v.iter().flat_map(|x| x.to_le_bytes()).collect())).collect();
-        let views: Vec<(String, safetensors::tensor::TensorView)> = bytes
-            .iter()
-            .map(|(n, s, b)| (n.clone(), safetensors::tensor::TensorView::new(safetensors::Dtype::F32, s.clone(), b).expect("tensor view")))
-            .collect();
         let state = serde_json::json!({
             "iter": self.iter,
             "adam_time": self.states.iter().map(|s| s.as_ref().map(|s| s.momentum.time)).collect::<Vec<_>>(),
@@ -560,29 +558,19 @@ impl GeometryTrainer {
             "extent_focus": self.extent.focus.to_array(),
             "gaussians": n,
         });
-        let write = |name: &str, f: &dyn Fn(&Path) -> Result<(), String>| -> Result<(), String> {
-            let tmp = dir.join(format!("{name}.tmp"));
-            f(&tmp)?;
-            std::fs::rename(&tmp, dir.join(name)).map_err(|e| format!("{}: cannot rename: {e}", dir.join(name).display()))
-        };
-        write("checkpoint.safetensors", &|p| safetensors::serialize_to_file(views.clone(), None, p).map_err(|e| format!("{}: {e}", p.display())))?;
-        write("config.json", &|p| std::fs::write(p, serde_json::to_string_pretty(&self.cfg).unwrap()).map_err(|e| format!("{}: {e}", p.display())))?;
-        write("state.json", &|p| std::fs::write(p, serde_json::to_string_pretty(&state).unwrap()).map_err(|e| format!("{}: {e}", p.display())))?;
-        Ok(())
+        ckpt::write_f32(&dir.join("checkpoint.safetensors"), tensors, None)?;
+        ckpt::write_json(&dir.join("config.json"), &serde_json::to_value(&self.cfg).expect("config JSON"))?;
+        ckpt::write_json(&dir.join("state.json"), &state)
     }
 
     /// Restores a run saved by [`save`](Self::save).
     pub fn load(dir: &Path, device: &Device) -> Result<Self, String> {
-        let read = |name: &str| std::fs::read(dir.join(name)).map_err(|e| format!("{}: {e}", dir.join(name).display()));
-        let cfg: GeometryConfig = serde_json::from_slice(&read("config.json")?).map_err(|e| format!("{}: invalid config: {e}", dir.join("config.json").display()))?;
-        let state: serde_json::Value = serde_json::from_slice(&read("state.json")?).map_err(|e| format!("{}: invalid JSON: {e}", dir.join("state.json").display()))?;
+        let cfg_path = dir.join("config.json");
+        let cfg: GeometryConfig = serde_json::from_value(ckpt::read_json(&cfg_path)?).map_err(|e| format!("{}: invalid config: {e}", cfg_path.display()))?;
+        let state = ckpt::read_json(&dir.join("state.json"))?;
         let ck_path = dir.join("checkpoint.safetensors");
-        let bytes = read("checkpoint.safetensors")?;
-        let st = safetensors::SafeTensors::deserialize(&bytes).map_err(|e| format!("{}: not a valid safetensors file: {e}", ck_path.display()))?;
-        let get = |name: &str| -> Result<(Vec<usize>, Vec<f32>), String> {
-            let t = st.tensor(name).map_err(|e| format!("{}: {name}: {e}", ck_path.display()))?;
-            Ok((t.shape().to_vec(), t.data().chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect()))
-        };
+        let (mut tensors, _) = ckpt::read_f32(&ck_path)?;
+        let mut get = |name: &str| tensors.remove(name).ok_or_else(|| format!("{}: tensor {name} missing", ck_path.display()));
         let to2 = |(s, v): (Vec<usize>, Vec<f32>)| -> Result<Tensor<2>, String> {
             if s.len() != 2 {
                 return Err(format!("{}: expected a rank-2 tensor, got {s:?}", ck_path.display()));
@@ -590,15 +578,15 @@ impl GeometryTrainer {
             Ok(Tensor::from_data(TensorData::new(v, [s[0], s[1]]), device))
         };
         let mut ts = Vec::new();
-        let mut states = Vec::new();
-        let times = state["adam_time"].as_array().cloned().unwrap_or_default();
-        for (i, name) in PARAM_NAMES.iter().enumerate() {
+        for name in PARAM_NAMES {
             ts.push(to2(get(name)?)?);
-            let time = times.get(i).and_then(|t| t.as_u64());
-            states.push(match (time, get(&format!("adam.{name}.m1")), get(&format!("adam.{name}.m2"))) {
-                (Some(time), Ok(m1), Ok(m2)) => Some(AdamState::new(AdaptiveMomentumState::new(time as usize, to2(m1)?, to2(m2)?))),
-                _ => None,
-            });
+        }
+        let (gs, gc) = (get("grad_sum")?.1, get("grad_count")?.1);
+        let times = state["adam_time"].as_array().cloned().unwrap_or_default();
+        let mut states = Vec::new();
+        for (i, name) in PARAM_NAMES.iter().enumerate() {
+            let time = times.get(i).and_then(|t| t.as_u64()).map(|t| t as usize);
+            states.push(AdamTensors::take(name, time, &mut tensors, device).map_err(|e| format!("{}: {e}", ck_path.display()))?);
         }
         let model = SplatModel::from_tensors(ts.try_into().map_err(|_| "9 tensors".to_string())?);
         let n = model.len();
@@ -610,8 +598,6 @@ impl GeometryTrainer {
         let mut t = Self::with_model(model, cfg, extent, device);
         t.states = states;
         t.iter = state["iter"].as_u64().ok_or_else(|| format!("{}: no iter", dir.join("state.json").display()))? as usize;
-        let (_, gs) = get("grad_sum")?;
-        let (_, gc) = get("grad_count")?;
         if gs.len() != n || gc.len() != n {
             return Err(format!("{}: statistics do not match {n} Gaussians", ck_path.display()));
         }

@@ -2,6 +2,9 @@
 //! identity field) and the language-field stage render through `splat_kernels::splat` and
 //! optimise with burn optimizers (see ARCHITECTURE.md). `data` holds the scene sources; `teacher` extracts LLaVA-OneVision teacher tokens.
 
+pub mod ckpt;
 pub mod data;
+pub mod export;
 pub mod geometry;
+pub mod language;
 pub mod teacher;

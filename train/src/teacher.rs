@@ -82,24 +82,8 @@ pub fn plan(views: &[View], grid: usize, dim: usize, opts: &ExtractOptions) -> P
 
 /// The masked object image (see the module docs) and its box (x0, y0, x1, y1), or `None` if absent.
 pub fn object_image(img: &RgbImage, ids: &[u8], id: u8, margin: f32) -> Option<(RgbImage, [usize; 4])> {
-    let (w, h) = (img.width, img.height);
-    let (mut x0, mut y0, mut x1, mut y1) = (w, h, 0, 0);
-    for y in 0..h {
-        for x in 0..w {
-            if ids[y * w + x] == id {
-                x0 = x0.min(x);
-                y0 = y0.min(y);
-                x1 = x1.max(x + 1);
-                y1 = y1.max(y + 1);
-            }
-        }
-    }
-    if x1 <= x0 {
-        return None;
-    }
-    let mx = ((x1 - x0) as f32 * margin).round() as usize;
-    let my = ((y1 - y0) as f32 * margin).round() as usize;
-    let (bx0, by0, bx1, by1) = (x0.saturating_sub(mx), y0.saturating_sub(my), (x1 + mx).min(w), (y1 + my).min(h));
+    let w = img.width;
+    let [bx0, by0, bx1, by1] = model::language::object_box(ids, img.width, img.height, id, margin)?;
     let (cw, ch) = (bx1 - bx0, by1 - by0);
     let side = cw.max(ch);
     let (ox, oy) = ((side - cw) / 2, (side - ch) / 2);
@@ -198,6 +182,7 @@ pub fn extract(
         "dim": dim,
         "dtype": "F16",
         "object_margin": opts.margin,
+        "downscale": opts.load.downscale,
         "min_object_pixels": opts.min_object_pixels,
         "views": plan.views.iter().map(|v| serde_json::json!({
             "file": view_file(v.index),

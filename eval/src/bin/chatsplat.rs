@@ -34,6 +34,13 @@ enum Command {
     /// Teacher tokens for the language field: SigLIP patch features of every training view and of
     /// every masked object, as f16 safetensors (resumable).
     Extract(ExtractArgs),
+    /// Language stage: train the per-Gaussian language features, the encoder and the scaling
+    /// adjustment against the teacher tokens (geometry frozen).
+    TrainLanguage(TrainLanguageArgs),
+    /// Write the encoder and scaling adjustment as safetensors (PyTorch Conv2d layout) with a JSON header.
+    ExportEncoder(ExportEncoderArgs),
+    /// Interactive chat with a trained scene: view, object (click) and scene level.
+    Chat(ChatArgs),
 }
 
 #[derive(clap::Args)]
@@ -144,9 +151,28 @@ struct AskArgs {
     #[arg(long)]
     vlm: PathBuf,
     /// PNG image to ask about; repeat for a multi-image prompt (one base view + newline per image,
-    /// LLaVA-OneVision's multi-image layout).
-    #[arg(long, required = true)]
+    /// LLaVA-OneVision's multi-image layout). Either images or `--run`.
+    #[arg(long)]
     image: Vec<PathBuf>,
+    /// A trained ChatSplat scene (geometry run directory with a `language/` run): the question
+    /// goes to the scene's tokens instead of an image.
+    #[arg(long)]
+    run: Option<PathBuf>,
+    /// Language run directory (default: RUN/language).
+    #[arg(long)]
+    language: Option<PathBuf>,
+    /// View to ask about (training views first, then held-out views).
+    #[arg(long, default_value_t = 0)]
+    view: usize,
+    /// Object level: the object under pixel X Y of the view (its highlighted view is written as PNG).
+    #[arg(long, num_args = 2, value_names = ["X", "Y"])]
+    object: Option<Vec<usize>>,
+    /// Scene level: tokens of `--views` views spread around the scene.
+    #[arg(long)]
+    scene: bool,
+    /// Views for scene level.
+    #[arg(long, default_value_t = 4)]
+    views: usize,
     /// The question.
     question: String,
     #[arg(long, default_value_t = 256)]
@@ -163,18 +189,20 @@ struct AskArgs {
 }
 
 fn ask(a: AskArgs) -> Result<(), String> {
-    use model::vlm::{chat_template, GenerateOptions, LlavaOnevision, RgbImage, Turn};
-    use std::io::Write;
-    let imgs = a.image.iter().map(|p| RgbImage::read_png(p)).collect::<Result<Vec<_>, _>>()?;
-    if !(0.0..=1.0).contains(&a.top_p) || a.top_p == 0.0 || a.temperature < 0.0 || !a.temperature.is_finite() {
-        return Err("--top-p must be in (0, 1] and --temperature >= 0".into());
+    use model::vlm::{chat_template, LlavaOnevision, RgbImage, Turn};
+    if a.run.is_some() {
+        return ask_scene(a);
     }
+    if a.image.is_empty() {
+        return Err("give --image PNG (plain LLaVA-OneVision) or --run DIR (a trained ChatSplat scene)".into());
+    }
+    let imgs = a.image.iter().map(|p| RgbImage::read_png(p)).collect::<Result<Vec<_>, _>>()?;
+    let opts = check_sampling(&a)?;
     let device = a.backend.device();
     let t0 = std::time::Instant::now();
     let m = catch_backend("loading the model", || LlavaOnevision::load(&a.vlm, &device))?.map_err(|e| e.to_string())?;
     eprintln!("loaded {} in {:.1} s", a.vlm.display(), t0.elapsed().as_secs_f64());
     let prompt = chat_template(&[Turn::user(imgs.len(), a.question.clone())], true);
-    let opts = GenerateOptions { max_new_tokens: a.max_new_tokens, temperature: a.temperature, top_p: a.top_p, seed: a.seed, ignore_stop: false };
     let t1 = std::time::Instant::now();
     let out = catch_backend("generation", || -> Result<_, model::vlm::VlmError> {
         let multi = imgs.len() > 1;
@@ -183,10 +211,7 @@ fn ask(a: AskArgs) -> Result<(), String> {
         let ids = m.expand_image_tokens(&m.tokenizer.encode(&prompt)?, &counts)?;
         let images: Vec<_> = patches.iter().map(|p| m.image_embeds(p)).collect();
         let embeds = m.embed_prompt(&ids, &images)?;
-        m.generate(embeds, &opts, |piece| {
-            print!("{piece}");
-            let _ = std::io::stdout().flush();
-        })
+        m.generate(embeds, &opts, print_piece)
     })?
     .map_err(|e| e.to_string())?;
     println!();
@@ -198,6 +223,220 @@ fn ask(a: AskArgs) -> Result<(), String> {
         if out.stopped { " (stopped at <|im_end|>)" } else { "" },
         a.backend
     );
+    Ok(())
+}
+
+fn check_sampling(a: &AskArgs) -> Result<model::vlm::GenerateOptions, String> {
+    if !(0.0..=1.0).contains(&a.top_p) || a.top_p == 0.0 || a.temperature < 0.0 || !a.temperature.is_finite() {
+        return Err("--top-p must be in (0, 1] and --temperature >= 0".into());
+    }
+    Ok(model::vlm::GenerateOptions { max_new_tokens: a.max_new_tokens, temperature: a.temperature, top_p: a.top_p, seed: a.seed, ignore_stop: false })
+}
+
+/// Streams a generation to stdout.
+fn print_piece(piece: &str) {
+    use std::io::Write;
+    print!("{piece}");
+    let _ = std::io::stdout().flush();
+}
+
+fn ask_scene(a: AskArgs) -> Result<(), String> {
+    use eval::chat::{ChatSession, Target};
+    let opts = check_sampling(&a)?;
+    let run = a.run.clone().expect("checked");
+    let device = a.backend.device();
+    let t0 = std::time::Instant::now();
+    let s = catch_backend("loading", || ChatSession::open(&run, a.language.as_deref(), &a.vlm, &device))??;
+    eprintln!("loaded {} ({} Gaussians, {} views) and {} in {:.1} s", run.display(), s.scene.field.len(), s.cameras.len(), a.vlm.display(), t0.elapsed().as_secs_f64());
+    let target = match (&a.object, a.scene) {
+        (Some(_), true) => return Err("--object and --scene exclude each other".into()),
+        (Some(xy), false) => Target::Object { view: a.view, x: xy[0], y: xy[1] },
+        (None, true) => Target::Scene(s.scene_views(a.views.max(1))),
+        (None, false) => Target::View(a.view),
+    };
+    let t1 = std::time::Instant::now();
+    let (out, picked) = catch_backend("generation", || s.ask(&target, &a.question, &opts, print_piece))??;
+    println!();
+    eprintln!("{} prompt tokens, {} new tokens in {:.2} s", out.prompt_tokens, out.ids.len(), t1.elapsed().as_secs_f64());
+    if let Some(id) = picked {
+        let path = a.language.clone().unwrap_or_else(|| run.join("language")).join(format!("picked_view{}_object{id}.png", a.view));
+        s.show(a.view, Some(id), &path)?;
+        eprintln!("picked object {id}; highlighted view -> {}", path.display());
+    }
+    Ok(())
+}
+
+#[derive(clap::Args)]
+struct TrainLanguageArgs {
+    /// Geometry run directory (`chatsplat train --out`).
+    #[arg(long)]
+    run: PathBuf,
+    /// Teacher directory (`chatsplat extract --out`).
+    #[arg(long)]
+    teacher: PathBuf,
+    /// Language run directory (default: RUN/language).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    #[arg(long)]
+    iters: Option<usize>,
+    /// Language feature channels per level (paper: 32).
+    #[arg(long)]
+    channels: Option<usize>,
+    #[arg(long, value_enum, default_value_t = BackendChoice::Ndarray)]
+    backend: BackendChoice,
+    /// Continue from the language run's last checkpoint.
+    #[arg(long)]
+    resume: bool,
+    /// A config.json with any LanguageTrainConfig fields (others keep their defaults).
+    #[arg(long)]
+    config: Option<PathBuf>,
+}
+
+fn train_language(a: TrainLanguageArgs) -> Result<(), String> {
+    use train::language::{run, LanguageTrainConfig};
+    let mut cfg: LanguageTrainConfig = match &a.config {
+        Some(p) => serde_json::from_value(train::ckpt::read_json(p)?).map_err(|e| format!("{}: invalid language config: {e}", p.display()))?,
+        None => LanguageTrainConfig::default(),
+    };
+    if let Some(n) = a.iters {
+        cfg.iters = n;
+    }
+    if let Some(c) = a.channels {
+        if c == 0 {
+            return Err("--channels must be >= 1".into());
+        }
+        cfg.field.view_channels = c;
+        cfg.field.object_channels = c;
+    }
+    let out = a.out.clone().unwrap_or_else(|| a.run.join("language"));
+    let device = a.backend.device();
+    let bar = Progress::new("language", "it");
+    let s = catch_backend("language training", || {
+        run(&a.run, &a.teacher, &out, cfg, &device, a.resume, |p| {
+            if p.iter % 5 == 0 || p.iter == p.iters {
+                bar.update_with(p.iter, p.iters, &format!("loss {:.4} view {:.4} obj {:.4} ({})", p.step.loss, p.step.view_l1, p.step.object_l1, p.step.objects));
+            }
+        })
+    })??;
+    if let Some(at) = s.resumed_from {
+        eprintln!("resumed from iteration {at}");
+    }
+    println!(
+        "token L1 on training views: view {:.4} -> {:.4}, object {:.4} -> {:.4}; {:.3} s/iter; {} of {} Gaussians reached a language map -> {}",
+        s.before.0, s.after.0, s.before.1, s.after.1, s.seconds_per_iter, s.gaussians_used, s.gaussians, out.display()
+    );
+    Ok(())
+}
+
+#[derive(clap::Args)]
+struct ExportEncoderArgs {
+    /// Geometry run directory.
+    #[arg(long)]
+    run: PathBuf,
+    /// Language run directory (default: RUN/language).
+    #[arg(long)]
+    language: Option<PathBuf>,
+    /// Output .safetensors file.
+    #[arg(long)]
+    out: PathBuf,
+}
+
+fn export_encoder(a: ExportEncoderArgs) -> Result<(), String> {
+    let lang = a.language.clone().unwrap_or_else(|| a.run.join("language"));
+    let device = BackendChoice::Ndarray.device();
+    let (cfg, field, _, _, _) = train::language::load_field(&lang, &device)?;
+    let teacher = train::ckpt::read_json(&lang.join("state.json")).ok().and_then(|s| s["teacher_dir"].as_str().map(String::from)).unwrap_or_default();
+    let model_id = train::language::TeacherSet::open(std::path::Path::new(&teacher)).map(|t| t.model).unwrap_or_default();
+    let n = train::export::write_encoder(&a.out, &field.encoder, &cfg.field, &model_id)?;
+    println!("encoder ({n} parameters, {} lifting layers, scale/shift {}) -> {}", field.encoder.lift_weights.len(), field.encoder.scale.is_some(), a.out.display());
+    Ok(())
+}
+
+#[derive(clap::Args)]
+struct ChatArgs {
+    /// Geometry run directory with a trained `language/` run.
+    #[arg(long)]
+    run: PathBuf,
+    /// Language run directory (default: RUN/language).
+    #[arg(long)]
+    language: Option<PathBuf>,
+    /// Local LLaVA-OneVision directory (the one the teacher tokens came from).
+    #[arg(long)]
+    vlm: PathBuf,
+    #[arg(long, default_value_t = 256)]
+    max_new_tokens: usize,
+    #[arg(long, value_enum, default_value_t = BackendChoice::Ndarray)]
+    backend: BackendChoice,
+}
+
+const CHAT_HELP: &str = "commands: :view N (view level) | :click X Y (object level, in the current view) | :scene [K] (scene level) | :show (write the current view PNG) | :help | :quit; anything else is a question";
+
+fn chat(a: ChatArgs) -> Result<(), String> {
+    use eval::chat::{ChatSession, Target};
+    use std::io::BufRead;
+    let device = a.backend.device();
+    let s = catch_backend("loading", || ChatSession::open(&a.run, a.language.as_deref(), &a.vlm, &device))??;
+    let lang = a.language.clone().unwrap_or_else(|| a.run.join("language"));
+    eprintln!("{} views ({} training), {} Gaussians. {CHAT_HELP}", s.cameras.len(), s.train_views, s.scene.field.len());
+    let opts = model::vlm::GenerateOptions { max_new_tokens: a.max_new_tokens, ..Default::default() };
+    let mut view = 0usize;
+    let mut target = Target::View(0);
+    let stdin = std::io::stdin();
+    eprint!("[view 0] > ");
+    for line in stdin.lock().lines() {
+        let line = line.map_err(|e| format!("stdin: {e}"))?;
+        let words: Vec<&str> = line.split_whitespace().collect();
+        let num = |i: usize| words.get(i).and_then(|w| w.parse::<usize>().ok());
+        match words.first().copied() {
+            None => {}
+            Some(":quit") | Some(":q") => break,
+            Some(":help") => eprintln!("{CHAT_HELP}"),
+            Some(":view") => match num(1) {
+                Some(v) if v < s.cameras.len() => {
+                    view = v;
+                    target = Target::View(v);
+                }
+                _ => eprintln!("usage: :view N with N < {}", s.cameras.len()),
+            },
+            Some(":click") => match (num(1), num(2)) {
+                (Some(x), Some(y)) => match s.scene.pick(&s.cameras[view], x, y) {
+                    Ok(Some((id, _))) => {
+                        let path = lang.join(format!("picked_view{view}_object{id}.png"));
+                        match s.show(view, Some(id), &path) {
+                            Ok(()) => eprintln!("object {id} picked; highlighted -> {}", path.display()),
+                            Err(e) => eprintln!("error: {e}"),
+                        }
+                        target = Target::Object { view, x, y };
+                    }
+                    Ok(None) => eprintln!("pixel ({x}, {y}) shows no object"),
+                    Err(e) => eprintln!("error: {e}"),
+                },
+                _ => eprintln!("usage: :click X Y"),
+            },
+            Some(":scene") => target = Target::Scene(s.scene_views(num(1).unwrap_or(4).max(1))),
+            Some(":show") => {
+                let path = lang.join(format!("view{view}.png"));
+                match s.show(view, None, &path) {
+                    Ok(()) => eprintln!("-> {}", path.display()),
+                    Err(e) => eprintln!("error: {e}"),
+                }
+            }
+            Some(w) if w.starts_with(':') => eprintln!("unknown command {w}; {CHAT_HELP}"),
+            Some(_) => {
+                match catch_backend("generation", || s.ask(&target, &line, &opts, print_piece)) {
+                    Ok(Ok(_)) => println!(),
+                    Ok(Err(e)) | Err(e) => eprintln!("error: {e}"),
+                }
+            }
+        }
+        let label = match &target {
+            Target::View(v) => format!("view {v}"),
+            Target::Object { view, x, y } => format!("view {view} object at ({x}, {y})"),
+            Target::Scene(vs) => format!("scene {vs:?}"),
+        };
+        eprint!("[{label}] > ");
+    }
+    eprintln!();
     Ok(())
 }
 
@@ -443,6 +682,9 @@ fn main() -> ExitCode {
         Command::Train(a) => train_cmd(a),
         Command::ExportPly(a) => export_ply(a),
         Command::Extract(a) => extract(a),
+        Command::TrainLanguage(a) => train_language(a),
+        Command::ExportEncoder(a) => export_encoder(a),
+        Command::Chat(a) => chat(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

@@ -132,6 +132,16 @@ impl LlavaOnevision {
         self.pack(self.projector.forward(f), patches)
     }
 
+    /// Prompt embeddings `[T + 1, text D]` of vision tokens `[T, vision D]` taken as one base view
+    /// (the multi-image layout: projected tokens, then `image_newline`). This is how ChatSplat's
+    /// encoded tokens enter the LLM in place of the vision tower's output.
+    pub fn token_embeds(&self, tokens: Tensor<2>) -> Tensor<2> {
+        let [t, d] = tokens.dims();
+        let p = self.projector.forward(tokens.reshape([1, t, d]));
+        let dt = p.dims()[2];
+        Tensor::cat(vec![p.reshape([t, dt]), self.image_newline.clone().unsqueeze_dim::<2>(0)], 0)
+    }
+
     /// Number of `<image>` placeholders one image expands to.
     pub fn num_image_tokens(&self, patches: &ImagePatches) -> usize {
         num_image_tokens(&self.cfg, patches)

@@ -1,0 +1,535 @@
+//! Scoring answers to annotated questions about a scene (the paper's view / object / scene-level
+//! question answering), two ways: an offline string scorer that needs nothing, and an
+//! OpenAI-compatible LLM grader (the paper grades with GPT-4o on a 0-100 rubric).
+//!
+//! # Question files
+//!
+//! ```json
+//! {"scene": "room",
+//!  "questions": [
+//!   {"id": "q1", "level": "view", "view": 3,
+//!    "question": "What colour is the cube?", "answer": "red", "keywords": ["red"]},
+//!   {"id": "q2", "level": "object", "view": 0, "object": [120, 64],
+//!    "question": "What is this object?", "answer": "a wooden chair"},
+//!   {"id": "q3", "level": "scene", "question": "How many chairs are there?", "answer": "two"}
+//! ]}
+//! ```
+//!
+//! `scene` is optional. `level` is `view`, `object` or `scene`; `view` (an image index) is
+//! required for view-level questions; `object` (an `[x, y]` pixel, in the image of `view` when
+//! given) is required for object-level ones; `keywords` is optional. Ids must be unique and the
+//! question and answer texts non-empty. Unknown keys inside a question are rejected (typos).
+
+use serde::{Deserialize, Serialize};
+use std::collections::HashSet;
+use std::path::Path;
+
+/// The granularity a question asks about.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Level {
+    View,
+    Object,
+    Scene,
+}
+
+impl std::fmt::Display for Level {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Level::View => "view",
+            Level::Object => "object",
+            Level::Scene => "scene",
+        })
+    }
+}
+
+/// One annotated question with its reference answer.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Question {
+    pub id: String,
+    pub level: Level,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub view: Option<usize>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub object: Option<[f32; 2]>,
+    pub question: String,
+    pub answer: String,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub keywords: Vec<String>,
+}
+
+/// A question file: see the [module documentation](self) for the format.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+pub struct QuestionFile {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub scene: Option<String>,
+    pub questions: Vec<Question>,
+}
+
+/// Reads and validates a question file; errors name the file and the problem.
+pub fn load_questions(path: &Path) -> Result<QuestionFile, String> {
+    let p = path.display();
+    let text = std::fs::read_to_string(path).map_err(|e| format!("{p}: cannot read: {e}"))?;
+    let file: QuestionFile = serde_json::from_str(&text).map_err(|e| {
+        format!("{p}: invalid JSON at line {}, column {}: {e}", e.line(), e.column())
+    })?;
+    let mut seen = HashSet::new();
+    for (i, q) in file.questions.iter().enumerate() {
+        let fail = |what: &str| Err(format!("{p}: question {i} (id {:?}): {what}", q.id));
+        if q.id.trim().is_empty() {
+            return fail("empty id");
+        }
+        if !seen.insert(q.id.as_str()) {
+            return fail("duplicate id");
+        }
+        if q.question.trim().is_empty() {
+            return fail("empty question text");
+        }
+        if q.answer.trim().is_empty() {
+            return fail("empty reference answer");
+        }
+        if q.level == Level::View && q.view.is_none() {
+            return fail("view-level question without \"view\"");
+        }
+        if q.level == Level::Object && q.object.is_none() {
+            return fail("object-level question without \"object\" pixel");
+        }
+    }
+    Ok(file)
+}
+
+const NUMBERS: &str = "zero one two three four five six seven eight nine ten eleven twelve \
+    thirteen fourteen fifteen sixteen seventeen eighteen nineteen twenty";
+/// Function words ignored when a reference's content words stand in for keywords.
+const STOPWORDS: &str = "is are was were be of in on at to and or it its this that there with for by has have as from";
+
+/// Lowercases, drops apostrophes, turns other punctuation into spaces (keeping a decimal point
+/// between digits), drops the articles a/an/the, maps zero..twenty to digits and collapses
+/// whitespace.
+pub fn normalize(s: &str) -> String {
+    let chars: Vec<char> = s.chars().collect();
+    let mut out = String::with_capacity(s.len());
+    for (i, &c) in chars.iter().enumerate() {
+        let digit_at = |j: Option<usize>| j.and_then(|j| chars.get(j)).is_some_and(|c| c.is_ascii_digit());
+        if c.is_alphanumeric() {
+            out.extend(c.to_lowercase());
+        } else if c == '\'' || c == '\u{2019}' {
+        } else if c == '.' && digit_at(i.checked_sub(1)) && digit_at(Some(i + 1)) {
+            out.push('.');
+        } else {
+            out.push(' ');
+        }
+    }
+    let words: Vec<String> = out
+        .split_whitespace()
+        .filter(|w| !matches!(*w, "a" | "an" | "the"))
+        .map(|w| match NUMBERS.split_whitespace().position(|n| n == w) {
+            Some(k) => k.to_string(),
+            None => w.to_string(),
+        })
+        .collect();
+    words.join(" ")
+}
+
+/// Whether `needle` (non-empty) occurs as a contiguous run of whole words in `hay`.
+fn contains_phrase(hay: &[&str], needle: &[&str]) -> bool {
+    !needle.is_empty() && hay.windows(needle.len()).any(|w| w == needle)
+}
+
+/// The offline score of one answer.
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub struct OfflineScore {
+    /// Normalized answer equals normalized reference.
+    pub exact: bool,
+    /// Fraction of keywords found as whole words (0-1).
+    pub keyword_recall: f32,
+    /// 0-100.
+    pub score: f32,
+}
+
+/// Scores `answer` against `reference`: 100 when the normalized texts are equal or the normalized
+/// reference occurs as a whole-word phrase in the answer, else 100 × keyword recall. Keywords are
+/// normalized and matched as whole-word phrases; without keywords the reference's content words
+/// (minus a few function words) are used. A plain string scorer: "not red" still contains "red".
+pub fn offline_score(answer: &str, reference: &str, keywords: &[String]) -> OfflineScore {
+    let (ans, refn) = (normalize(answer), normalize(reference));
+    let ans_w: Vec<&str> = ans.split_whitespace().collect();
+    let ref_w: Vec<&str> = refn.split_whitespace().collect();
+    let exact = ans == refn;
+    let mut keys: Vec<String> = keywords.iter().map(|k| normalize(k)).filter(|k| !k.is_empty()).collect();
+    if keys.is_empty() {
+        for w in ref_w.iter().filter(|w| !STOPWORDS.split_whitespace().any(|s| s == **w)) {
+            if !keys.iter().any(|k| k == w) {
+                keys.push(w.to_string());
+            }
+        }
+        if keys.is_empty() {
+            keys = ref_w.iter().map(|w| w.to_string()).collect();
+        }
+    }
+    let hits = keys
+        .iter()
+        .filter(|k| contains_phrase(&ans_w, &k.split_whitespace().collect::<Vec<_>>()))
+        .count();
+    let keyword_recall = if keys.is_empty() { 0.0 } else { hits as f32 / keys.len() as f32 };
+    let score =
+        if exact || contains_phrase(&ans_w, &ref_w) { 100.0 } else { 100.0 * keyword_recall };
+    OfflineScore { exact, keyword_recall, score }
+}
+
+/// Extracts the grade from a grader reply: the first number in it, skipping a rubric range echoed
+/// as "0-100" / "0 to 100". Returns `None` when there is no number, or when the first number is
+/// negative or above 100 (out of the rubric: rejected, not clamped). A decimal part is kept.
+pub fn parse_score(text: &str) -> Option<f32> {
+    let c: Vec<char> = text.chars().collect();
+    let mut i = 0;
+    let mut skip_next = false;
+    while i < c.len() {
+        if !c[i].is_ascii_digit() {
+            i += 1;
+            continue;
+        }
+        let start = i;
+        while i < c.len() && c[i].is_ascii_digit() {
+            i += 1;
+        }
+        if i + 1 < c.len() && c[i] == '.' && c[i + 1].is_ascii_digit() {
+            i += 1;
+            while i < c.len() && c[i].is_ascii_digit() {
+                i += 1;
+            }
+        }
+        let num: String = c[start..i].iter().collect();
+        if std::mem::take(&mut skip_next) {
+            continue; // the upper end of a range
+        }
+        let mut j = i;
+        while j < c.len() && c[j] == ' ' {
+            j += 1;
+        }
+        let rest: String = c[j..c.len().min(j + 3)].iter().collect();
+        if rest.starts_with(['-', '\u{2013}']) || rest.starts_with("to ") {
+            let after = c[j..].iter().skip_while(|ch| !ch.is_ascii_digit()).count();
+            if after > 0 && c[j..c.len() - after].iter().all(|ch| " -\u{2013}to".contains(*ch)) {
+                skip_next = true;
+                continue; // the lower end of a range
+            }
+        }
+        let negative = start > 0 && c[start - 1] == '-';
+        let v: f32 = num.parse().ok()?;
+        return (!negative && v <= 100.0).then_some(v);
+    }
+    None
+}
+
+const ENV_URL: &str = "CHATSPLAT_GRADER_URL";
+const ENV_MODEL: &str = "CHATSPLAT_GRADER_MODEL";
+const ENV_KEY: &str = "CHATSPLAT_GRADER_KEY";
+
+/// An OpenAI-compatible chat-completions grader, called through the system `curl` binary.
+#[derive(Clone, PartialEq)]
+pub struct Grader {
+    /// Base URL without the trailing slash, e.g. `https://api.openai.com/v1`.
+    pub url: String,
+    pub model: String,
+    pub key: String,
+}
+
+impl std::fmt::Debug for Grader {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.debug_struct("Grader").field("url", &self.url).field("model", &self.model).field("key", &"***").finish()
+    }
+}
+
+fn truncate(s: &str, n: usize) -> String {
+    let s = s.trim();
+    if s.chars().count() <= n { s.to_string() } else { s.chars().take(n).collect::<String>() + "…" }
+}
+
+impl Grader {
+    /// Reads `CHATSPLAT_GRADER_URL`, `CHATSPLAT_GRADER_MODEL` and `CHATSPLAT_GRADER_KEY`.
+    /// `Ok(None)` when the URL is unset or empty; an error naming the variable when the URL is set
+    /// but the model or key is missing.
+    pub fn from_env() -> Result<Option<Grader>, String> {
+        let var = |n: &str| std::env::var(n).ok().map(|v| v.trim().to_string()).filter(|v| !v.is_empty());
+        let Some(url) = var(ENV_URL) else { return Ok(None) };
+        let missing = |n: &str| format!("{ENV_URL} is set but {n} is not");
+        let model = var(ENV_MODEL).ok_or_else(|| missing(ENV_MODEL))?;
+        let key = var(ENV_KEY).ok_or_else(|| missing(ENV_KEY))?;
+        Ok(Some(Grader { url: url.trim_end_matches('/').to_string(), model, key }))
+    }
+
+    /// The rubric sent as the user message.
+    pub fn prompt(question: &str, reference: &str, answer: &str) -> String {
+        format!(
+            "You are grading an answer to a question about a 3D scene.\n\
+             Compare the candidate answer with the reference answer and judge its correctness and \
+             completeness: 100 means fully correct and complete, 0 means wrong or unrelated; give \
+             partial credit for partially correct or incomplete answers. Extra detail is fine \
+             unless it contradicts the reference.\n\n\
+             Question: {question}\nReference answer: {reference}\nCandidate answer: {answer}\n\n\
+             Reply with only one integer from 0 to 100 and nothing else."
+        )
+    }
+
+    /// The `chat/completions` request body (temperature 0).
+    pub fn request_body(&self, question: &str, reference: &str, answer: &str) -> serde_json::Value {
+        serde_json::json!({
+            "model": self.model,
+            "temperature": 0,
+            "messages": [
+                {"role": "system", "content": "You are a strict, consistent grader. You reply with a single integer."},
+                {"role": "user", "content": Self::prompt(question, reference, answer)},
+            ],
+        })
+    }
+
+    /// Extracts the score from a chat-completions response body.
+    pub fn parse_response(body: &str) -> Result<f32, String> {
+        let v: serde_json::Value = serde_json::from_str(body)
+            .map_err(|e| format!("grader returned a non-JSON response ({e}): {}", truncate(body, 300)))?;
+        let content = v["choices"][0]["message"]["content"]
+            .as_str()
+            .ok_or_else(|| format!("grader response has no choices[0].message.content: {}", truncate(body, 300)))?;
+        parse_score(content).ok_or_else(|| format!("no score 0-100 in grader reply: {:?}", truncate(content, 300)))
+    }
+
+    /// Grades one answer with a POST to `{url}/chat/completions` through `curl` (the body goes on
+    /// stdin). Note that the key is passed to curl as a command-line header.
+    pub fn grade(&self, question: &str, reference: &str, answer: &str) -> Result<f32, String> {
+        use std::io::Write;
+        use std::process::{Command, Stdio};
+        let endpoint = format!("{}/chat/completions", self.url);
+        let body = self.request_body(question, reference, answer).to_string();
+        let mut child = Command::new("curl")
+            .args(["-sS", "--fail-with-body", "-H"])
+            .arg(format!("Authorization: Bearer {}", self.key))
+            .args(["-H", "Content-Type: application/json", "--data-binary", "@-"])
+            .arg(&endpoint)
+            .stdin(Stdio::piped())
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .map_err(|e| match e.kind() {
+                std::io::ErrorKind::NotFound => "the grader needs the `curl` binary, which is not on PATH".to_string(),
+                _ => format!("cannot run curl: {e}"),
+            })?;
+        let wrote = child.stdin.take().expect("piped stdin").write_all(body.as_bytes());
+        let out = child.wait_with_output().map_err(|e| format!("curl failed: {e}"))?;
+        let stdout = String::from_utf8_lossy(&out.stdout);
+        let redact = |s: String| if self.key.is_empty() { s } else { s.replace(&self.key, "***") };
+        if !out.status.success() || wrote.is_err() {
+            let stderr = String::from_utf8_lossy(&out.stderr);
+            return Err(redact(format!(
+                "grader request to {endpoint} failed ({}): {}; response: {}",
+                out.status,
+                stderr.trim(),
+                truncate(&stdout, 300)
+            )));
+        }
+        Self::parse_response(&stdout).map_err(redact)
+    }
+}
+
+/// Count and mean score (None when there are no scores) of one group.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct LevelSummary {
+    pub count: usize,
+    pub mean: Option<f32>,
+}
+
+/// Mean scores per level and overall (the mean over all questions, not over levels).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct Summary {
+    pub view: LevelSummary,
+    pub object: LevelSummary,
+    pub scene: LevelSummary,
+    pub overall: LevelSummary,
+}
+
+impl Summary {
+    pub fn level(&self, level: Level) -> LevelSummary {
+        match level {
+            Level::View => self.view,
+            Level::Object => self.object,
+            Level::Scene => self.scene,
+        }
+    }
+}
+
+pub fn summarize(scores: &[(Level, f32)]) -> Summary {
+    let group = |keep: &dyn Fn(Level) -> bool| {
+        let v: Vec<f64> = scores.iter().filter(|(l, _)| keep(*l)).map(|&(_, s)| s as f64).collect();
+        let mean = (!v.is_empty()).then(|| (v.iter().sum::<f64>() / v.len() as f64) as f32);
+        LevelSummary { count: v.len(), mean }
+    };
+    Summary {
+        view: group(&|l| l == Level::View),
+        object: group(&|l| l == Level::Object),
+        scene: group(&|l| l == Level::Scene),
+        overall: group(&|_| true),
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn kw(k: &[&str]) -> Vec<String> {
+        k.iter().map(|s| s.to_string()).collect()
+    }
+
+    fn tmp(name: &str, text: &str) -> std::path::PathBuf {
+        let p = std::env::temp_dir().join(format!("chatsplat-vqa-{}-{name}.json", std::process::id()));
+        std::fs::write(&p, text).unwrap();
+        p
+    }
+
+    #[test]
+    fn normalization() {
+        assert_eq!(normalize("  The RED, cube!  "), "red cube");
+        assert_eq!(normalize("There are Three chairs and an apple."), "there are 3 chairs and apple");
+        assert_eq!(normalize("It's twenty-one"), "its 20 1");
+        assert_eq!(normalize("about 3.5 m. Then"), "about 3.5 m then");
+        assert_eq!(normalize("theatre a"), "theatre");
+        assert_eq!(normalize("?!"), "");
+    }
+
+    #[test]
+    fn offline_scoring() {
+        let s = offline_score("Red.", "red", &[]);
+        assert!(s.exact && s.score == 100.0);
+        let s = offline_score("The cube is red.", "red", &[]);
+        assert!(!s.exact && s.score == 100.0);
+        assert_eq!(offline_score("blue", "red", &[]).score, 0.0);
+        assert_eq!(offline_score("reddish", "red", &[]).score, 0.0, "whole words only");
+        assert_eq!(offline_score("3", "three", &[]).score, 100.0);
+        let s = offline_score("a red sphere", "red cube", &kw(&["Red", "cube"]));
+        assert_eq!((s.keyword_recall, s.score), (0.5, 50.0));
+        // No keywords: the reference's content words ("wooden", "chair"; "is" is a stopword).
+        let s = offline_score("it looks wooden", "is a wooden chair", &[]);
+        assert_eq!((s.keyword_recall, s.score), (0.5, 50.0));
+        let s = offline_score("a dark red table", "dark red", &kw(&["dark red", "table"]));
+        assert_eq!((s.keyword_recall, s.score), (1.0, 100.0));
+        assert_eq!(offline_score("", "red", &[]).score, 0.0);
+    }
+
+    #[test]
+    fn score_parsing() {
+        assert_eq!(parse_score("85"), Some(85.0));
+        assert_eq!(parse_score("Score: 85"), Some(85.0));
+        assert_eq!(parse_score("85/100"), Some(85.0));
+        assert_eq!(parse_score("0"), Some(0.0));
+        assert_eq!(parse_score("100."), Some(100.0));
+        assert_eq!(parse_score("72.5"), Some(72.5));
+        assert_eq!(parse_score("Score (0-100): 40"), Some(40.0));
+        assert_eq!(parse_score("on a scale of 0 to 100, 90"), Some(90.0));
+        assert_eq!(parse_score("I'd give it 101"), None, "out of range is rejected, not clamped");
+        assert_eq!(parse_score("-5"), None);
+        assert_eq!(parse_score("none"), None);
+        assert_eq!(parse_score(""), None);
+    }
+
+    #[test]
+    fn question_files() {
+        let good = r#"{"scene": "room", "questions": [
+            {"id": "q1", "level": "view", "view": 3, "question": "Colour?", "answer": "red", "keywords": ["red"]},
+            {"id": "q2", "level": "object", "object": [1.5, 2], "question": "What?", "answer": "chair"},
+            {"id": "q3", "level": "scene", "question": "How many?", "answer": "two"}]}"#;
+        let p = tmp("good", good);
+        let f = load_questions(&p).unwrap();
+        let _ = std::fs::remove_file(p);
+        assert_eq!(f.scene.as_deref(), Some("room"));
+        assert_eq!(f.questions.len(), 3);
+        assert_eq!((f.questions[0].level, f.questions[0].view), (Level::View, Some(3)));
+        assert_eq!(f.questions[1].object, Some([1.5, 2.0]));
+        assert!(f.questions[2].keywords.is_empty());
+
+        let err = |name: &str, text: &str| {
+            let p = tmp(name, text);
+            let e = load_questions(&p).unwrap_err();
+            let _ = std::fs::remove_file(&p);
+            assert!(e.contains(&p.display().to_string()), "{e}");
+            e
+        };
+        let q = |body: &str| format!(r#"{{"questions": [{body}]}}"#);
+        let e = err("json", "{\"questions\": [\n  {\"id\": }]}");
+        assert!(e.contains("line 2, column"), "{e}");
+        let e = err("obj", &q(r#"{"id": "a", "level": "object", "question": "Q?", "answer": "x"}"#));
+        assert!(e.contains("\"a\"") && e.contains("without \"object\""), "{e}");
+        let e = err("view", &q(r#"{"id": "b", "level": "view", "question": "Q?", "answer": "x"}"#));
+        assert!(e.contains("without \"view\""), "{e}");
+        let e = err("empty", &q(r#"{"id": "c", "level": "scene", "question": " ", "answer": "x"}"#));
+        assert!(e.contains("empty question"), "{e}");
+        let one = r#"{"id": "d", "level": "scene", "question": "Q?", "answer": "x"}"#;
+        let e = err("dup", &q(&format!("{one}, {one}")));
+        assert!(e.contains("question 1") && e.contains("duplicate id"), "{e}");
+        let e = err("level", &q(r#"{"id": "e", "level": "room", "question": "Q?", "answer": "x"}"#));
+        assert!(e.contains("invalid JSON") && e.contains("room"), "{e}");
+        let missing = std::env::temp_dir().join("chatsplat-vqa-no-such-file.json");
+        let e = load_questions(&missing).unwrap_err();
+        assert!(e.contains("no-such-file") && e.contains("cannot read"), "{e}");
+    }
+
+    #[test]
+    fn request_body_and_response() {
+        let g = Grader { url: "http://x/v1".into(), model: "gpt-4o".into(), key: "sk-secret".into() };
+        let b = g.request_body("What colour?", "red", "blue");
+        assert_eq!(b["model"], "gpt-4o");
+        assert_eq!(b["temperature"], 0);
+        let msgs = b["messages"].as_array().unwrap();
+        assert_eq!(msgs.last().unwrap()["role"], "user");
+        let user = msgs.last().unwrap()["content"].as_str().unwrap();
+        assert!(user.contains("What colour?") && user.contains("red") && user.contains("blue"));
+        assert!(user.contains("0 to 100"));
+        assert!(!b.to_string().contains("sk-secret"));
+        assert!(!format!("{g:?}").contains("sk-secret"));
+
+        let ok = r#"{"choices": [{"message": {"role": "assistant", "content": "Score: 85"}}]}"#;
+        assert_eq!(Grader::parse_response(ok), Ok(85.0));
+        let none = r#"{"choices": [{"message": {"content": "cannot judge"}}]}"#;
+        assert!(Grader::parse_response(none).unwrap_err().contains("no score"));
+        let e = Grader::parse_response(&format!("<html>{}</html>", "x".repeat(1000))).unwrap_err();
+        assert!(e.contains("non-JSON") && e.chars().count() < 450, "{e}");
+        assert!(Grader::parse_response(r#"{"error": "bad"}"#).unwrap_err().contains("choices[0]"));
+    }
+
+    /// The only test touching the process environment (tests run in parallel threads).
+    #[test]
+    fn grader_from_env() {
+        let set = |k: &str, v: Option<&str>| unsafe {
+            match v {
+                Some(v) => std::env::set_var(k, v),
+                None => std::env::remove_var(k),
+            }
+        };
+        set(ENV_URL, None);
+        set(ENV_MODEL, Some("gpt-4o"));
+        assert_eq!(Grader::from_env(), Ok(None));
+        set(ENV_URL, Some("https://api.example.com/v1/"));
+        set(ENV_KEY, None);
+        let e = Grader::from_env().unwrap_err();
+        assert!(e.contains(ENV_KEY), "{e}");
+        set(ENV_MODEL, None);
+        set(ENV_KEY, Some("sk-secret"));
+        assert!(Grader::from_env().unwrap_err().contains(ENV_MODEL));
+        set(ENV_MODEL, Some("gpt-4o"));
+        let g = Grader::from_env().unwrap().unwrap();
+        assert_eq!((g.url.as_str(), g.model.as_str(), g.key.as_str()), ("https://api.example.com/v1", "gpt-4o", "sk-secret"));
+        for k in [ENV_URL, ENV_MODEL, ENV_KEY] {
+            set(k, None);
+        }
+    }
+
+    #[test]
+    fn summaries() {
+        use Level::*;
+        let s = summarize(&[(View, 100.0), (View, 50.0), (Scene, 0.0), (View, 0.0)]);
+        assert_eq!(s.view, LevelSummary { count: 3, mean: Some(50.0) });
+        assert_eq!(s.object, LevelSummary { count: 0, mean: None });
+        assert_eq!(s.level(Scene), LevelSummary { count: 1, mean: Some(0.0) });
+        assert_eq!(s.overall, LevelSummary { count: 4, mean: Some(37.5) });
+        assert_eq!(summarize(&[]).overall, LevelSummary::default());
+    }
+}

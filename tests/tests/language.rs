@@ -1,0 +1,292 @@
+//! ChatSplat proper, end to end on a tiny synthetic scene and the tiny LLaVA-OneVision fixture:
+//! geometry -> teacher tokens -> language field (token L1 must fall), object picking on held-out
+//! views, view/object/scene chat, encoder export round trip, resume. Plus the encoder's maths
+//! against a plain convolution loop and the token cameras against the teacher's crops.
+#![allow(deprecated)]
+
+use burn::tensor::{Device, Tensor, TensorData};
+use chatsplat_tests::{host, temp_dir};
+use glam::{Vec3, Vec4};
+use model::language::{object_box, Encoder, LanguageConfig, LanguageField};
+use model::rng::Rng;
+use model::vlm::{GenerateOptions, LlavaOnevision};
+use std::path::{Path, PathBuf};
+use train::language::{run, LanguageTrainConfig, LanguageTrainer, TeacherSet};
+
+fn fixture() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../checkpoints/tiny-llava-ov")
+}
+
+fn random_map(h: usize, w: usize, c: usize, seed: u64, dev: &Device) -> Tensor<3> {
+    let mut r = Rng::new(seed);
+    Tensor::from_data(TensorData::new((0..h * w * c).map(|_| r.normal()).collect::<Vec<f32>>(), [h, w, c]), dev)
+}
+
+#[test]
+fn encoder_equals_a_plain_convolution_loop() {
+    let dev = Device::ndarray();
+    let cfg = LanguageConfig { view_channels: 2, object_channels: 2, hidden: 3, dim: 4, grid: 2, patch: 3, teacher_image: 28, teacher_patch: 14, ..Default::default() };
+    let mut enc = Encoder::new(&cfg, 5, &dev);
+    let mut r = Rng::new(9);
+    let t = cfg.tokens();
+    enc.scale = Some(burn::module::Param::from_tensor(Tensor::from_data(TensorData::new((0..t * 4).map(|_| r.normal()).collect::<Vec<f32>>(), [t, 4]), &dev)));
+    let (h, w, c) = (6, 6, 2);
+    let map = random_map(h, w, c, 1, &dev);
+    let got = host(enc.forward(map.clone()));
+    // reference: per-pixel MLP (1x1 convs, GELU), then a stride-3 3x3 convolution, then a*x+b
+    let m = host(map);
+    let g = |name: &str| enc.named().into_iter().find(|(n, _)| n == name).map(|(_, t)| (t.dims(), host(t))).unwrap();
+    let (w0d, w0) = g("lift.0.weight");
+    let (_, b0) = g("lift.0.bias");
+    let (w1d, w1) = g("lift.1.weight");
+    let (_, b1) = g("lift.1.bias");
+    let (_, pw) = g("patch.weight");
+    let (_, pb) = g("patch.bias");
+    let (_, a) = g("scale");
+    let (_, b) = g("shift");
+    let gelu = |x: f32| 0.5 * x * (1.0 + erf(x / 2f32.sqrt()));
+    let mut lifted = vec![0f32; h * w * 4];
+    for p in 0..h * w {
+        let hid: Vec<f32> = (0..w0d[1]).map(|j| gelu(b0[j] + (0..c).map(|i| m[p * c + i] * w0[i * w0d[1] + j]).sum::<f32>())).collect();
+        for o in 0..4 {
+            lifted[p * 4 + o] = b1[o] + (0..w1d[0]).map(|j| hid[j] * w1[j * 4 + o]).sum::<f32>();
+        }
+    }
+    for ty in 0..2 {
+        for tx in 0..2 {
+            for o in 0..4 {
+                let mut acc = pb[o];
+                for py in 0..3 {
+                    for px in 0..3 {
+                        for ci in 0..4 {
+                            let pix = (ty * 3 + py) * w + tx * 3 + px;
+                            acc += lifted[pix * 4 + ci] * pw[((py * 3 + px) * 4 + ci) * 4 + o];
+                        }
+                    }
+                }
+                let k = (ty * 2 + tx) * 4 + o;
+                let want = acc * a[k] + b[k];
+                assert!((got[k] - want).abs() < 1e-4 * (1.0 + want.abs()), "token {} ch {o}: {} vs {want}", ty * 2 + tx, got[k]);
+            }
+        }
+    }
+}
+
+/// Abramowitz-Stegun 7.1.26 (|error| < 1.5e-7).
+fn erf(x: f32) -> f32 {
+    let t = 1.0 / (1.0 + 0.327_591_1 * x.abs());
+    let y = 1.0 - (((((1.061_405_4 * t - 1.453_152_1) * t) + 1.421_413_7) * t - 0.284_496_74) * t + 0.254_829_6) * t * (-x * x).exp();
+    if x >= 0.0 { y } else { -y }
+}
+
+#[test]
+fn token_cameras_frame_what_the_teacher_saw() {
+    let cfg = LanguageConfig::default(); // grid 27, patch 14, teacher 384/14
+    let cam = splat_kernels::Camera::look_at(Vec3::new(0.3, 1.2, 2.5), Vec3::ZERO, Vec3::Y, 45.0, 160, 120);
+    let project = |c: &splat_kernels::Camera, p: Vec3| {
+        let q = c.world_to_cam * Vec4::new(p.x, p.y, p.z, 1.0);
+        (c.fx * q.x / q.z + c.cx, c.fy * q.y / q.z + c.cy)
+    };
+    let vc = cfg.view_camera(&cam);
+    assert_eq!((vc.width, vc.height), (378, 378));
+    for p in [Vec3::ZERO, Vec3::new(0.4, 0.1, -0.2), Vec3::new(-0.3, 0.5, 0.3)] {
+        let (u, v) = project(&cam, p);
+        let (u2, v2) = project(&vc, p);
+        // the teacher resizes the view to 384x384; its tokens (and our map) cover the top-left 378
+        assert!((u2 - u * 384.0 / 160.0).abs() < 1e-2 && (v2 - v * 384.0 / 120.0).abs() < 1e-2, "({u},{v}) -> ({u2},{v2})");
+    }
+    // object crop: a 40x20 box is padded to a 40x40 square centred on it, scaled to 384
+    let bbox = [50, 30, 90, 50];
+    let oc = cfg.object_camera(&cam, bbox);
+    let p = Vec3::new(0.1, 0.2, 0.0);
+    let (u, v) = project(&cam, p);
+    let (u2, v2) = project(&oc, p);
+    let s = 384.0 / 40.0;
+    assert!((u2 - (u - 50.0) * s).abs() < 1e-2 && (v2 - (v - 20.0) * s).abs() < 1e-2, "({u},{v}) -> ({u2},{v2})");
+    // and the box helper matches the teacher's crop rule
+    let mut ids = vec![0u8; 20 * 10];
+    for y in 2..6 {
+        for x in 5..15 {
+            ids[y * 20 + x] = 3;
+        }
+    }
+    assert_eq!(object_box(&ids, 20, 10, 3, 0.1), Some([4, 2, 16, 6]));
+    assert_eq!(object_box(&ids, 20, 10, 4, 0.1), None);
+}
+
+#[test]
+fn encoder_export_round_trips_bit_exactly_in_conv_layout() {
+    let dev = Device::ndarray();
+    let cfg = LanguageConfig { view_channels: 3, object_channels: 3, hidden: 5, dim: 6, grid: 3, patch: 2, ..Default::default() };
+    let field = LanguageField::new(&cfg, 4, 11, &dev);
+    let path = temp_dir("enc-export").with_extension("safetensors");
+    let params = train::export::write_encoder(&path, &field.encoder, &cfg, "tiny").unwrap();
+    assert_eq!(params, 3 * 5 + 5 + 5 * 6 + 6 + 2 * 2 * 6 * 6 + 6 + 4 * 9 * 6); // lift, patch, two (a, b) pairs
+    let (back, cfg2) = train::export::read_encoder(&path, &dev).unwrap();
+    assert_eq!(cfg2.dim, 6);
+    assert_eq!(cfg2.patch, 2);
+    let map = random_map(6, 6, 3, 4, &dev);
+    assert_eq!(host(field.encoder.forward(map.clone())), host(back.forward(map)), "tokens differ after the round trip");
+    // PyTorch Conv2d layout: weight[o, c, py, px] = W[(py * p + px) * D + c, o]
+    let st_bytes = std::fs::read(&path).unwrap();
+    let st = safetensors::SafeTensors::deserialize(&st_bytes).unwrap();
+    let t = st.tensor("patch.weight").unwrap();
+    assert_eq!(t.shape(), [6, 6, 2, 2]);
+    let conv: Vec<f32> = t.data().chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect();
+    let w = host(field.encoder.patch_weight.val());
+    for (o, c, py, px) in [(0, 0, 0, 0), (5, 2, 1, 0), (3, 4, 0, 1), (1, 5, 1, 1)] {
+        assert_eq!(conv[((o * 6 + c) * 2 + py) * 2 + px], w[((py * 2 + px) * 6 + c) * 6 + o]);
+    }
+    let bad = temp_dir("enc-export-bad").with_extension("safetensors");
+    std::fs::write(&bad, b"garbage").unwrap();
+    let e = train::export::read_encoder(&bad, &dev).err().unwrap();
+    assert!(e.contains(&bad.display().to_string()), "{e}");
+}
+
+/// Geometry run + teacher tokens of a tiny synthetic scene (shared by the end-to-end test).
+fn scene_with_teacher(tag: &str) -> (PathBuf, PathBuf, LlavaOnevision) {
+    use train::data::nerfstudio::{load, LoadOptions};
+    use train::geometry::{view_at, GeometryConfig, GeometryTrainer};
+    let data = temp_dir(&format!("{tag}-data"));
+    let opts = train::data::synth::SynthOptions { views: 14, width: 64, height: 56, ..Default::default() };
+    train::data::synth::write_dataset(&data, &opts, |_, _| {}).unwrap();
+    let ds = load(&data, &LoadOptions::default()).unwrap();
+    let dev = Device::ndarray();
+    let cfg = GeometryConfig {
+        iters: 250,
+        init_per_view: 500,
+        densify_from: 50,
+        densify_every: 50,
+        densify_until: 200,
+        opacity_reset_every: 0,
+        sh_degree: 1,
+        sh_degree_every: 100,
+        checkpoint_every: 0,
+        max_gaussians: 6000,
+        ..Default::default()
+    };
+    let mut g = GeometryTrainer::new(&ds, cfg, &dev).unwrap();
+    while g.iter < 250 {
+        let v = &ds.train[view_at(g.iter, ds.train.len(), 0)];
+        g.step(v).unwrap();
+    }
+    let run_dir = temp_dir(&format!("{tag}-run"));
+    g.save(&run_dir).unwrap();
+    let vlm = LlavaOnevision::load(&fixture(), &dev).unwrap();
+    let teacher = temp_dir(&format!("{tag}-teacher"));
+    train::teacher::extract(&vlm, &data, &teacher, &Default::default(), |_| {}, |_, _| {}).unwrap();
+    (run_dir, teacher, vlm)
+}
+
+fn lang_cfg(iters: usize) -> LanguageTrainConfig {
+    let mut c = LanguageTrainConfig { iters, checkpoint_every: 0, ..Default::default() };
+    c.field.view_channels = 8;
+    c.field.object_channels = 8;
+    c.field.hidden = 16;
+    c.field.patch = 4; // 108x108 maps keep the test fast; the token grid is the teacher's 27x27
+    c
+}
+
+#[test]
+fn end_to_end_language_field_chat_and_export() {
+    let dev = Device::ndarray();
+    let (run_dir, teacher_dir, vlm) = scene_with_teacher("lang-e2e");
+    let teacher = TeacherSet::open(&teacher_dir).unwrap();
+    assert_eq!(teacher.grid, 27);
+    assert!(teacher.views.iter().all(|v| !v.objects.is_empty()), "every synthetic view shows objects");
+
+    // --- training: the token L1 on training views must fall
+    let lang_dir = run_dir.join("language");
+    let s = run(&run_dir, &teacher_dir, &lang_dir, lang_cfg(100), &dev, false, |_| {}).unwrap();
+    eprintln!("token L1 view {:.4} -> {:.4}, object {:.4} -> {:.4}, {:.3} s/iter, {} of {} Gaussians used", s.before.0, s.after.0, s.before.1, s.after.1, s.seconds_per_iter, s.gaussians_used, s.gaussians);
+    // The scaling adjustment starts at the teacher's per-token mean and per-channel spread, so
+    // `before` is already the "predict the mean" error; falling below it means the field carries
+    // what differs between views and objects. Measured (paper lr 0.05): view 0.451 -> 0.31,
+    // object 0.522 -> 0.32 after 100 iterations (plateau ~0.30 at 150).
+    assert!(s.after.0 < s.before.0 / 1.3, "view token L1 {} -> {}", s.before.0, s.after.0);
+    assert!(s.after.1 < s.before.1 / 1.3, "object token L1 {} -> {}", s.before.1, s.after.1);
+    assert!(s.gaussians_used > 0 && s.gaussians_used <= s.gaussians);
+
+    // --- resume: 40 + 20 iterations == the state after 60 uninterrupted iterations
+    let mut a = LanguageTrainer::new(&run_dir, teacher.clone(), lang_cfg(60), &dev).unwrap();
+    let order: Vec<usize> = (0..60).map(|i| train::geometry::view_at(i, a.views.len(), 0)).collect();
+    for &v in &order[..40] {
+        a.step(v).unwrap();
+    }
+    let ck = temp_dir("lang-e2e-resume");
+    a.save(&ck).unwrap();
+    for &v in &order[40..] {
+        a.step(v).unwrap();
+    }
+    let mut b = LanguageTrainer::resume(&run_dir, &ck, &dev).unwrap();
+    assert_eq!(b.iter, 40);
+    for &v in &order[40..] {
+        b.step(v).unwrap();
+    }
+    for ((n, x), (_, y)) in a.scene.field.named().into_iter().zip(b.scene.field.named()) {
+        assert_eq!(host(x), host(y), "{n} differs after resume");
+    }
+
+    // --- object picking on held-out views: the rendered identity under GT-mask pixels
+    let session = eval::chat::ChatSession::open(&run_dir, None, &fixture(), &dev).unwrap();
+    let ds = teacher.dataset().unwrap();
+    assert!(!ds.test.is_empty());
+    let (mut right, mut total) = (0, 0);
+    for (k, v) in ds.test.iter().enumerate() {
+        let gt = v.instance_ids.as_ref().unwrap();
+        let (w, h) = (v.camera.width as usize, v.camera.height as usize);
+        let ids = session.scene.identity(&v.camera).unwrap();
+        for y in 2..h - 2 {
+            for x in 2..w - 2 {
+                let id = gt[y * w + x];
+                // interior pixels of objects (not the table or the background)
+                if id < train::data::synth::FIRST_OBJECT_ID || [(0, 2), (2, 0), (0, -2), (-2, 0)].iter().any(|&(dx, dy)| gt[(y as i32 + dy) as usize * w + (x as i32 + dx) as usize] != id) {
+                    continue;
+                }
+                total += 1;
+                right += usize::from(ids[y * w + x] == id);
+            }
+        }
+        // the click API agrees for one pixel of the first object
+        if k == 0 {
+            let p = (0..w * h).find(|&p| gt[p] >= train::data::synth::FIRST_OBJECT_ID && ids[p] == gt[p]).unwrap();
+            let picked = session.scene.pick(&v.camera, p % w, p / w).unwrap().unwrap();
+            assert_eq!(picked.0, gt[p]);
+        }
+    }
+    eprintln!("held-out picking: {right}/{total} interior object pixels");
+    assert!(total > 50 && right as f32 >= 0.9 * total as f32, "{right}/{total}");
+
+    // --- chat at the three levels: tokens reach the LLM and a generation comes back
+    use eval::chat::Target;
+    let opts = GenerateOptions { max_new_tokens: 4, ignore_stop: true, ..Default::default() };
+    let first = ds.train[0].instance_ids.as_ref().unwrap();
+    let w0 = ds.train[0].camera.width as usize;
+    let p = (0..first.len()).find(|&p| first[p] >= train::data::synth::FIRST_OBJECT_ID).unwrap();
+    let tagged = |n: usize| vlm.tokenizer.encode(&model::vlm::chat_template(&[model::vlm::Turn::user(n, "What is this?")], true)).unwrap().len();
+    for (target, images) in [
+        (Target::View(0), 1),
+        (Target::Object { view: 0, x: p % w0, y: p / w0 }, 1),
+        (Target::Scene(session.scene_views(3)), 3),
+    ] {
+        let t = session.tokens(&target).unwrap();
+        assert_eq!(t.images.len(), images);
+        assert!(t.images.iter().all(|x| x.dims() == [729, vlm.cfg.vision.hidden_size]));
+        let (g, picked) = session.ask(&target, "What is this?", &opts, |_| {}).unwrap();
+        assert_eq!(g.ids.len(), 4, "{target:?}");
+        // prompt = the template's ids with each <image> expanded to 729 tokens + image_newline
+        assert_eq!(g.prompt_tokens, tagged(images) - images + images * 730, "{target:?}");
+        assert_eq!(picked.is_some(), matches!(target, Target::Object { .. }));
+    }
+    assert_eq!(session.scene_views(3).len(), 3);
+    let png = lang_dir.join("picked.png");
+    session.show(0, Some(first[p]), &png).unwrap();
+    assert!(png.exists());
+
+    // --- export: the exported encoder reproduces the tokens bit-exactly
+    let out = lang_dir.join("encoder.safetensors");
+    train::export::write_encoder(&out, &session.scene.field.encoder, &session.scene.cfg, "tiny").unwrap();
+    let (enc, _) = train::export::read_encoder(&out, &dev).unwrap();
+    let map = session.scene.render_map(session.scene.field.view_features.val(), &session.scene.cfg.view_camera(&ds.train[1].camera)).unwrap();
+    assert_eq!(host(enc.forward(map.clone())), host(session.scene.field.encoder.forward(map)));
+}

@@ -126,3 +126,30 @@ fn ask_streams_an_answer_from_the_tiny_vlm_and_rejects_bad_paths() {
     let err = String::from_utf8_lossy(&st.stderr);
     assert!(err.contains("/nonexistent/scene") && !err.contains("panicked"), "{err}");
 }
+
+#[test]
+fn language_commands_reject_bad_input_by_name() {
+    let missing = tmp("no-such-run");
+    let teacher = tmp("no-such-teacher");
+    let cases: Vec<(Vec<String>, String)> = vec![
+        (
+            vec!["train-language".into(), "--run".into(), missing.display().to_string(), "--teacher".into(), teacher.display().to_string()],
+            teacher.join("teacher.json").display().to_string(),
+        ),
+        (vec!["export-encoder".into(), "--run".into(), missing.display().to_string(), "--out".into(), tmp("e.safetensors").display().to_string()], "no-such-run".into()),
+        (vec!["ask".into(), "--vlm".into(), missing.display().to_string(), "q".into()], "--run".into()),
+    ];
+    for (args, want) in cases {
+        let st = chatsplat().args(&args).output().unwrap();
+        let err = String::from_utf8_lossy(&st.stderr);
+        assert!(!st.status.success(), "{args:?} succeeded");
+        assert!(err.contains(&want), "{args:?}: {err}");
+        assert!(!err.contains("panicked"), "{args:?}: {err}");
+    }
+    // a malformed question file is named with the JSON position
+    let q = tmp("questions.json");
+    std::fs::write(&q, "{\"questions\": [ {\"id\": 1,,] }").unwrap();
+    let st = chatsplat().args(["vqa", "--run"]).arg(&missing).args(["--vlm"]).arg(&missing).arg("--questions").arg(&q).output().unwrap();
+    let err = String::from_utf8_lossy(&st.stderr);
+    assert!(!st.status.success() && err.contains(&q.display().to_string()) && err.contains("line"), "{err}");
+}

@@ -290,3 +290,45 @@ fn end_to_end_language_field_chat_and_export() {
     let map = session.scene.render_map(session.scene.field.view_features.val(), &session.scene.cfg.view_camera(&ds.train[1].camera)).unwrap();
     assert_eq!(host(enc.forward(map.clone())), host(session.scene.field.encoder.forward(map)));
 }
+
+/// A small language scene on `dev`: the built-in Gaussian tabletop with a fresh field.
+fn small_scene(dev: &Device) -> train::language::LanguageScene {
+    let (cloud, _) = model::synthetic::tabletop(7, 14);
+    let geo = model::splats::SplatModel::from_cloud(&cloud, None, 2, dev);
+    let extent = train::geometry::SceneExtent { center: Vec3::ZERO, radius: 3.0, focus: Vec3::ZERO };
+    let geometry = train::geometry::GeometryTrainer::with_model(geo, Default::default(), extent, dev);
+    let cfg = LanguageConfig { view_channels: 4, object_channels: 4, hidden: 8, dim: 8, grid: 6, patch: 5, teacher_image: 84, ..Default::default() };
+    let field = LanguageField::new(&cfg, cloud.len(), 3, dev);
+    train::language::LanguageScene { cfg, geometry, field, margin: 0.1 }
+}
+
+#[test]
+fn wgpu_tokens_and_gradients_match_ndarray() {
+    let Some(wgpu) = chatsplat_tests::wgpu_device() else { return };
+    let cam = splat_kernels::Camera::look_at(Vec3::new(2.6, 2.2, 3.0), Vec3::new(0.0, 0.3, 0.0), Vec3::Y, 50.0, 80, 64);
+    let run = |dev: &Device| {
+        let s = small_scene(dev);
+        let ad = dev.clone().autodiff();
+        let feats = s.field.view_features.val().autodiff().require_grad();
+        let pw = s.field.encoder.patch_weight.val().autodiff().require_grad();
+        let mut enc = Encoder::from_named(s.field.encoder.named().into_iter().map(|(n, t)| (n, t.autodiff())).collect()).unwrap();
+        enc.patch_weight = burn::module::Param::from_tensor(pw.clone());
+        let map = s.render_map(feats.clone(), &s.cfg.view_camera(&cam)).unwrap();
+        let tokens = enc.forward(map);
+        let target = Tensor::<2>::ones(tokens.dims(), &ad);
+        let loss = (tokens.clone() - target).abs().mean();
+        let g = loss.backward();
+        (host(tokens.inner()), host(feats.grad(&g).unwrap()), host(pw.grad(&g).unwrap()))
+    };
+    let (t_cpu, gf_cpu, gw_cpu) = run(&Device::ndarray());
+    let (t_gpu, gf_gpu, gw_gpu) = run(&wgpu);
+    let rel = |a: &[f32], b: &[f32]| {
+        let scale = a.iter().map(|x| x.abs()).fold(0f32, f32::max).max(1e-6);
+        a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0f32, f32::max) / scale
+    };
+    eprintln!("wgpu vs ndarray: tokens {:.2e}, feature grads {:.2e}, patch grads {:.2e}", rel(&t_cpu, &t_gpu), rel(&gf_cpu, &gf_gpu), rel(&gw_cpu, &gw_gpu));
+    assert!(gf_cpu.iter().any(|g| *g != 0.0), "some features receive gradient");
+    assert!(rel(&t_cpu, &t_gpu) < 1e-4);
+    assert!(rel(&gf_cpu, &gf_gpu) < 1e-3);
+    assert!(rel(&gw_cpu, &gw_gpu) < 1e-3);
+}

@@ -248,6 +248,28 @@ impl LanguageScene {
         Ok(Some((id, self.object_tokens_with(&self.field, &oc, &mask)?)))
     }
 
+    /// The scene restricted to Gaussians `keep` (row indices): "model only what a scene needs".
+    pub fn subset(&self, keep: &[usize]) -> LanguageScene {
+        let dev = self.geometry.model.means.val().device();
+        let idx = Tensor::<1, burn::tensor::Int>::from_data(TensorData::new(keep.iter().map(|&i| i as i64).collect::<Vec<_>>(), [keep.len()]), &dev);
+        let rows = |t: Tensor<2>| t.select(0, idx.clone());
+        let mut g = self.geometry.model.tensors();
+        for t in g.iter_mut().take(7) {
+            *t = rows(t.clone());
+        }
+        let model = model::splats::SplatModel::from_tensors(g);
+        let mut geometry = GeometryTrainer::with_model(model, self.geometry.cfg.clone(), self.geometry.extent, &dev);
+        geometry.iter = self.geometry.iter; // same SH degree
+        let mut named = self.field.named();
+        for (n, t) in named.iter_mut() {
+            if n == "view_features" || n == "object_features" {
+                *t = rows(t.clone());
+            }
+        }
+        let field = LanguageField::from_named(named).expect("same tensors");
+        LanguageScene { cfg: self.cfg.clone(), geometry, field, margin: self.margin }
+    }
+
     /// Loads a geometry run and its language run.
     pub fn load(run: &Path, language: &Path, device: &Device) -> Result<Self, String> {
         let geometry = GeometryTrainer::load(run, device)?;

@@ -41,6 +41,9 @@ enum Command {
     ExportEncoder(ExportEncoderArgs),
     /// Interactive chat with a trained scene: view, object (click) and scene level.
     Chat(ChatArgs),
+    /// Answer an annotated question file about a trained scene and score the answers (offline
+    /// exact-match/keyword scorer; plus an OpenAI-compatible grader when CHATSPLAT_GRADER_URL is set).
+    Vqa(VqaArgs),
 }
 
 #[derive(clap::Args)]
@@ -441,6 +444,88 @@ fn chat(a: ChatArgs) -> Result<(), String> {
 }
 
 #[derive(clap::Args)]
+struct VqaArgs {
+    /// Geometry run directory with a trained `language/` run.
+    #[arg(long)]
+    run: PathBuf,
+    /// Language run directory (default: RUN/language).
+    #[arg(long)]
+    language: Option<PathBuf>,
+    #[arg(long)]
+    vlm: PathBuf,
+    /// Question file (`chatsplat synth` writes DATA/questions.json).
+    #[arg(long)]
+    questions: PathBuf,
+    /// Answers and scores as JSON (default: LANGUAGE/vqa.json).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Scene-level questions use this many views spread around the scene.
+    #[arg(long, default_value_t = 4)]
+    views: usize,
+    #[arg(long, default_value_t = 64)]
+    max_new_tokens: usize,
+    #[arg(long, value_enum, default_value_t = BackendChoice::Ndarray)]
+    backend: BackendChoice,
+}
+
+fn vqa(a: VqaArgs) -> Result<(), String> {
+    use eval::chat::{ChatSession, Target};
+    use eval::vqa::{load_questions, offline_score, summarize, Grader, Level};
+    let qf = load_questions(&a.questions)?;
+    let grader = Grader::from_env()?;
+    let device = a.backend.device();
+    let s = catch_backend("loading", || ChatSession::open(&a.run, a.language.as_deref(), &a.vlm, &device))??;
+    let opts = model::vlm::GenerateOptions { max_new_tokens: a.max_new_tokens, ..Default::default() };
+    let bar = Progress::new("vqa", "questions");
+    let (mut offline, mut graded, mut rows) = (Vec::new(), Vec::new(), Vec::new());
+    for (i, q) in qf.questions.iter().enumerate() {
+        let target = match q.level {
+            Level::View => Target::View(q.view.unwrap_or(0)),
+            Level::Scene => Target::Scene(s.scene_views(a.views.max(1))),
+            Level::Object => {
+                let [x, y] = q.object.unwrap_or([0.0, 0.0]);
+                Target::Object { view: q.view.unwrap_or(0), x: x.max(0.0) as usize, y: y.max(0.0) as usize }
+            }
+        };
+        let answer = match catch_backend("generation", || s.ask(&target, &q.question, &opts, |_| {})) {
+            Ok(Ok((g, _))) => g.text,
+            Ok(Err(e)) | Err(e) => format!("<error: {e}>"),
+        };
+        let off = offline_score(&answer, &q.answer, &q.keywords);
+        offline.push((q.level, off.score));
+        let grade = match &grader {
+            Some(g) => match g.grade(&q.question, &q.answer, &answer) {
+                Ok(v) => {
+                    graded.push((q.level, v));
+                    Some(v)
+                }
+                Err(e) => {
+                    eprintln!("\n{}: grader: {e}", q.id);
+                    None
+                }
+            },
+            None => None,
+        };
+        rows.push(serde_json::json!({"id": q.id, "level": q.level, "question": q.question, "reference": q.answer, "answer": answer, "offline": off.score, "exact": off.exact, "grader": grade}));
+        bar.update(i + 1, qf.questions.len());
+    }
+    let out = a.out.clone().unwrap_or_else(|| a.language.clone().unwrap_or_else(|| a.run.join("language")).join("vqa.json"));
+    let so = summarize(&offline);
+    let sg = (!graded.is_empty()).then(|| summarize(&graded));
+    let fmt = |x: Option<f32>| x.map(|v| format!("{v:.1}")).unwrap_or_else(|| "-".into());
+    println!("| scorer | view | object | scene | overall | questions |\n|---|---|---|---|---|---|");
+    println!("| offline (exact / keyword, 0-100) | {} | {} | {} | {} | {} |", fmt(so.view.mean), fmt(so.object.mean), fmt(so.scene.mean), fmt(so.overall.mean), so.overall.count);
+    if let Some(g) = &sg {
+        println!("| grader {} (0-100) | {} | {} | {} | {} | {} |", grader.as_ref().map(|g| g.model.as_str()).unwrap_or(""), fmt(g.view.mean), fmt(g.object.mean), fmt(g.scene.mean), fmt(g.overall.mean), g.overall.count);
+    } else {
+        eprintln!("(no grader: set CHATSPLAT_GRADER_URL, CHATSPLAT_GRADER_MODEL and CHATSPLAT_GRADER_KEY for GPT-4o-style 0-100 grades)");
+    }
+    train::ckpt::write_json(&out, &serde_json::json!({"questions": a.questions.display().to_string(), "answers": rows}))?;
+    println!("answers -> {}", out.display());
+    Ok(())
+}
+
+#[derive(clap::Args)]
 struct ExtractArgs {
     /// Local Hugging Face LLaVA-OneVision directory (the teacher).
     #[arg(long)]
@@ -685,6 +770,7 @@ fn main() -> ExitCode {
         Command::TrainLanguage(a) => train_language(a),
         Command::ExportEncoder(a) => export_encoder(a),
         Command::Chat(a) => chat(a),
+        Command::Vqa(a) => vqa(a),
     };
     match result {
         Ok(()) => ExitCode::SUCCESS,

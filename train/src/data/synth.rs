@@ -9,6 +9,8 @@
 //! DIR/masks/frame_XXXX.png   8-bit instance ids: 0 background, 1 table, 2.. objects
 //! DIR/depth/frame_XXXX.png   16-bit camera-space depth in millimetres (0 = no surface)
 //! DIR/scene.json             every object's id, name, shape, colour, position and size
+//! DIR/questions.json         questions with reference answers for `chatsplat vqa` (view, object
+//!                            and scene level; object questions click a pixel of a training view)
 //! ```
 //!
 //! Deterministic from the seed; the objects are the same as the Gaussian tabletop of
@@ -280,6 +282,33 @@ struct SceneJson {
     objects: Vec<ObjectEntry>,
 }
 
+/// "red ball" -> "ball".
+fn noun(name: &str) -> &str {
+    name.split_whitespace().last().unwrap_or(name)
+}
+
+/// Questions with reference answers about the scene (the `chatsplat vqa` format).
+fn questions(objects: &[Primitive], best: &[(usize, usize, [usize; 2])]) -> serde_json::Value {
+    let mut qs = vec![
+        serde_json::json!({"id": "view-count", "level": "view", "view": 0, "question": "How many objects are on the table?",
+            "answer": format!("{}", objects.len()), "keywords": [format!("{}", objects.len())]}),
+        serde_json::json!({"id": "scene-objects", "level": "scene", "question": "List the objects on the table.",
+            "answer": objects.iter().map(|o| o.name).collect::<Vec<_>>().join(", "),
+            "keywords": objects.iter().map(|o| noun(o.name)).collect::<Vec<_>>()}),
+    ];
+    for (k, (o, &(pixels, view, [x, y]))) in objects.iter().zip(best).enumerate() {
+        if pixels == 0 {
+            continue;
+        }
+        let colour = o.name.split_whitespace().next().unwrap_or("");
+        qs.push(serde_json::json!({"id": format!("object-{k}-what"), "level": "object", "view": view, "object": [x, y],
+            "question": "What is this object?", "answer": o.name, "keywords": [noun(o.name)]}));
+        qs.push(serde_json::json!({"id": format!("object-{k}-colour"), "level": "object", "view": view, "object": [x, y],
+            "question": "What colour is this object?", "answer": colour, "keywords": [colour]}));
+    }
+    serde_json::json!({"scene": "chatsplat synthetic tabletop", "questions": qs})
+}
+
 /// Camera-to-world in the OpenGL convention (x right, y up, z backwards), row-major.
 pub fn opengl_c2w(cam: &Camera) -> [[f32; 4]; 4] {
     let flip = Mat4::from_diagonal(glam::Vec4::new(1.0, -1.0, -1.0, 1.0));
@@ -299,9 +328,24 @@ pub fn write_dataset(dir: &Path, opts: &SynthOptions, mut progress: impl FnMut(u
     }
     let mut frames = vec![];
     let cam0 = view_camera(0, opts);
+    // per object: (pixels, training-view index, pixel) of the view that shows it largest
+    let mut best: Vec<(usize, usize, [usize; 2])> = vec![(0, 0, [0, 0]); objects.len()];
+    let holdout = crate::data::LoadOptions::default().holdout_every;
+    let mut train_index = 0;
     for i in 0..opts.views {
         let cam = view_camera(i, opts);
         let v = render_view(&cam, &objects);
+        if holdout == 0 || (i + 1) % holdout != 0 {
+            for (k, b) in best.iter_mut().enumerate() {
+                let id = FIRST_OBJECT_ID + k as u8;
+                let px: Vec<usize> = (0..v.ids.len()).filter(|&p| v.ids[p] == id).collect();
+                if px.len() > b.0 {
+                    let p = px[px.len() / 2];
+                    *b = (px.len(), train_index, [p % cam.width as usize, p / cam.width as usize]);
+                }
+            }
+            train_index += 1;
+        }
         let name = format!("frame_{i:04}.png");
         images::write_rgb(&dir.join("images").join(&name), cam.width, cam.height, &v.rgb)?;
         images::write_gray8(&dir.join("masks").join(&name), cam.width, cam.height, &v.ids)?;
@@ -348,6 +392,7 @@ pub fn write_dataset(dir: &Path, opts: &SynthOptions, mut progress: impl FnMut(u
         objects: objects.iter().enumerate().map(|(k, p)| entry(FIRST_OBJECT_ID + k as u8, p)).collect(),
     };
     write_json(&dir.join("transforms.json"), &tf)?;
+    write_json(&dir.join("questions.json"), &questions(&objects, &best))?;
     write_json(&dir.join("scene.json"), &scene)
 }
 

@@ -1,0 +1,419 @@
+//! `lang-bench`: ChatSplat's speed against error on a trained scene.
+//!
+//! * token fidelity on held-out views: L1 / cosine of (i) ChatSplat tokens and (ii) the paper's
+//!   LLaVA-OV baseline, teacher(rendered RGB), against teacher(ground-truth image); the same per
+//!   object with the ground-truth masks;
+//! * LLM agreement: KL(P(next token | teacher(GT)) || P(next token | tokens)) over a question set;
+//! * speed: views/s (render + encode) and objects/s (identity render, crop, mask, encode) against
+//!   the baseline (render RGB + vision tower);
+//! * sweeps: language channels {8, 16, 32, 64}, Gaussians kept by language contribution, and the
+//!   ablations without the scaling adjustment and without the lifting network; a PNG plot.
+//!
+//! cargo run --release -p eval --bin lang-bench -- --run RUN [--vlm DIR] [--backend ndarray|wgpu]
+#![allow(deprecated)]
+
+use burn::tensor::{activation, Device, Tensor, TensorData};
+use clap::Parser;
+use eval::chat::{prompt_embeds, ChatSession};
+use eval::plot::{Chart, Series};
+use eval::{catch_backend, BackendChoice};
+use model::language::{Encoder, LanguageConfig};
+use model::splats::host;
+use model::vlm::{LlavaOnevision, RgbImage};
+use std::path::{Path, PathBuf};
+use std::time::Instant;
+use train::data::nerfstudio::View;
+use train::language::{run, LanguageScene, LanguageTrainConfig, TeacherSet};
+use train::teacher::{object_image, objects_in, ExtractOptions};
+
+#[derive(Parser)]
+#[command(name = "lang-bench", about = "ChatSplat: token fidelity, LLM agreement and speed against error")]
+struct Args {
+    /// Geometry run with a trained language run.
+    #[arg(long)]
+    run: PathBuf,
+    /// Language run (default: RUN/language).
+    #[arg(long)]
+    language: Option<PathBuf>,
+    /// LLaVA-OneVision directory (default: the tiny fixture checkpoints/tiny-llava-ov).
+    #[arg(long)]
+    vlm: Option<PathBuf>,
+    #[arg(long, value_enum, default_value_t = BackendChoice::Ndarray)]
+    backend: BackendChoice,
+    /// Output directory for sweep runs, bench.json and the plot (default: RUN/bench).
+    #[arg(long)]
+    out: Option<PathBuf>,
+    /// Iterations per sweep/ablation field (0: no sweep).
+    #[arg(long, default_value_t = 300)]
+    sweep_iters: usize,
+    /// Timed repetitions for speed.
+    #[arg(long, default_value_t = 3)]
+    reps: usize,
+    /// Also time an encoder of the real size (D = 1152, 32 -> 128 -> 1152, 14x14 patches) on a
+    /// random map: what a LLaVA-OneVision field costs per view here.
+    #[arg(long)]
+    full_size: bool,
+}
+
+const QUESTIONS: [&str; 3] = ["Describe this image.", "What objects are on the table?", "What colour is the largest object?"];
+
+#[derive(Default, Clone, Copy, Debug, serde::Serialize)]
+struct Pair {
+    l1: f64,
+    cos: f64,
+    n: usize,
+}
+
+impl Pair {
+    fn add(&mut self, a: &[f32], b: &[f32], d: usize) {
+        self.l1 += a.iter().zip(b).map(|(x, y)| (x - y).abs() as f64).sum::<f64>() / a.len() as f64;
+        let mut cos = 0.0;
+        for (x, y) in a.chunks(d).zip(b.chunks(d)) {
+            let dot: f64 = x.iter().zip(y).map(|(p, q)| (*p as f64) * (*q as f64)).sum();
+            let nx: f64 = x.iter().map(|p| (*p as f64).powi(2)).sum::<f64>().sqrt();
+            let ny: f64 = y.iter().map(|p| (*p as f64).powi(2)).sum::<f64>().sqrt();
+            cos += dot / (nx * ny).max(1e-12);
+        }
+        self.cos += cos / (a.len() / d) as f64;
+        self.n += 1;
+    }
+    fn mean(self) -> Pair {
+        let k = self.n.max(1) as f64;
+        Pair { l1: self.l1 / k, cos: self.cos / k, n: self.n }
+    }
+}
+
+#[derive(Default, Clone, Copy, Debug, serde::Serialize)]
+struct Fidelity {
+    view: Pair,
+    view_baseline: Pair,
+    object: Pair,
+    object_baseline: Pair,
+    kl: f64,
+    kl_baseline: f64,
+    kl_n: usize,
+}
+
+fn image_of(v: &View) -> RgbImage {
+    RgbImage::from_f32(v.camera.width as usize, v.camera.height as usize, &v.rgb)
+}
+
+fn tokens_host(vlm: &LlavaOnevision, img: &RgbImage) -> Vec<f32> {
+    host(vlm.teacher_tokens(img))
+}
+
+fn next_token_probs(vlm: &LlavaOnevision, tokens: &[f32], q: &str) -> Result<Vec<f64>, String> {
+    let d = vlm.cfg.vision.hidden_size;
+    let t = Tensor::<2>::from_data(TensorData::new(tokens.to_vec(), [tokens.len() / d, d]), vlm.device());
+    let embeds = prompt_embeds(vlm, &[t], q)?;
+    let logits = vlm.logits(embeds);
+    let [n, v] = logits.dims();
+    Ok(host(activation::softmax(logits.narrow(0, n - 1, 1).reshape([v]), 0)).into_iter().map(|p| p as f64).collect())
+}
+
+fn kl(p: &[f64], q: &[f64]) -> f64 {
+    p.iter().zip(q).filter(|(a, _)| **a > 0.0).map(|(a, b)| a * (a / b.max(1e-30)).ln()).sum()
+}
+
+/// Token fidelity (and, with `questions`, LLM agreement) of `scene` on `views`.
+fn fidelity(scene: &LanguageScene, vlm: &LlavaOnevision, views: &[View], with_baseline: bool, questions: bool) -> Result<Fidelity, String> {
+    let d = vlm.cfg.vision.hidden_size;
+    let mut f = Fidelity::default();
+    let opts = ExtractOptions::default();
+    for v in views {
+        let gt_img = image_of(v);
+        let gt = tokens_host(vlm, &gt_img);
+        let cs = host(scene.view_tokens(&scene.field, &v.camera)?);
+        f.view.add(&cs, &gt, d);
+        let (w, h) = (v.camera.width as usize, v.camera.height as usize);
+        let base_img = with_baseline.then(|| scene.geometry.render(&v.camera).map(|r| RgbImage::from_f32(w, h, &r.rgb.iter().map(|x| x.clamp(0.0, 1.0)).collect::<Vec<_>>()))).transpose()?;
+        let base = base_img.as_ref().map(|b| tokens_host(vlm, b));
+        if let Some(b) = &base {
+            f.view_baseline.add(b, &gt, d);
+        }
+        if questions {
+            for q in QUESTIONS {
+                let p = next_token_probs(vlm, &gt, q)?;
+                f.kl += kl(&p, &next_token_probs(vlm, &cs, q)?);
+                if let Some(b) = &base {
+                    f.kl_baseline += kl(&p, &next_token_probs(vlm, b, q)?);
+                }
+                f.kl_n += 1;
+            }
+        }
+        let Some(ids) = &v.instance_ids else { continue };
+        for id in objects_in(ids, &opts) {
+            let Some((obj, bbox)) = object_image(&gt_img, ids, id, scene.margin) else { continue };
+            let gt_o = tokens_host(vlm, &obj);
+            let (oc, mask) = scene.object_crop(&v.camera, id, bbox)?;
+            f.object.add(&host(scene.object_tokens_with(&scene.field, &oc, &mask)?), &gt_o, d);
+            if let Some(b) = &base_img {
+                let (bo, _) = object_image(b, ids, id, scene.margin).expect("same mask");
+                f.object_baseline.add(&tokens_host(vlm, &bo), &gt_o, d);
+            }
+        }
+    }
+    let k = f.kl_n.max(1) as f64;
+    Ok(Fidelity {
+        view: f.view.mean(),
+        view_baseline: f.view_baseline.mean(),
+        object: f.object.mean(),
+        object_baseline: f.object_baseline.mean(),
+        kl: f.kl / k,
+        kl_baseline: f.kl_baseline / k,
+        kl_n: f.kl_n,
+    })
+}
+
+#[derive(Default, Clone, Copy, Debug, serde::Serialize)]
+struct Speed {
+    views_per_s: f64,
+    objects_per_s: f64,
+    baseline_views_per_s: f64,
+    baseline_objects_per_s: f64,
+}
+
+/// A pixel inside each GT object of `v` (for timed clicks).
+fn clicks(v: &View) -> Vec<(usize, usize)> {
+    let Some(ids) = &v.instance_ids else { return vec![] };
+    let w = v.camera.width as usize;
+    objects_in(ids, &ExtractOptions::default())
+        .into_iter()
+        .filter_map(|id| {
+            let px: Vec<usize> = (0..ids.len()).filter(|&p| ids[p] == id).collect();
+            px.get(px.len() / 2).map(|&p| (p % w, p / w))
+        })
+        .collect()
+}
+
+fn speed(scene: &LanguageScene, vlm: Option<&LlavaOnevision>, views: &[View], reps: usize) -> Result<Speed, String> {
+    let mut s = Speed::default();
+    // warm-up (kernel compilation on wgpu)
+    let _ = host(scene.view_tokens(&scene.field, &views[0].camera)?);
+    let t0 = Instant::now();
+    for _ in 0..reps {
+        for v in views {
+            let _ = host(scene.view_tokens(&scene.field, &v.camera)?);
+        }
+    }
+    s.views_per_s = (reps * views.len()) as f64 / t0.elapsed().as_secs_f64();
+    let (mut n, t0) = (0, Instant::now());
+    for _ in 0..reps {
+        for v in views {
+            for (x, y) in clicks(v) {
+                if let Some((_, t)) = scene.object_tokens_at(&v.camera, x, y)? {
+                    let _ = host(t);
+                    n += 1;
+                }
+            }
+        }
+    }
+    s.objects_per_s = n as f64 / t0.elapsed().as_secs_f64().max(1e-9);
+    if let Some(vlm) = vlm {
+        let t0 = Instant::now();
+        for _ in 0..reps {
+            for v in views {
+                let r = scene.geometry.render(&v.camera)?;
+                let _ = tokens_host(vlm, &RgbImage::from_f32(v.camera.width as usize, v.camera.height as usize, &r.rgb.iter().map(|x| x.clamp(0.0, 1.0)).collect::<Vec<_>>()));
+            }
+        }
+        s.baseline_views_per_s = (reps * views.len()) as f64 / t0.elapsed().as_secs_f64();
+        let (mut n, t0) = (0, Instant::now());
+        for _ in 0..reps {
+            for v in views {
+                let Some(ids) = &v.instance_ids else { continue };
+                let r = scene.geometry.render(&v.camera)?;
+                let img = RgbImage::from_f32(v.camera.width as usize, v.camera.height as usize, &r.rgb.iter().map(|x| x.clamp(0.0, 1.0)).collect::<Vec<_>>());
+                for id in objects_in(ids, &ExtractOptions::default()) {
+                    if let Some((o, _)) = object_image(&img, ids, id, scene.margin) {
+                        let _ = tokens_host(vlm, &o);
+                        n += 1;
+                    }
+                }
+            }
+        }
+        s.baseline_objects_per_s = n as f64 / t0.elapsed().as_secs_f64().max(1e-9);
+    }
+    Ok(s)
+}
+
+#[derive(Clone, Debug, serde::Serialize)]
+struct Row {
+    name: String,
+    channels: usize,
+    gaussians: usize,
+    feature_bytes: usize,
+    view_l1: f64,
+    view_cos: f64,
+    object_l1: f64,
+    views_per_s: f64,
+    objects_per_s: f64,
+    train_s_per_iter: Option<f64>,
+}
+
+fn row(name: &str, scene: &LanguageScene, vlm: &LlavaOnevision, views: &[View], reps: usize, train_s: Option<f64>) -> Result<Row, String> {
+    let f = fidelity(scene, vlm, views, false, false)?;
+    let s = speed(scene, None, views, reps)?;
+    let c = scene.field.view_features.val().dims()[1];
+    let r = Row {
+        name: name.to_string(),
+        channels: c,
+        gaussians: scene.field.len(),
+        feature_bytes: scene.field.len() * c * 2 * 4,
+        view_l1: f.view.l1,
+        view_cos: f.view.cos,
+        object_l1: f.object.l1,
+        views_per_s: s.views_per_s,
+        objects_per_s: s.objects_per_s,
+        train_s_per_iter: train_s,
+    };
+    println!(
+        "| {} | {} | {} | {:.2} MB | {:.4} | {:.4} | {:.4} | {:.2} | {:.2} | {} |",
+        r.name,
+        r.channels,
+        r.gaussians,
+        r.feature_bytes as f64 / 1e6,
+        r.view_l1,
+        r.view_cos,
+        r.object_l1,
+        r.views_per_s,
+        r.objects_per_s,
+        train_s.map(|t| format!("{t:.3}")).unwrap_or_else(|| "-".into())
+    );
+    Ok(r)
+}
+
+fn main() -> std::process::ExitCode {
+    let a = Args::parse();
+    match catch_backend("lang-bench", || bench(&a)) {
+        Ok(Ok(())) => std::process::ExitCode::SUCCESS,
+        Ok(Err(e)) | Err(e) => {
+            eprintln!("error: {e}");
+            std::process::ExitCode::FAILURE
+        }
+    }
+}
+
+fn bench(a: &Args) -> Result<(), String> {
+    let device: Device = a.backend.device();
+    let vlm_dir = a.vlm.clone().unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../checkpoints/tiny-llava-ov"));
+    let lang = a.language.clone().unwrap_or_else(|| a.run.join("language"));
+    let out = a.out.clone().unwrap_or_else(|| a.run.join("bench"));
+    std::fs::create_dir_all(&out).map_err(|e| format!("{}: cannot create: {e}", out.display()))?;
+    let session = ChatSession::open(&a.run, Some(&lang), &vlm_dir, &device)?;
+    let state = train::ckpt::read_json(&lang.join("state.json"))?;
+    let teacher_dir = PathBuf::from(state["teacher_dir"].as_str().unwrap_or_default());
+    let ds = TeacherSet::open(&teacher_dir)?.dataset()?;
+    let held: &[View] = if ds.test.is_empty() { &ds.train } else { &ds.test };
+    let vlm = &session.vlm;
+    let scene = &session.scene;
+    println!(
+        "# lang-bench: {} ({} Gaussians, {} held-out views {}x{}), teacher {} (D = {}), {:?}",
+        a.run.display(),
+        scene.field.len(),
+        held.len(),
+        held[0].camera.width,
+        held[0].camera.height,
+        vlm_dir.display(),
+        vlm.cfg.vision.hidden_size,
+        a.backend
+    );
+
+    let f = fidelity(scene, vlm, held, true, true)?;
+    println!("\n## Token fidelity on held-out views (against teacher(ground truth))\n");
+    println!("| tokens | view L1 | view cosine | object L1 | object cosine | objects | KL next token (nats) |");
+    println!("|---|---|---|---|---|---|---|");
+    println!("| ChatSplat (rendered language maps -> encoder) | {:.4} | {:.4} | {:.4} | {:.4} | {} | {:.4} |", f.view.l1, f.view.cos, f.object.l1, f.object.cos, f.object.n, f.kl);
+    println!("| LLaVA-OV baseline: teacher(rendered RGB) | {:.4} | {:.4} | {:.4} | {:.4} | {} | {:.4} |", f.view_baseline.l1, f.view_baseline.cos, f.object_baseline.l1, f.object_baseline.cos, f.object_baseline.n, f.kl_baseline);
+    println!("\n(KL averaged over {} view x question pairs: {:?})", f.kl_n, QUESTIONS);
+
+    let s = speed(scene, Some(vlm), held, a.reps)?;
+    println!("\n## Speed ({:?}, {} views x {} reps)\n", a.backend, held.len(), a.reps);
+    println!("| path | views/s | objects/s |");
+    println!("|---|---|---|");
+    println!("| ChatSplat: render language map + encode (object: identity render, crop camera, mask, encode) | {:.2} | {:.2} |", s.views_per_s, s.objects_per_s);
+    println!("| baseline: render RGB + vision tower (object: + masked crop) | {:.2} | {:.2} |", s.baseline_views_per_s, s.baseline_objects_per_s);
+    println!("| paper (A6000, real LLaVA-OV) ChatSplat / baseline | 72-81 / 9-11 FPS | 289 objects/s |");
+
+    let mut full = None;
+    if a.full_size {
+        let cfg = LanguageConfig::default();
+        let enc = Encoder::new(&cfg, 0, &device);
+        let map = Tensor::<3>::random([cfg.map_size(), cfg.map_size(), cfg.view_channels], burn::tensor::Distribution::Normal(0.0, 1.0), &device);
+        let _ = host(enc.forward(map.clone()));
+        let t0 = Instant::now();
+        let _ = host(enc.forward(map));
+        let secs = t0.elapsed().as_secs_f64();
+        println!("\nfull-size encoder (32 -> 128 -> 1152, 14x14 patches, 378x378 map -> 729 x 1152 tokens): {secs:.3} s per view on {:?}", a.backend);
+        full = Some(secs);
+    }
+
+    let mut rows = Vec::new();
+    let header = "| field | channels | Gaussians | feature memory | held-out view L1 | view cosine | object L1 | views/s | objects/s | train s/iter |\n|---|---|---|---|---|---|---|---|---|---|";
+    println!("\n## Speed against error\n\n{header}");
+    rows.push(row("trained (this run)", scene, vlm, held, a.reps, None)?);
+    // model only what a scene needs: Gaussians ranked by their language contribution
+    let (_, _, _, _, contribution) = train::language::load_field(&lang, &device)?;
+    let mut order: Vec<usize> = (0..contribution.len()).filter(|&i| contribution[i] > 0.0).collect();
+    order.sort_by(|&i, &j| contribution[j].total_cmp(&contribution[i]));
+    let used = order.len();
+    for frac in [1.0, 0.5, 0.25, 0.1] {
+        let k = ((used as f64 * frac).round() as usize).max(1);
+        let mut keep = order[..k].to_vec();
+        keep.sort_unstable();
+        rows.push(row(&format!("kept {:.0}% of contributing", frac * 100.0), &scene.subset(&keep), vlm, held, a.reps, None)?);
+    }
+    if a.sweep_iters > 0 {
+        let (base_cfg, _, _, _, _) = train::language::load_field(&lang, &device)?;
+        let mut variants: Vec<(String, LanguageTrainConfig)> = Vec::new();
+        for c in [8, 16, 32, 64] {
+            let mut cfg = base_cfg.clone();
+            cfg.field.view_channels = c;
+            cfg.field.object_channels = c;
+            variants.push((format!("channels {c}"), cfg));
+        }
+        let mut no_ss = base_cfg.clone();
+        no_ss.field.scale_shift = false;
+        variants.push(("no scale/shift".into(), no_ss));
+        let mut no_lift = base_cfg.clone();
+        no_lift.field.lifting = false;
+        variants.push(("no lifting (features at D)".into(), no_lift));
+        for (name, mut cfg) in variants {
+            cfg.iters = a.sweep_iters;
+            cfg.checkpoint_every = 0;
+            let dir = out.join(name.replace([' ', '/', '(', ')', '='], "_"));
+            let bar = eval::Progress::new(name.clone(), "it");
+            let summary = run(&a.run, &teacher_dir, &dir, cfg, &device, true, |p| bar.update_with(p.iter, p.iters, &format!("loss {:.4}", p.step.loss)))?;
+            let sc = LanguageScene::load(&a.run, &dir, &device)?;
+            rows.push(row(&name, &sc, vlm, held, a.reps, Some(summary.seconds_per_iter))?);
+        }
+    }
+    let d = 1152usize;
+    let n = scene.field.len();
+    println!(
+        "\nWithout the lifting network a LLaVA-OneVision field stores D = {d} channels per level: {:.1} MB for these {n} Gaussians (vs {:.1} MB at 32 channels), {:.1} GB for 1M Gaussians, x3 with Adam moments.",
+        (n * d * 2 * 4) as f64 / 1e6,
+        (n * 32 * 2 * 4) as f64 / 1e6,
+        (1_000_000 * d * 2 * 4) as f64 / 1e9
+    );
+
+    let mut series = Vec::new();
+    let pick = |pred: &dyn Fn(&Row) -> bool| rows.iter().filter(|r| pred(r)).map(|r| (r.views_per_s, r.view_l1)).collect::<Vec<_>>();
+    series.push(Series { label: "channels 8-64".into(), points: pick(&|r| r.name.starts_with("channels")), color: [31, 119, 180] });
+    series.push(Series { label: "Gaussians kept".into(), points: pick(&|r| r.name.starts_with("kept") || r.name.starts_with("trained")), color: [214, 39, 40] });
+    series.push(Series { label: "ablations".into(), points: pick(&|r| r.name.starts_with("no ")), color: [44, 160, 44] });
+    series.push(Series { label: "LLaVA-OV on render".into(), points: vec![(s.baseline_views_per_s, f.view_baseline.l1)], color: [120, 120, 120] });
+    let chart = Chart {
+        title: format!("held-out token L1 vs views/s ({:?})", a.backend),
+        x_label: "views per second (render + encode)".into(),
+        y_label: "token L1 vs teacher(GT)".into(),
+        log_x: true,
+        series,
+    };
+    let png = out.join("speed_vs_error.png");
+    chart.write_png(&png, 900, 600)?;
+    let json = serde_json::json!({ "fidelity": f, "speed": s, "rows": rows, "full_size_encoder_s_per_view": full, "backend": format!("{:?}", a.backend) });
+    train::ckpt::write_json(&out.join("bench.json"), &json)?;
+    println!("\nplot -> {}, figures -> {}", png.display(), out.join("bench.json").display());
+    Ok(())
+}

@@ -20,6 +20,10 @@ struct Cli {
 
 #[derive(Subcommand)]
 enum Command {
+    /// The whole pipeline on the built-in synthetic tabletop with the tiny LLaVA-OneVision fixture
+    /// (no downloads): synth -> geometry -> teacher tokens -> language field -> chat at view,
+    /// object and scene level -> VQA scoring -> encoder export.
+    Demo(DemoArgs),
     /// Render a Gaussian scene (an Inria-layout .ply, or the built-in synthetic tabletop) to PNG.
     Render(RenderArgs),
     /// Write the built-in synthetic tabletop as a dataset: ray-cast RGB views, instance masks,
@@ -444,6 +448,69 @@ fn chat(a: ChatArgs) -> Result<(), String> {
 }
 
 #[derive(clap::Args)]
+struct DemoArgs {
+    /// Output directory (data/, run/, run/language/).
+    #[arg(long, default_value = "out/demo")]
+    out: PathBuf,
+    /// LLaVA-OneVision directory (default: the tiny random fixture, whose answers are gibberish
+    /// by construction; give a real llava-onevision-qwen2-0.5b-ov-hf directory for real answers).
+    #[arg(long)]
+    vlm: Option<PathBuf>,
+    /// Geometry iterations.
+    #[arg(long, default_value_t = 800)]
+    iters: usize,
+    /// Language-field iterations.
+    #[arg(long, default_value_t = 150)]
+    language_iters: usize,
+    #[arg(long, value_enum, default_value_t = BackendChoice::Ndarray)]
+    backend: BackendChoice,
+}
+
+fn demo(a: DemoArgs) -> Result<(), String> {
+    let vlm = a.vlm.clone().unwrap_or_else(|| std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../checkpoints/tiny-llava-ov"));
+    let (data, run, lang) = (a.out.join("data"), a.out.join("run"), a.out.join("run").join("language"));
+    let step = |n: usize, what: &str| eprintln!("\n== {n}/7 {what}");
+    step(1, "synthetic tabletop (32 views, 96x96)");
+    synth(SynthArgs { seed: 7, out: data.clone(), views: 32, width: 96, height: 96 })?;
+    step(2, "geometry stage: 3DGS + identity field");
+    std::fs::create_dir_all(&a.out).map_err(|e| format!("{}: cannot create: {e}", a.out.display()))?;
+    let d = a.iters;
+    let geo_cfg = serde_json::json!({"iters": d, "densify_from": d / 8, "densify_every": (d / 8).max(1), "densify_until": d * 3 / 4,
+        "opacity_reset_every": 0, "sh_degree_every": (d / 4).max(1), "checkpoint_every": 0});
+    let cfg_path = a.out.join("geometry_config.json");
+    train::ckpt::write_json(&cfg_path, &geo_cfg)?;
+    train_cmd(TrainArgs { data: data.clone(), out: run.clone(), iters: None, backend: a.backend, downscale: 1, resume: false, config: Some(cfg_path), background: "white".into() })?;
+    step(3, "teacher tokens (SigLIP features of every training view and masked object)");
+    extract(ExtractArgs { vlm: vlm.clone(), data: data.clone(), out: Some(data.join("teacher")), downscale: 1, margin: 0.1, backend: a.backend })?;
+    step(4, "language field, encoder and scaling adjustment");
+    train_language(TrainLanguageArgs { run: run.clone(), teacher: data.join("teacher"), out: None, iters: Some(a.language_iters), channels: None, backend: a.backend, resume: false, config: None })?;
+    step(5, "chat: view, object (click) and scene level");
+    let ask_args = |object: Option<Vec<usize>>, scene: bool, q: &str| AskArgs {
+        vlm: vlm.clone(), image: vec![], run: Some(run.clone()), language: None, view: 0, object, scene, views: 3,
+        question: q.into(), max_new_tokens: 16, temperature: 0.0, top_p: 1.0, seed: 0, backend: a.backend,
+    };
+    let qf = eval::vqa::load_questions(&data.join("questions.json"))?;
+    let click = qf.questions.iter().find(|q| q.level == eval::vqa::Level::Object && q.view == Some(0)).and_then(|q| q.object).map(|[x, y]| vec![x as usize, y as usize]);
+    eprintln!("[view 0] What is on the table?");
+    ask_scene(ask_args(None, false, "What is on the table?"))?;
+    if let Some(xy) = click {
+        eprintln!("[view 0, click ({}, {})] What is this object?", xy[0], xy[1]);
+        ask_scene(ask_args(Some(xy), false, "What is this object?"))?;
+    }
+    eprintln!("[scene, 3 views] List the objects on the table.");
+    ask_scene(ask_args(None, true, "List the objects on the table."))?;
+    step(6, "VQA on the generated question file (offline scorer)");
+    vqa(VqaArgs { run: run.clone(), language: None, vlm: vlm.clone(), questions: data.join("questions.json"), out: None, views: 3, max_new_tokens: 16, backend: a.backend })?;
+    step(7, "encoder export");
+    export_encoder(ExportEncoderArgs { run: run.clone(), language: None, out: lang.join("encoder.safetensors") })?;
+    println!("\ndemo done: renders in {}, language run in {}, highlighted pick in {}", run.join("renders").display(), lang.display(), lang.display());
+    if a.vlm.is_none() {
+        println!("(answers come from the tiny random fixture and are gibberish by construction; pass --vlm with a real LLaVA-OneVision directory)");
+    }
+    Ok(())
+}
+
+#[derive(clap::Args)]
 struct VqaArgs {
     /// Geometry run directory with a trained `language/` run.
     #[arg(long)]
@@ -770,6 +837,7 @@ fn main() -> ExitCode {
         Command::TrainLanguage(a) => train_language(a),
         Command::ExportEncoder(a) => export_encoder(a),
         Command::Chat(a) => chat(a),
+        Command::Demo(a) => demo(a),
         Command::Vqa(a) => vqa(a),
     };
     match result {

@@ -46,7 +46,8 @@ pub struct LanguageConfig {
     /// Token grid side (27 for SigLIP at 384 px with 14 px patches).
     pub grid: usize,
     /// Render pixels per token side: the encoder's non-overlapping convolution kernel (paper: 14).
-    /// Smaller values render smaller maps (faster, coarser).
+    /// Smaller values render smaller maps (faster, coarser); 0 = what the views need: one render
+    /// pixel per view pixel under a token, at most 14 ([`LanguageConfig::auto_patch`]).
     pub patch: usize,
     /// The teacher's input image side (384) and patch size (14): a token covers the same part of
     /// the picture as the teacher's token did.
@@ -84,6 +85,14 @@ impl LanguageConfig {
     /// Channels of the per-Gaussian features the encoder reads.
     pub fn feature_channels(&self) -> usize {
         if self.lifting { self.view_channels } else { self.dim }
+    }
+
+    /// The patch that renders a `width` x `height` view at about its own resolution: the token
+    /// grid covers `grid * teacher_patch / teacher_image` of the view, so a token spans
+    /// `max(width, height) * teacher_patch / teacher_image` view pixels (rounded up, 1..=14).
+    pub fn auto_patch(&self, width: u32, height: u32) -> usize {
+        let span = width.max(height) as f32 * self.teacher_patch as f32 / self.teacher_image as f32;
+        (span.ceil() as usize).clamp(1, self.teacher_patch)
     }
 
     /// Tokens per image.

@@ -184,6 +184,7 @@ fn lang_cfg(iters: usize) -> LanguageTrainConfig {
     c.field.object_channels = 8;
     c.field.hidden = 16;
     c.field.patch = 4; // 108x108 maps keep the test fast; the token grid is the teacher's 27x27
+    c.warmup_iters = 30;
     c
 }
 
@@ -201,8 +202,8 @@ fn end_to_end_language_field_chat_and_export() {
     eprintln!("token L1 view {:.4} -> {:.4}, object {:.4} -> {:.4}, {:.3} s/iter, {} of {} Gaussians used", s.before.0, s.after.0, s.before.1, s.after.1, s.seconds_per_iter, s.gaussians_used, s.gaussians);
     // The scaling adjustment starts at the teacher's per-token mean and per-channel spread, so
     // `before` is already the "predict the mean" error; falling below it means the field carries
-    // what differs between views and objects. Measured (paper lr 0.05): view 0.451 -> 0.31,
-    // object 0.522 -> 0.32 after 100 iterations (plateau ~0.30 at 150).
+    // what differs between views and objects. Measured (paper lr 0.05, 30 warm-up iterations):
+    // view 0.451 -> 0.287, object 0.522 -> 0.314 after 100 iterations.
     assert!(s.after.0 < s.before.0 / 1.3, "view token L1 {} -> {}", s.before.0, s.after.0);
     assert!(s.after.1 < s.before.1 / 1.3, "object token L1 {} -> {}", s.before.1, s.after.1);
     assert!(s.gaussians_used > 0 && s.gaussians_used <= s.gaussians);

@@ -36,6 +36,14 @@ pub struct LanguageTrainConfig {
     pub lr_encoder: f64,
     /// Weight of the object loss (paper: 1).
     pub object_weight: f32,
+    /// Objects per step (a seeded random subset of the view's objects; 0 = all, as in the
+    /// paper). A subset gives an unbiased estimate of the mean object loss at a fraction of the
+    /// renders, which is what a CPU needs.
+    pub max_objects_per_step: usize,
+    /// Linear warm-up of both learning rates over the first iterations (0 = none). Adam's first
+    /// steps move every weight by about the learning rate, which at 0.05 throws the patch
+    /// convolution (fan-in 14·14·D) far off before it recovers.
+    pub warmup_iters: usize,
     /// Initialise the scaling adjustment from the teacher: `b` = per-token mean over the training
     /// views, `a` = per-channel standard deviation, so the encoder starts on standardised targets.
     pub init_scale_shift_from_teacher: bool,
@@ -52,6 +60,8 @@ impl Default for LanguageTrainConfig {
             lr_features: 0.05,
             lr_encoder: 0.05,
             object_weight: 1.0,
+            max_objects_per_step: 0,
+            warmup_iters: 100,
             init_scale_shift_from_teacher: true,
             checkpoint_every: 500,
         }
@@ -353,9 +363,13 @@ impl LanguageTrainer {
             cfg.field.view_channels = teacher.dim;
             cfg.field.object_channels = teacher.dim;
         }
-        cfg.field.validate()?;
         let geometry = GeometryTrainer::load(run, device)?;
         let views = teacher.dataset()?.train;
+        if cfg.field.patch == 0 {
+            let (w, h) = views.iter().fold((0, 0), |(w, h), v| (w.max(v.camera.width), h.max(v.camera.height)));
+            cfg.field.patch = cfg.field.auto_patch(w, h);
+        }
+        cfg.field.validate()?;
         let mut field = LanguageField::new(&cfg.field, geometry.model.len(), cfg.seed, device);
         if cfg.init_scale_shift_from_teacher && cfg.field.scale_shift {
             let shape = [cfg.field.tokens(), cfg.field.dim];
@@ -400,7 +414,16 @@ impl LanguageTrainer {
         let tokens = self.scene.view_tokens(&field, &cam)?;
         let lv = (tokens - target(self.teacher.tokens(v, None)?)).abs().mean();
         let mut loss = lv.clone();
-        let objects = self.teacher.views[v].objects.clone();
+        let mut objects = self.teacher.views[v].objects.clone();
+        let k = self.cfg.max_objects_per_step;
+        if k > 0 && objects.len() > k {
+            let mut rng = model::rng::Rng::new(self.cfg.seed ^ (self.iter as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15));
+            for i in 0..k {
+                let j = i + (rng.next_u64() % (objects.len() - i) as u64) as usize;
+                objects.swap(i, j);
+            }
+            objects.truncate(k);
+        }
         let mut lo_sum: Option<Tensor<1>> = None;
         for obj in &objects {
             let (oc, mask) = self.mask(v, obj)?;
@@ -426,7 +449,8 @@ impl LanguageTrainer {
                     *acc += x;
                 }
             }
-            let lr = if i < 2 { self.cfg.lr_features } else { self.cfg.lr_encoder };
+            let warm = if self.cfg.warmup_iters > 0 { ((self.iter + 1) as f64 / self.cfg.warmup_iters as f64).min(1.0) } else { 1.0 };
+            let lr = warm * if i < 2 { self.cfg.lr_features } else { self.cfg.lr_encoder };
             let (t, s) = self.adam.step(lr, new[i].clone(), g, self.states[i].take());
             new[i] = t;
             self.states[i] = s;

@@ -457,10 +457,10 @@ struct DemoArgs {
     #[arg(long)]
     vlm: Option<PathBuf>,
     /// Geometry iterations.
-    #[arg(long, default_value_t = 800)]
+    #[arg(long, default_value_t = 600)]
     iters: usize,
     /// Language-field iterations.
-    #[arg(long, default_value_t = 150)]
+    #[arg(long, default_value_t = 100)]
     language_iters: usize,
     #[arg(long, value_enum, default_value_t = BackendChoice::Ndarray)]
     backend: BackendChoice,
@@ -483,7 +483,10 @@ fn demo(a: DemoArgs) -> Result<(), String> {
     step(3, "teacher tokens (SigLIP features of every training view and masked object)");
     extract(ExtractArgs { vlm: vlm.clone(), data: data.clone(), out: Some(data.join("teacher")), downscale: 1, margin: 0.1, backend: a.backend })?;
     step(4, "language field, encoder and scaling adjustment");
-    train_language(TrainLanguageArgs { run: run.clone(), teacher: data.join("teacher"), out: None, iters: Some(a.language_iters), channels: None, backend: a.backend, resume: false, config: None })?;
+    // patch 0: render maps at the views' own resolution (96 px views -> 4 px per token)
+    let lang_cfg = a.out.join("language_config.json");
+    train::ckpt::write_json(&lang_cfg, &serde_json::json!({"warmup_iters": (a.language_iters / 4).max(1), "field": {"patch": 0}}))?;
+    train_language(TrainLanguageArgs { run: run.clone(), teacher: data.join("teacher"), out: None, iters: Some(a.language_iters), channels: None, backend: a.backend, resume: false, config: Some(lang_cfg) })?;
     step(5, "chat: view, object (click) and scene level");
     let ask_args = |object: Option<Vec<usize>>, scene: bool, q: &str| AskArgs {
         vlm: vlm.clone(), image: vec![], run: Some(run.clone()), language: None, view: 0, object, scene, views: 3,

@@ -411,7 +411,10 @@ impl GeometryTrainer {
         self.model = SplatModel::from_tensors(new);
         self.iter += 1;
         if densifying && self.iter >= self.cfg.densify_from && self.iter % self.cfg.densify_every.max(1) == 0 {
-            let reset = self.cfg.opacity_reset_every > 0 && self.iter % self.cfg.opacity_reset_every == 0;
+            // An opacity reset needs iterations to recover: none in the last third of a reset period
+            // (a 3,000-iteration run would otherwise end on a reset and render washed out).
+            let recover = self.cfg.iters.saturating_sub(self.iter) >= self.cfg.opacity_reset_every / 3;
+            let reset = self.cfg.opacity_reset_every > 0 && self.iter % self.cfg.opacity_reset_every == 0 && recover;
             self.densify(reset);
         }
         Ok(StepStats { loss: loss_v, psnr: psnr_v })

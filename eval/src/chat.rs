@@ -58,9 +58,7 @@ impl ChatSession {
     pub fn open(run: &Path, language: Option<&Path>, vlm_dir: &Path, device: &Device) -> Result<Self, String> {
         let lang: PathBuf = language.map(Path::to_path_buf).unwrap_or_else(|| run.join("language"));
         let scene = LanguageScene::load(run, &lang, device)?;
-        let state = train::ckpt::read_json(&lang.join("state.json"))?;
-        let tdir = state["teacher_dir"].as_str().ok_or_else(|| format!("{}: no teacher_dir", lang.join("state.json").display()))?;
-        let ds = TeacherSet::open(Path::new(tdir))?.dataset()?;
+        let ds = TeacherSet::open(&train::language::teacher_dir(&lang)?)?.dataset()?;
         let vlm = LlavaOnevision::load(vlm_dir, device).map_err(|e| e.to_string())?;
         if vlm.cfg.vision.hidden_size != scene.cfg.dim {
             return Err(format!("{}: vision width {} but the language field was trained for {}", vlm_dir.display(), vlm.cfg.vision.hidden_size, scene.cfg.dim));

@@ -508,8 +508,7 @@ impl LanguageTrainer {
     pub fn resume(run: &Path, dir: &Path, device: &Device) -> Result<Self, String> {
         let (cfg, field, states, _, contribution) = load_field(dir, device)?;
         let state: serde_json::Value = ckpt::read_json(&dir.join("state.json"))?;
-        let tdir = state["teacher_dir"].as_str().ok_or_else(|| format!("{}: no teacher_dir", dir.join("state.json").display()))?;
-        let teacher = TeacherSet::open(Path::new(tdir))?;
+        let teacher = TeacherSet::open(&teacher_dir(dir)?)?;
         let mut t = Self::new(run, teacher, cfg, device)?;
         if field.len() != t.scene.geometry.model.len() {
             return Err(format!("{}: {} Gaussians, but the geometry run {} has {}", dir.display(), field.len(), run.display(), t.scene.geometry.model.len()));
@@ -557,6 +556,13 @@ fn teacher_stats(teacher: &TeacherSet, objects: Option<bool>) -> Result<(Vec<f32
     let std: Vec<f32> = (0..d).map(|c| ((ch_sq[c] / cnt - (ch_sum[c] / cnt).powi(2)).max(0.0).sqrt() as f32).max(1e-3)).collect();
     let a = (0..t * d).map(|i| std[i % d]).collect();
     Ok((a, sum.into_iter().map(|m| (m / n) as f32).collect()))
+}
+
+/// The teacher directory a language run was trained on (recorded in its `state.json`).
+pub fn teacher_dir(language: &Path) -> Result<PathBuf, String> {
+    let path = language.join("state.json");
+    let state = ckpt::read_json(&path)?;
+    state["teacher_dir"].as_str().map(PathBuf::from).ok_or_else(|| format!("{}: no teacher_dir", path.display()))
 }
 
 type LoadedField = (LanguageTrainConfig, LanguageField, Vec<Option<AdamState<2>>>, f32, Vec<f32>);

@@ -352,8 +352,8 @@ fn export_encoder(a: ExportEncoderArgs) -> Result<(), String> {
     let lang = a.language.clone().unwrap_or_else(|| a.run.join("language"));
     let device = BackendChoice::Ndarray.device();
     let (cfg, field, _, _, _) = train::language::load_field(&lang, &device)?;
-    let teacher = train::ckpt::read_json(&lang.join("state.json")).ok().and_then(|s| s["teacher_dir"].as_str().map(String::from)).unwrap_or_default();
-    let model_id = train::language::TeacherSet::open(std::path::Path::new(&teacher)).map(|t| t.model).unwrap_or_default();
+    // the teacher model id is optional metadata: a moved teacher directory does not block export
+    let model_id = train::language::teacher_dir(&lang).and_then(|d| train::language::TeacherSet::open(&d)).map(|t| t.model).unwrap_or_default();
     let n = train::export::write_encoder(&a.out, &field.encoder, &cfg.field, &model_id)?;
     println!("encoder ({n} parameters, {} lifting layers, scale/shift {}) -> {}", field.encoder.lift_weights.len(), field.encoder.scale.is_some(), a.out.display());
     Ok(())

@@ -301,8 +301,7 @@ fn bench(a: &Args) -> Result<(), String> {
     let out = a.out.clone().unwrap_or_else(|| a.run.join("bench"));
     std::fs::create_dir_all(&out).map_err(|e| format!("{}: cannot create: {e}", out.display()))?;
     let session = ChatSession::open(&a.run, Some(&lang), &vlm_dir, &device)?;
-    let state = train::ckpt::read_json(&lang.join("state.json"))?;
-    let teacher_dir = PathBuf::from(state["teacher_dir"].as_str().unwrap_or_default());
+    let teacher_dir = train::language::teacher_dir(&lang)?;
     let ds = TeacherSet::open(&teacher_dir)?.dataset()?;
     let held: &[View] = if ds.test.is_empty() { &ds.train } else { &ds.test };
     let vlm = &session.vlm;
@@ -394,7 +393,7 @@ fn bench(a: &Args) -> Result<(), String> {
     println!("\n## Speed against error\n\n{header}");
     rows.push(row("trained (this run)", scene, vlm, held, a.reps, None)?);
     // model only what a scene needs: Gaussians ranked by their language contribution
-    let (_, _, _, _, contribution) = train::language::load_field(&lang, &device)?;
+    let (base_cfg, _, _, _, contribution) = train::language::load_field(&lang, &device)?;
     let mut order: Vec<usize> = (0..contribution.len()).filter(|&i| contribution[i] > 0.0).collect();
     order.sort_by(|&i, &j| contribution[j].total_cmp(&contribution[i]));
     let used = order.len();
@@ -405,7 +404,6 @@ fn bench(a: &Args) -> Result<(), String> {
         rows.push(row(&format!("kept {:.0}% of contributing", frac * 100.0), &scene.subset(&keep), vlm, held, a.reps, None)?);
     }
     if a.sweep_iters > 0 {
-        let (base_cfg, _, _, _, _) = train::language::load_field(&lang, &device)?;
         let mut variants: Vec<(String, LanguageTrainConfig)> = Vec::new();
         for c in [8, 16, 32, 64] {
             let mut cfg = base_cfg.clone();

@@ -3,7 +3,6 @@
 //! and a legend, all lettered with a built-in 5x7 bitmap font; PNG output goes through the `png` crate.
 
 use std::path::Path;
-use std::sync::atomic::{AtomicU64, Ordering};
 
 /// One data series: `points` are `(x, y)` pairs in data units, drawn in the given order as markers joined by
 /// lines. Points with a non-finite coordinate (or `x <= 0` on a log x axis) are skipped.
@@ -87,7 +86,8 @@ impl Chart {
         cv.text((width as i64 - text_w(&self.title, 2)) / 2, 9, &self.title, 2, false, BLACK);
         cv.text((x0 + x1 - text_w(&self.x_label, 1)) / 2, y1 + 22, &self.x_label, 1, false, BLACK);
         cv.text(6, (y0 + y1 + text_w(&self.y_label, 1)) / 2, &self.y_label, 1, true, BLACK);
-        let pts: Vec<Vec<(i64, i64)>> = self.series.iter().map(|s| self.drawable(s).map(|p| fr.pixel(p)).collect()).collect();
+        let pts: Vec<Vec<(i64, i64)>> =
+            self.series.iter().map(|s| self.drawable(s).map(|p| fr.pixel(p)).collect()).collect();
         for (s, p) in self.series.iter().zip(&pts) {
             p.windows(2).for_each(|w| cv.line(w[0], w[1], 2, s.color));
         }
@@ -98,27 +98,9 @@ impl Chart {
         cv.px
     }
 
-    /// Renders the chart and writes it as an 8-bit RGB PNG, atomically (a temporary file in the same directory,
-    /// then a rename). The directory must exist; errors name `path`.
-    pub fn write_png(&self, path: &Path, width: u32, height: u32) -> Result<(), String> {
-        static SEQ: AtomicU64 = AtomicU64::new(0);
-        let err = |e: &dyn std::fmt::Display| format!("{}: cannot write chart PNG: {e}", path.display());
-        let name = path.file_name().ok_or_else(|| err(&"no file name"))?.to_string_lossy();
-        let tmp = path.with_file_name(format!(".{name}.{}.{}.tmp", std::process::id(), SEQ.fetch_add(1, Ordering::Relaxed)));
-        let mut bytes = Vec::new();
-        {
-            let mut enc = png::Encoder::new(&mut bytes, width, height);
-            enc.set_color(png::ColorType::Rgb);
-            enc.set_depth(png::BitDepth::Eight);
-            let mut w = enc.write_header().map_err(|e| err(&e))?;
-            w.write_image_data(&self.render(width, height)).map_err(|e| err(&e))?;
-            w.finish().map_err(|e| err(&e))?;
-        }
-        std::fs::write(&tmp, &bytes).map_err(|e| err(&e))?;
-        std::fs::rename(&tmp, path).map_err(|e| {
-            let _ = std::fs::remove_file(&tmp);
-            err(&e)
-        })
+    /// Renders the chart and writes it as an 8-bit RGB PNG, atomically; errors name `path`.
+    pub fn write_png(&self, path: &Path, width: u32, height: u32) -> model::Result<()> {
+        model::images::write_rgb8(path, width, height, &self.render(width, height))
     }
 
     fn drawable<'a>(&self, s: &'a Series) -> impl Iterator<Item = (f64, f64)> + 'a {
@@ -153,7 +135,9 @@ impl Chart {
         let w = 38 + self.series.iter().map(|s| text_w(&s.label, 1)).max().unwrap_or(0);
         let h = 12 * self.series.len() as i64 + 5;
         let (l, t, r, b) = (fr.x0 as i64 + 6, fr.y0 as i64 + 6, fr.x1 as i64 - 6 - w, fr.y1 as i64 - 6 - h);
-        let inside = |(x, y): (i64, i64), p: &(i64, i64)| (x - 5..=x + w + 5).contains(&p.0) && (y - 5..=y + h + 5).contains(&p.1);
+        let inside = |(x, y): (i64, i64), p: &(i64, i64)| {
+            (x - 5..=x + w + 5).contains(&p.0) && (y - 5..=y + h + 5).contains(&p.1)
+        };
         let covered = |&c: &(i64, i64)| pts.iter().flatten().filter(|p| inside(c, p)).count();
         let (x, y) = [(r, t), (l, t), (r, b), (l, b)].into_iter().min_by_key(covered).unwrap();
         cv.rect(x, y, x + w, y + h, BLACK);
@@ -215,7 +199,8 @@ fn log_ticks(lo: f64, hi: f64) -> Ticks {
     }
     let every = ((b - a) / 8.0).ceil().max(1.0) as i64;
     let label = |v: f64| (v, fmt_num(v, 10f64.powf((v.log10() + 1e-9).floor())));
-    let decades: Vec<_> = (a as i64..=b as i64).filter(|k| k.rem_euclid(every) == 0).map(|k| label(10f64.powi(k as i32))).collect();
+    let decades: Vec<_> =
+        (a as i64..=b as i64).filter(|k| k.rem_euclid(every) == 0).map(|k| label(10f64.powi(k as i32))).collect();
     if decades.len() >= 3 {
         return decades;
     }
@@ -247,19 +232,32 @@ fn text_w(s: &str, scale: i64) -> i64 {
 /// 5x7 glyphs, hand-drawn: byte r (most significant first) is row r from the top, bit 4 the leftmost column.
 #[rustfmt::skip]
 const FONT: &[(char, u64)] = &[
-    ('0', 0x0E_11_13_15_19_11_0E), ('1', 0x04_0C_04_04_04_04_0E), ('2', 0x0E_11_01_02_04_08_1F), ('3', 0x1F_02_04_02_01_11_0E),
-    ('4', 0x02_06_0A_12_1F_02_02), ('5', 0x1F_10_1E_01_01_11_0E), ('6', 0x06_08_10_1E_11_11_0E), ('7', 0x1F_01_02_04_08_08_08),
-    ('8', 0x0E_11_11_0E_11_11_0E), ('9', 0x0E_11_11_0F_01_02_0C), ('A', 0x0E_11_11_1F_11_11_11), ('B', 0x1E_11_11_1E_11_11_1E),
-    ('C', 0x0E_11_10_10_10_11_0E), ('D', 0x1C_12_11_11_11_12_1C), ('E', 0x1F_10_10_1E_10_10_1F), ('F', 0x1F_10_10_1E_10_10_10),
-    ('G', 0x0E_11_10_17_11_11_0F), ('H', 0x11_11_11_1F_11_11_11), ('I', 0x0E_04_04_04_04_04_0E), ('J', 0x07_02_02_02_02_12_0C),
-    ('K', 0x11_12_14_18_14_12_11), ('L', 0x10_10_10_10_10_10_1F), ('M', 0x11_1B_15_15_11_11_11), ('N', 0x11_11_19_15_13_11_11),
-    ('O', 0x0E_11_11_11_11_11_0E), ('P', 0x1E_11_11_1E_10_10_10), ('Q', 0x0E_11_11_11_15_12_0D), ('R', 0x1E_11_11_1E_14_12_11),
-    ('S', 0x0F_10_10_0E_01_01_1E), ('T', 0x1F_04_04_04_04_04_04), ('U', 0x11_11_11_11_11_11_0E), ('V', 0x11_11_11_11_11_0A_04),
-    ('W', 0x11_11_11_15_15_15_0A), ('X', 0x11_11_0A_04_0A_11_11), ('Y', 0x11_11_0A_04_04_04_04), ('Z', 0x1F_01_02_04_08_10_1F),
-    ('.', 0x00_00_00_00_00_0C_0C), (',', 0x00_00_00_00_0C_04_08), ('-', 0x00_00_00_1F_00_00_00), ('+', 0x00_04_04_1F_04_04_00),
-    ('/', 0x01_01_02_04_08_10_10), ('(', 0x02_04_08_08_08_04_02), (')', 0x08_04_02_02_02_04_08), ('%', 0x18_19_02_04_08_13_03),
-    (':', 0x00_0C_0C_00_0C_0C_00), ('=', 0x00_00_1F_00_1F_00_00), ('_', 0x00_00_00_00_00_00_1F), (' ', 0x00_00_00_00_00_00_00),
-    ('[', 0x0E_08_08_08_08_08_0E), (']', 0x0E_02_02_02_02_02_0E), ('^', 0x04_0A_11_00_00_00_00), ('?', 0x0E_11_01_02_04_00_04),
+    ('0', 0x0E_11_13_15_19_11_0E), ('1', 0x04_0C_04_04_04_04_0E),
+    ('2', 0x0E_11_01_02_04_08_1F), ('3', 0x1F_02_04_02_01_11_0E),
+    ('4', 0x02_06_0A_12_1F_02_02), ('5', 0x1F_10_1E_01_01_11_0E),
+    ('6', 0x06_08_10_1E_11_11_0E), ('7', 0x1F_01_02_04_08_08_08),
+    ('8', 0x0E_11_11_0E_11_11_0E), ('9', 0x0E_11_11_0F_01_02_0C),
+    ('A', 0x0E_11_11_1F_11_11_11), ('B', 0x1E_11_11_1E_11_11_1E),
+    ('C', 0x0E_11_10_10_10_11_0E), ('D', 0x1C_12_11_11_11_12_1C),
+    ('E', 0x1F_10_10_1E_10_10_1F), ('F', 0x1F_10_10_1E_10_10_10),
+    ('G', 0x0E_11_10_17_11_11_0F), ('H', 0x11_11_11_1F_11_11_11),
+    ('I', 0x0E_04_04_04_04_04_0E), ('J', 0x07_02_02_02_02_12_0C),
+    ('K', 0x11_12_14_18_14_12_11), ('L', 0x10_10_10_10_10_10_1F),
+    ('M', 0x11_1B_15_15_11_11_11), ('N', 0x11_11_19_15_13_11_11),
+    ('O', 0x0E_11_11_11_11_11_0E), ('P', 0x1E_11_11_1E_10_10_10),
+    ('Q', 0x0E_11_11_11_15_12_0D), ('R', 0x1E_11_11_1E_14_12_11),
+    ('S', 0x0F_10_10_0E_01_01_1E), ('T', 0x1F_04_04_04_04_04_04),
+    ('U', 0x11_11_11_11_11_11_0E), ('V', 0x11_11_11_11_11_0A_04),
+    ('W', 0x11_11_11_15_15_15_0A), ('X', 0x11_11_0A_04_0A_11_11),
+    ('Y', 0x11_11_0A_04_04_04_04), ('Z', 0x1F_01_02_04_08_10_1F),
+    ('.', 0x00_00_00_00_00_0C_0C), (',', 0x00_00_00_00_0C_04_08),
+    ('-', 0x00_00_00_1F_00_00_00), ('+', 0x00_04_04_1F_04_04_00),
+    ('/', 0x01_01_02_04_08_10_10), ('(', 0x02_04_08_08_08_04_02),
+    (')', 0x08_04_02_02_02_04_08), ('%', 0x18_19_02_04_08_13_03),
+    (':', 0x00_0C_0C_00_0C_0C_00), ('=', 0x00_00_1F_00_1F_00_00),
+    ('_', 0x00_00_00_00_00_00_1F), (' ', 0x00_00_00_00_00_00_00),
+    ('[', 0x0E_08_08_08_08_08_0E), (']', 0x0E_02_02_02_02_02_0E),
+    ('^', 0x04_0A_11_00_00_00_00), ('?', 0x0E_11_01_02_04_00_04),
 ];
 
 /// The rows of `c`'s glyph (lower case uses upper case; characters without a glyph get `?`).
@@ -405,7 +403,13 @@ mod tests {
             chart(vec![(5.0, 5.0), (5.0, 5.0)], false),
             chart(vec![(0.0, 0.0), (-1.0, 2.0)], true),
             chart(vec![(1e300, -1e300), (-1e300, 1e300)], false),
-            Chart { title: String::new(), x_label: String::new(), y_label: String::new(), log_x: false, series: vec![] },
+            Chart {
+                title: String::new(),
+                x_label: String::new(),
+                y_label: String::new(),
+                log_x: false,
+                series: vec![],
+            },
         ];
         for c in &cases {
             for (w, h) in [(0, 0), (1, 1), (7, 3), (64, 48), (320, 240)] {
@@ -467,11 +471,11 @@ mod tests {
         assert!(buf[..info.buffer_size()] == c.render(300, 200)[..]);
         let names: Vec<_> = std::fs::read_dir(&dir).unwrap().map(|e| e.unwrap().file_name()).collect();
         assert_eq!(names, ["chart.png"], "no temporary file left behind");
-        std::fs::remove_dir_all(&dir).unwrap();
-
-        let bad = dir.join("missing").join("chart.png");
-        let e = c.write_png(&bad, 10, 10).unwrap_err();
-        assert!(e.contains(&bad.display().to_string()), "{e}");
+        // a path under a regular file cannot be written
+        let bad = dir.join("chart.png").join("chart.png");
+        let e = c.write_png(&bad, 10, 10).unwrap_err().to_string();
+        assert!(e.contains(&dir.join("chart.png").display().to_string()), "{e}");
         assert!(!bad.exists());
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 }

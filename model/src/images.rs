@@ -1,54 +1,61 @@
 //! PNG output and colour maps.
 
+use crate::error::{Error, IoContext, Result};
 use std::io::BufWriter;
 use std::path::Path;
 
 /// Writes an 8-bit RGB PNG from `[H, W, 3]` floats in [0, 1] (clamped), atomically.
-pub fn write_rgb(path: &Path, width: u32, height: u32, rgb: &[f32]) -> Result<(), String> {
+pub fn write_rgb(path: &Path, width: u32, height: u32, rgb: &[f32]) -> Result<()> {
     assert_eq!(rgb.len(), (width * height * 3) as usize);
     let bytes: Vec<u8> = rgb.iter().map(|v| (v.clamp(0.0, 1.0) * 255.0 + 0.5) as u8).collect();
     write_bytes(path, width, height, &bytes)
 }
 
 /// Writes an 8-bit grayscale PNG (e.g. instance-id masks), atomically.
-pub fn write_gray8(path: &Path, width: u32, height: u32, values: &[u8]) -> Result<(), String> {
+pub fn write_gray8(path: &Path, width: u32, height: u32, values: &[u8]) -> Result<()> {
     assert_eq!(values.len(), (width * height) as usize);
     write_png(path, width, height, values, png::ColorType::Grayscale, png::BitDepth::Eight)
 }
 
 /// Writes a 16-bit grayscale PNG (e.g. depth in millimetres), atomically.
-pub fn write_gray16(path: &Path, width: u32, height: u32, values: &[u16]) -> Result<(), String> {
+pub fn write_gray16(path: &Path, width: u32, height: u32, values: &[u16]) -> Result<()> {
     assert_eq!(values.len(), (width * height) as usize);
     let bytes: Vec<u8> = values.iter().flat_map(|v| v.to_be_bytes()).collect();
     write_png(path, width, height, &bytes, png::ColorType::Grayscale, png::BitDepth::Sixteen)
 }
 
-fn write_bytes(path: &Path, width: u32, height: u32, bytes: &[u8]) -> Result<(), String> {
+/// Writes an 8-bit RGB PNG from `[H, W, 3]` bytes, atomically.
+pub fn write_rgb8(path: &Path, width: u32, height: u32, bytes: &[u8]) -> Result<()> {
+    assert_eq!(bytes.len(), (width * height * 3) as usize);
+    write_bytes(path, width, height, bytes)
+}
+
+fn write_bytes(path: &Path, width: u32, height: u32, bytes: &[u8]) -> Result<()> {
     write_png(path, width, height, bytes, png::ColorType::Rgb, png::BitDepth::Eight)
 }
 
 /// Reads an 8-bit PNG (gray, gray+alpha, RGB or RGBA) as (width, height, channels, bytes).
-pub fn read_png8(path: &Path) -> Result<(u32, u32, usize, Vec<u8>), String> {
-    let err = |e: String| format!("{}: cannot read PNG: {e}", path.display());
-    let file = std::fs::File::open(path).map_err(|e| err(e.to_string()))?;
+pub fn read_png8(path: &Path) -> Result<(u32, u32, usize, Vec<u8>)> {
+    let err = |e: png::DecodingError| Error::invalid(path, format!("cannot read PNG: {e}"));
+    let file = std::fs::File::open(path).at(path, "cannot read PNG")?;
     let mut dec = png::Decoder::new(std::io::BufReader::new(file));
     dec.set_transformations(png::Transformations::EXPAND | png::Transformations::STRIP_16);
-    let mut reader = dec.read_info().map_err(|e| err(e.to_string()))?;
+    let mut reader = dec.read_info().map_err(err)?;
     let mut buf = vec![0; reader.output_buffer_size()];
-    let info = reader.next_frame(&mut buf).map_err(|e| err(e.to_string()))?;
+    let info = reader.next_frame(&mut buf).map_err(err)?;
     buf.truncate(info.buffer_size());
     Ok((info.width, info.height, info.color_type.samples(), buf))
 }
 
 /// Reads a 16-bit grayscale PNG (e.g. depth in millimetres) as (width, height, values).
-pub fn read_gray16(path: &Path) -> Result<(u32, u32, Vec<u16>), String> {
-    let err = |e: String| format!("{}: cannot read PNG: {e}", path.display());
-    let file = std::fs::File::open(path).map_err(|e| err(e.to_string()))?;
-    let mut reader = png::Decoder::new(std::io::BufReader::new(file)).read_info().map_err(|e| err(e.to_string()))?;
+pub fn read_gray16(path: &Path) -> Result<(u32, u32, Vec<u16>)> {
+    let err = |e: png::DecodingError| Error::invalid(path, format!("cannot read PNG: {e}"));
+    let file = std::fs::File::open(path).at(path, "cannot read PNG")?;
+    let mut reader = png::Decoder::new(std::io::BufReader::new(file)).read_info().map_err(err)?;
     let mut buf = vec![0; reader.output_buffer_size()];
-    let info = reader.next_frame(&mut buf).map_err(|e| err(e.to_string()))?;
+    let info = reader.next_frame(&mut buf).map_err(err)?;
     if info.bit_depth != png::BitDepth::Sixteen || info.color_type != png::ColorType::Grayscale {
-        return Err(format!("{}: expected a 16-bit grayscale PNG", path.display()));
+        return Err(Error::invalid(path, "expected a 16-bit grayscale PNG"));
     }
     let values = buf[..info.buffer_size()].chunks(2).map(|b| u16::from_be_bytes([b[0], b[1]])).collect();
     Ok((info.width, info.height, values))
@@ -61,21 +68,20 @@ fn write_png(
     bytes: &[u8],
     color: png::ColorType,
     depth: png::BitDepth,
-) -> Result<(), String> {
-    let err = |e: String| format!("{}: cannot write PNG: {e}", path.display());
+) -> Result<()> {
     if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
-        std::fs::create_dir_all(dir).map_err(|e| err(e.to_string()))?;
+        crate::io::create_dir(dir)?;
     }
-    let tmp = path.with_extension("png.tmp");
-    {
-        let file = std::fs::File::create(&tmp).map_err(|e| err(e.to_string()))?;
+    crate::io::write_atomic_with(path, |tmp| {
+        let err = |e: png::EncodingError| Error::invalid(tmp, format!("cannot write PNG: {e}"));
+        let file = std::fs::File::create(tmp).at(tmp, "cannot write PNG")?;
         let mut enc = png::Encoder::new(BufWriter::new(file), width, height);
         enc.set_color(color);
         enc.set_depth(depth);
-        let mut w = enc.write_header().map_err(|e| err(e.to_string()))?;
-        w.write_image_data(bytes).map_err(|e| err(e.to_string()))?;
-    }
-    std::fs::rename(&tmp, path).map_err(|e| err(e.to_string()))
+        let mut w = enc.write_header().map_err(err)?;
+        w.write_image_data(bytes).map_err(err)?;
+        w.finish().map_err(err)
+    })
 }
 
 /// A perceptual blue-to-yellow ramp for t in [0, 1] (piecewise linear "viridis"-like).
@@ -101,13 +107,7 @@ pub fn depth_to_rgb(depth: &[f32], alpha: &[f32]) -> Vec<f32> {
     depth
         .iter()
         .zip(alpha)
-        .flat_map(|(&d, &a)| {
-            if a <= 0.5 || !(hi > lo) {
-                [0.0; 3]
-            } else {
-                ramp(1.0 - (d - lo) / (hi - lo))
-            }
-        })
+        .flat_map(|(&d, &a)| if a <= 0.5 || !(hi > lo) { [0.0; 3] } else { ramp(1.0 - (d - lo) / (hi - lo)) })
         .collect()
 }
 

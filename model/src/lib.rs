@@ -1,37 +1,41 @@
-//! The scene model: a host-side Gaussian cloud, its Inria-layout `.ply` I/O, and the built-in
-//! synthetic scenes used by demos and tests, and the LLaVA-OneVision port ([`vlm`]).
+//! The chatsplat model and its inference path, in the order data flows through them:
+//!
+//! 1. [`data`] — posed photos (nerfstudio/Blender, COLMAP, LLFF, Replica) and the built-in
+//!    synthetic scenes ([`data::synth`]: objects, ray caster, questions).
+//! 2. [`splats`] — the 3D Gaussians (`SplatModel`, a burn `Module`), [`cloud`] and [`ply`].
+//! 3. [`language`] — per-Gaussian language features, the encoder that turns a rendered feature
+//!    map into tokens, and the token cameras (one crop rule for teacher and field).
+//! 4. [`vlm`] — LLaVA-OneVision (SigLIP, projector, Qwen2, tokenizer, generation).
+//! 5. [`scene`] and [`chat`] — a trained scene answering questions at view, object and scene
+//!    level: frozen Gaussians + language field -> tokens -> prompt -> LLM; [`vqa`] runs a
+//!    question file through it.
+//!
+//! Around them: [`run`] (the files of a run directory, typed), [`io`] (atomic writes, JSON,
+//! safetensors), [`error`], [`backend`] (ndarray / wgpu, backend panics as errors), [`images`]
+//! (PNG) and [`rng`]. Nothing here depends on training (`train` depends on this crate).
+#![allow(deprecated)] // burn-ndarray is deprecated in burn 0.22 in favour of burn-flex.
+
+pub mod backend;
+pub mod error;
+pub mod images;
+pub mod io;
+pub mod rng;
+
+pub mod data;
 
 pub mod cloud;
-pub mod images;
-pub mod language;
 pub mod ply;
-pub mod rng;
 pub mod splats;
-pub mod synthetic;
+
+pub mod language;
+
 pub mod vlm;
 
+pub mod chat;
+pub mod run;
+pub mod scene;
+pub mod vqa;
+
+pub use backend::{Backend, catch_backend};
 pub use cloud::GaussianCloud;
-
-/// An error that names the file (or input) and what is wrong with it.
-#[derive(Debug, Clone, PartialEq)]
-pub struct ModelError {
-    pub source: String,
-    pub message: String,
-}
-
-impl ModelError {
-    pub fn new(source: impl Into<String>, message: impl Into<String>) -> Self {
-        Self {
-            source: source.into(),
-            message: message.into(),
-        }
-    }
-}
-
-impl std::fmt::Display for ModelError {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        write!(f, "{}: {}", self.source, self.message)
-    }
-}
-
-impl std::error::Error for ModelError {}
+pub use error::{Error, Result};

@@ -5,7 +5,8 @@
 //!
 //! Reads `binary_little_endian`, `binary_big_endian` and `ascii`; writes `binary_little_endian`.
 
-use crate::{GaussianCloud, ModelError};
+use crate::GaussianCloud;
+use crate::error::{Error, IoContext, Result};
 use std::collections::BTreeMap;
 use std::io::Write;
 use std::path::Path;
@@ -72,20 +73,21 @@ enum Format {
 }
 
 /// Reads an Inria-layout `.ply` file.
-pub fn read(path: &Path) -> Result<GaussianCloud, ModelError> {
-    let src = path.display().to_string();
-    let bytes = std::fs::read(path).map_err(|e| ModelError::new(&src, format!("cannot read: {e}")))?;
-    parse(&bytes, &src)
+pub fn read(path: &Path) -> Result<GaussianCloud> {
+    let bytes = std::fs::read(path).at(path, "cannot read")?;
+    parse(&bytes, path)
 }
 
-/// Parses `.ply` bytes; `src` names the input in errors.
-pub fn parse(bytes: &[u8], src: &str) -> Result<GaussianCloud, ModelError> {
-    let err = |m: String| ModelError::new(src, m);
-    let end = find_header_end(bytes).ok_or_else(|| err("not a PLY file (no `end_header` line)".into()))?;
-    let header = std::str::from_utf8(&bytes[..end.0]).map_err(|_| err("PLY header is not UTF-8".into()))?;
+/// Parses `.ply` bytes; `src` names the input in errors. Counts in the header are checked
+/// against the bytes present before anything is allocated.
+pub fn parse(bytes: &[u8], src: impl AsRef<Path>) -> Result<GaussianCloud> {
+    let src = src.as_ref();
+    let err = |m: String| Error::invalid(src, m);
+    let end = find_header_end(bytes).ok_or_else(|| err("not a PLY file (no `end_header` line)".to_string()))?;
+    let header = std::str::from_utf8(&bytes[..end.0]).map_err(|_| err("PLY header is not UTF-8".to_string()))?;
     let mut lines = header.lines();
     if lines.next().map(str::trim) != Some("ply") {
-        return Err(err("not a PLY file (missing `ply` magic)".into()));
+        return Err(err("not a PLY file (missing `ply` magic)".to_string()));
     }
     let mut format = None;
     let mut count = None;
@@ -115,7 +117,7 @@ pub fn parse(bytes: &[u8], src: &str) -> Result<GaussianCloud, ModelError> {
                 in_vertex = false;
             }
             ["property", "list", ..] if in_vertex => {
-                return Err(err("list properties in the vertex element are not supported".into()));
+                return Err(err("list properties in the vertex element are not supported".to_string()));
             }
             ["property", ty, name] if in_vertex => {
                 let s = Scalar::parse(ty).ok_or_else(|| err(format!("unknown property type `{ty}` for `{name}`")))?;
@@ -124,10 +126,10 @@ pub fn parse(bytes: &[u8], src: &str) -> Result<GaussianCloud, ModelError> {
             _ => {}
         }
     }
-    let format = format.ok_or_else(|| err("PLY header has no `format` line".into()))?;
-    let n = count.ok_or_else(|| err("PLY header has no `element vertex` line".into()))?;
+    let format = format.ok_or_else(|| err("PLY header has no `format` line".to_string()))?;
+    let n = count.ok_or_else(|| err("PLY header has no `element vertex` line".to_string()))?;
     if other_elements_before {
-        return Err(err("elements before `vertex` are not supported".into()));
+        return Err(err("elements before `vertex` are not supported".to_string()));
     }
     let index: BTreeMap<&str, usize> = props.iter().enumerate().map(|(i, (p, _))| (p.as_str(), i)).collect();
     for req in ["x", "y", "z"] {
@@ -136,16 +138,26 @@ pub fn parse(bytes: &[u8], src: &str) -> Result<GaussianCloud, ModelError> {
         }
     }
     let width = props.len();
-    let mut values = vec![0f32; n * width];
     let body = &bytes[end.1..];
+    // Every vertex takes at least one byte per property (ASCII: a digit and a separator), so a
+    // count the body cannot hold is refused before allocating for it.
+    let min_bytes = match format {
+        Format::Ascii => n.checked_mul(width * 2),
+        _ => n.checked_mul(props.iter().map(|(_, s)| s.size()).sum()),
+    };
+    if min_bytes.is_none_or(|b| b > body.len() + 1) {
+        return Err(err(format!(
+            "truncated: header declares {n} vertices of {width} properties but only {} bytes follow",
+            body.len()
+        )));
+    }
+    let mut values = vec![0f32; n * width];
     match format {
         Format::Ascii => {
-            let text = std::str::from_utf8(body).map_err(|_| err("ASCII body is not UTF-8".into()))?;
+            let text = std::str::from_utf8(body).map_err(|_| err("ASCII body is not UTF-8".to_string()))?;
             let mut it = text.split_ascii_whitespace();
             for (k, v) in values.iter_mut().enumerate() {
-                let tok = it
-                    .next()
-                    .ok_or_else(|| err(format!("truncated: vertex {} of {n} is missing", k / width)))?;
+                let tok = it.next().ok_or_else(|| err(format!("truncated: vertex {} of {n} is missing", k / width)))?;
                 *v = tok.parse::<f32>().map_err(|_| err(format!("bad number `{tok}` in vertex {}", k / width)))?;
             }
         }
@@ -243,13 +255,10 @@ fn find_header_end(bytes: &[u8]) -> Option<(usize, usize)> {
 }
 
 /// Writes `cloud` as a binary little-endian Inria-layout `.ply` (atomically: temp file + rename).
-pub fn write(path: &Path, cloud: &GaussianCloud) -> Result<(), ModelError> {
-    let src = path.display().to_string();
+pub fn write(path: &Path, cloud: &GaussianCloud) -> Result<()> {
     let n = cloud.len();
-    let mut names: Vec<String> = ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"]
-        .iter()
-        .map(|s| s.to_string())
-        .collect();
+    let mut names: Vec<String> =
+        ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"].iter().map(|s| s.to_string()).collect();
     names.extend((0..cloud.rest_per_gaussian).map(|k| format!("f_rest_{k}")));
     names.push("opacity".into());
     names.extend(["scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2", "rot_3"].map(String::from));
@@ -279,11 +288,9 @@ pub fn write(path: &Path, cloud: &GaussianCloud) -> Result<(), ModelError> {
             bytes.extend_from_slice(&v.to_le_bytes());
         }
     }
-    let tmp = path.with_extension("ply.tmp");
-    let io = |e: std::io::Error| ModelError::new(&src, format!("cannot write: {e}"));
-    let mut f = std::fs::File::create(&tmp).map_err(io)?;
-    f.write_all(&bytes).map_err(io)?;
-    f.sync_all().map_err(io)?;
-    std::fs::rename(&tmp, path).map_err(io)?;
-    Ok(())
+    crate::io::write_atomic_with(path, |tmp| {
+        let mut f = std::fs::File::create(tmp).at(tmp, "cannot write")?;
+        f.write_all(&bytes).at(tmp, "cannot write")?;
+        f.sync_all().at(tmp, "cannot write")
+    })
 }

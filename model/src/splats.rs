@@ -2,11 +2,13 @@
 //! logits, spherical-harmonic colour (degree 0-3), a 16-channel identity feature and the
 //! identity classifier (linear 16 -> number of objects), as in Gaussian Grouping. Every
 //! per-Gaussian parameter is a rank-2 tensor `[N, width]`, so densification and optimizer-state
-//! bookkeeping treat them uniformly (see [`SplatModel::rows`]).
+//! bookkeeping treat them uniformly; [`SplatParams`] holds one value per parameter by name.
 
 use crate::cloud::{GaussianCloud, SH_C0};
+use crate::error::Result;
 use burn::module::{Module, Param};
 use burn::tensor::{Device, Tensor, TensorData};
+use splat_kernels::api::{SplatOptions, splat};
 use splat_kernels::{Camera, Gaussians};
 
 /// Identity feature width (Gaussian Grouping).
@@ -18,8 +20,139 @@ const C1: f32 = 0.488_602_5;
 const C2: [f32; 5] = [1.092_548_4, -1.092_548_4, 0.315_391_57, -1.092_548_4, 0.546_274_2];
 const C3: [f32; 7] = [-0.590_043_6, 2.890_611_4, -0.457_045_8, 0.373_176_33, -0.457_045_8, 1.445_305_7, -0.590_043_6];
 
-/// Names of the per-Gaussian parameters, in [`SplatModel::rows`] order.
-pub const ROW_PARAMS: [&str; 7] = ["means", "log_scales", "quats", "opacity_logits", "sh_dc", "sh_rest", "identity"];
+/// One value per parameter of a [`SplatModel`], by name: its tensors, their learning rates, their
+/// optimizer states. The seven per-Gaussian parameters (rows of `[N, width]`) come first.
+#[derive(Clone, Debug, Default, PartialEq)]
+pub struct SplatParams<T> {
+    pub means: T,
+    pub log_scales: T,
+    pub quats: T,
+    pub opacity_logits: T,
+    pub sh_dc: T,
+    pub sh_rest: T,
+    pub identity: T,
+    pub classifier_w: T,
+    pub classifier_b: T,
+}
+
+impl<T> SplatParams<T> {
+    /// Parameter names, as stored in checkpoints.
+    pub const NAMES: [&'static str; 9] = [
+        "means",
+        "log_scales",
+        "quats",
+        "opacity_logits",
+        "sh_dc",
+        "sh_rest",
+        "identity",
+        "classifier_w",
+        "classifier_b",
+    ];
+
+    /// Builds every field from its name.
+    pub fn from_fn(mut f: impl FnMut(&'static str) -> T) -> Self {
+        Self {
+            means: f("means"),
+            log_scales: f("log_scales"),
+            quats: f("quats"),
+            opacity_logits: f("opacity_logits"),
+            sh_dc: f("sh_dc"),
+            sh_rest: f("sh_rest"),
+            identity: f("identity"),
+            classifier_w: f("classifier_w"),
+            classifier_b: f("classifier_b"),
+        }
+    }
+
+    /// Every field with its name, in [`NAMES`](Self::NAMES) order.
+    pub fn into_named(self) -> [(&'static str, T); 9] {
+        [
+            ("means", self.means),
+            ("log_scales", self.log_scales),
+            ("quats", self.quats),
+            ("opacity_logits", self.opacity_logits),
+            ("sh_dc", self.sh_dc),
+            ("sh_rest", self.sh_rest),
+            ("identity", self.identity),
+            ("classifier_w", self.classifier_w),
+            ("classifier_b", self.classifier_b),
+        ]
+    }
+
+    /// Applies `f(name, value)` to every field.
+    pub fn map<U>(self, mut f: impl FnMut(&'static str, T) -> U) -> SplatParams<U> {
+        let mut named = self.into_named().into_iter();
+        SplatParams::from_fn(|_| {
+            let (n, v) = named.next().expect("nine fields");
+            f(n, v)
+        })
+    }
+
+    pub fn as_ref(&self) -> SplatParams<&T> {
+        SplatParams {
+            means: &self.means,
+            log_scales: &self.log_scales,
+            quats: &self.quats,
+            opacity_logits: &self.opacity_logits,
+            sh_dc: &self.sh_dc,
+            sh_rest: &self.sh_rest,
+            identity: &self.identity,
+            classifier_w: &self.classifier_w,
+            classifier_b: &self.classifier_b,
+        }
+    }
+
+    pub fn as_mut(&mut self) -> SplatParams<&mut T> {
+        SplatParams {
+            means: &mut self.means,
+            log_scales: &mut self.log_scales,
+            quats: &mut self.quats,
+            opacity_logits: &mut self.opacity_logits,
+            sh_dc: &mut self.sh_dc,
+            sh_rest: &mut self.sh_rest,
+            identity: &mut self.identity,
+            classifier_w: &mut self.classifier_w,
+            classifier_b: &mut self.classifier_b,
+        }
+    }
+
+    /// Pairs the fields of `self` and `other`.
+    pub fn zip<U>(self, other: SplatParams<U>) -> SplatParams<(T, U)> {
+        let mut o = other.into_named().into_iter();
+        self.map(|_, v| (v, o.next().expect("nine fields").1))
+    }
+
+    /// Whether parameter `name` has one row per Gaussian (all but the classifier).
+    pub fn is_row(name: &str) -> bool {
+        !name.starts_with("classifier")
+    }
+
+    /// Row width of per-Gaussian parameter `name` (0 for the classifier).
+    pub fn row_width(name: &str) -> usize {
+        match name {
+            "means" | "log_scales" | "sh_dc" => 3,
+            "quats" => 4,
+            "opacity_logits" => 1,
+            "sh_rest" => 3 * SH_REST,
+            "identity" => IDENTITY_DIM,
+            _ => 0,
+        }
+    }
+}
+
+/// A rendered view: RGB `[H, W, 3]`, the identity class of each pixel, alpha `[H, W]`.
+pub struct ViewRender {
+    pub rgb: Vec<f32>,
+    pub ids: Vec<u8>,
+    pub alpha: Vec<f32>,
+}
+
+/// The splat background `[3 + 16]` of an RGB background: the colour, zero identity.
+pub fn background(rgb: [f32; 3], device: &Device) -> Tensor<1> {
+    let mut bg = rgb.to_vec();
+    bg.extend([0.0; IDENTITY_DIM]);
+    Tensor::from_data(TensorData::new(bg, [3 + IDENTITY_DIM]), device)
+}
 
 /// The scene being optimised.
 #[derive(Module, Debug)]
@@ -45,35 +178,34 @@ pub struct SplatModel {
 }
 
 impl SplatModel {
-    /// Builds the model from tensors (per-Gaussian rows first, then classifier weight and bias).
-    pub fn from_tensors(t: [Tensor<2>; 9]) -> Self {
-        let [means, log_scales, quats, opacity_logits, sh_dc, sh_rest, identity, classifier_w, classifier_b] = t;
+    /// Builds the model from its tensors.
+    pub fn from_tensors(t: SplatParams<Tensor<2>>) -> Self {
         Self {
-            means: Param::from_tensor(means),
-            log_scales: Param::from_tensor(log_scales),
-            quats: Param::from_tensor(quats),
-            opacity_logits: Param::from_tensor(opacity_logits),
-            sh_dc: Param::from_tensor(sh_dc),
-            sh_rest: Param::from_tensor(sh_rest),
-            identity: Param::from_tensor(identity),
-            classifier_w: Param::from_tensor(classifier_w),
-            classifier_b: Param::from_tensor(classifier_b),
+            means: Param::from_tensor(t.means),
+            log_scales: Param::from_tensor(t.log_scales),
+            quats: Param::from_tensor(t.quats),
+            opacity_logits: Param::from_tensor(t.opacity_logits),
+            sh_dc: Param::from_tensor(t.sh_dc),
+            sh_rest: Param::from_tensor(t.sh_rest),
+            identity: Param::from_tensor(t.identity),
+            classifier_w: Param::from_tensor(t.classifier_w),
+            classifier_b: Param::from_tensor(t.classifier_b),
         }
     }
 
-    /// All tensors, in [`from_tensors`](Self::from_tensors) order.
-    pub fn tensors(&self) -> [Tensor<2>; 9] {
-        [
-            self.means.val(),
-            self.log_scales.val(),
-            self.quats.val(),
-            self.opacity_logits.val(),
-            self.sh_dc.val(),
-            self.sh_rest.val(),
-            self.identity.val(),
-            self.classifier_w.val(),
-            self.classifier_b.val(),
-        ]
+    /// All tensors, by name.
+    pub fn tensors(&self) -> SplatParams<Tensor<2>> {
+        SplatParams {
+            means: self.means.val(),
+            log_scales: self.log_scales.val(),
+            quats: self.quats.val(),
+            opacity_logits: self.opacity_logits.val(),
+            sh_dc: self.sh_dc.val(),
+            sh_rest: self.sh_rest.val(),
+            identity: self.identity.val(),
+            classifier_w: self.classifier_w.val(),
+            classifier_b: self.classifier_b.val(),
+        }
     }
 
     pub fn len(&self) -> usize {
@@ -86,9 +218,10 @@ impl SplatModel {
         self.classifier_w.val().dims()[1]
     }
 
-    /// Row widths of the per-Gaussian parameters.
-    pub fn row_widths() -> [usize; 7] {
-        [3, 3, 4, 1, 3, 3 * SH_REST, IDENTITY_DIM]
+    /// Bytes of the per-Gaussian parameters in f32.
+    pub fn row_bytes(&self) -> usize {
+        let width: usize = SplatParams::<()>::NAMES.iter().map(|n| SplatParams::<()>::row_width(n)).sum();
+        self.len() * width * 4
     }
 
     /// A model from a host cloud; identity comes from the cloud's `identity` extra (zeros if
@@ -111,28 +244,41 @@ impl SplatModel {
             _ => vec![0.0; n * IDENTITY_DIM],
         };
         let (w, b) = match classifier {
-            Some(c) if c.len() == (IDENTITY_DIM + 1) * classes => (c[..IDENTITY_DIM * classes].to_vec(), c[IDENTITY_DIM * classes..].to_vec()),
+            Some(c) if c.len() == (IDENTITY_DIM + 1) * classes => {
+                (c[..IDENTITY_DIM * classes].to_vec(), c[IDENTITY_DIM * classes..].to_vec())
+            }
             _ => (vec![0.0; IDENTITY_DIM * classes], vec![0.0; classes]),
         };
-        Self::from_tensors([
-            t(cloud.means.concat(), 3),
-            t(cloud.log_scales.concat(), 3),
-            t(cloud.quats.concat(), 4),
-            t(cloud.opacity_logits.clone(), 1),
-            t(cloud.sh_dc.concat(), 3),
-            t(rest, 3 * SH_REST),
-            t(identity, IDENTITY_DIM),
-            Tensor::from_data(TensorData::new(w, [IDENTITY_DIM, classes]), device),
-            Tensor::from_data(TensorData::new(b, [1, classes]), device),
-        ])
+        Self::from_tensors(SplatParams {
+            means: t(cloud.means.concat(), 3),
+            log_scales: t(cloud.log_scales.concat(), 3),
+            quats: t(cloud.quats.concat(), 4),
+            opacity_logits: t(cloud.opacity_logits.clone(), 1),
+            sh_dc: t(cloud.sh_dc.concat(), 3),
+            sh_rest: t(rest, 3 * SH_REST),
+            identity: t(identity, IDENTITY_DIM),
+            classifier_w: Tensor::from_data(TensorData::new(w, [IDENTITY_DIM, classes]), device),
+            classifier_b: Tensor::from_data(TensorData::new(b, [1, classes]), device),
+        })
     }
 
     /// The host cloud (Inria layout, SH up to degree 3, identity as the `identity` extra) and the
     /// classifier as `[16 * K weights, K biases]`.
     pub fn to_cloud(&self) -> (GaussianCloud, Vec<f32>) {
-        let [means, log_scales, quats, opacity, dc, rest, identity, w, b] = self.tensors().map(host);
+        let SplatParams {
+            means,
+            log_scales,
+            quats,
+            opacity_logits: opacity,
+            sh_dc: dc,
+            sh_rest: rest,
+            identity,
+            classifier_w: w,
+            classifier_b: b,
+        } = self.tensors().map(|_, t| host(t));
         let n = means.len() / 3;
-        let rows = |v: &[f32], k: usize| -> Vec<[f32; 3]> { (0..k).map(|i| [v[3 * i], v[3 * i + 1], v[3 * i + 2]]).collect() };
+        let rows =
+            |v: &[f32], k: usize| -> Vec<[f32; 3]> { (0..k).map(|i| [v[3 * i], v[3 * i + 1], v[3 * i + 2]]).collect() };
         let mut sh_rest = vec![0f32; n * 45];
         for i in 0..n {
             for c in 0..3 {
@@ -174,6 +320,28 @@ impl SplatModel {
             features: Tensor::cat(vec![colors, self.identity.val()], 1),
         }
     }
+
+    /// Identity logits `[H*W, K]` of a rendered `[H, W, 3 + 16]` feature map.
+    pub fn identity_logits(&self, features: Tensor<3>) -> Tensor<2> {
+        let [h, w, _] = features.dims();
+        let feat = features.narrow(2, 3, IDENTITY_DIM).reshape([h * w, IDENTITY_DIM]);
+        feat.matmul(self.classifier_w.val()) + self.classifier_b.val()
+    }
+
+    /// Renders RGB, the identity class of each pixel and alpha from `cam` at SH degree `degree`
+    /// over the RGB `background`.
+    pub fn render(&self, cam: &Camera, degree: usize, background_rgb: [f32; 3]) -> Result<ViewRender> {
+        let bg = background(background_rgb, &self.means.val().device());
+        let opts = SplatOptions { validate: false, ..Default::default() };
+        let out = splat(&self.gaussians(cam, degree), cam, bg, &opts)?;
+        let logits = self.identity_logits(out.features.clone());
+        let ids = logits.argmax(1).into_data().convert::<i64>().to_vec::<i64>().expect("i64 ids");
+        Ok(ViewRender {
+            rgb: host(out.features.narrow(2, 0, 3)),
+            ids: ids.into_iter().map(|i| i.clamp(0, 255) as u8).collect(),
+            alpha: host(out.alpha),
+        })
+    }
 }
 
 /// Reads a tensor to the host as f32.
@@ -199,13 +367,15 @@ pub fn sh_colors(means: Tensor<2>, sh_dc: Tensor<2>, sh_rest: Tensor<2>, camera:
         if degree > 1 {
             let (xx, yy, zz) = (x.clone() * x.clone(), y.clone() * y.clone(), z.clone() * z.clone());
             let (xy, yz, xz) = (x.clone() * y.clone(), y.clone() * z.clone(), x.clone() * z.clone());
-            c = c + k(4) * xy.clone() * C2[0]
+            c = c
+                + k(4) * xy.clone() * C2[0]
                 + k(5) * yz * C2[1]
                 + k(6) * (zz.clone() * 2.0 - xx.clone() - yy.clone()) * C2[2]
                 + k(7) * xz * C2[3]
                 + k(8) * (xx.clone() - yy.clone()) * C2[4];
             if degree > 2 {
-                c = c + k(9) * y.clone() * (xx.clone() * 3.0 - yy.clone()) * C3[0]
+                c = c
+                    + k(9) * y.clone() * (xx.clone() * 3.0 - yy.clone()) * C3[0]
                     + k(10) * xy * z.clone() * C3[1]
                     + k(11) * y.clone() * (zz.clone() * 4.0 - xx.clone() - yy.clone()) * C3[2]
                     + k(12) * z.clone() * (zz.clone() * 2.0 - xx.clone() * 3.0 - yy.clone() * 3.0) * C3[3]

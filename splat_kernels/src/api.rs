@@ -1,10 +1,10 @@
 //! Tensor-level entry point: [`splat`] renders a set of Gaussians on any backend (NdArray, wgpu,
 //! and either under autodiff) and returns feature, alpha, depth and top-id maps.
 
+use crate::SplatError;
 use crate::camera::Camera;
 use crate::constants::RasterConfig;
 use crate::ext::{SplatBackend, SplatPrims};
-use crate::SplatError;
 use burn::backend::Dispatch;
 use burn::tensor::{Int, Tensor};
 
@@ -56,12 +56,7 @@ pub struct SplatOptions {
 
 impl Default for SplatOptions {
     fn default() -> Self {
-        Self {
-            config: RasterConfig::default(),
-            validate: true,
-            screen_offsets: None,
-            max_pass_bytes: None,
-        }
+        Self { config: RasterConfig::default(), validate: true, screen_offsets: None, max_pass_bytes: None }
     }
 }
 
@@ -180,19 +175,11 @@ pub fn splat(
         }
     }
     let (packed, top_id, len0) = first.expect("at least one channel group");
-    let features = if feature_maps.len() == 1 {
-        feature_maps.pop().expect("one map")
-    } else {
-        Tensor::cat(feature_maps, 2)
-    };
+    let features =
+        if feature_maps.len() == 1 { feature_maps.pop().expect("one map") } else { Tensor::cat(feature_maps, 2) };
     let alpha = packed.clone().narrow(2, len0, 1).squeeze_dim::<2>(2);
     let depth = packed.narrow(2, len0 + 1, 1).squeeze_dim::<2>(2);
-    Ok(SplatRender {
-        features,
-        alpha,
-        depth,
-        top_id,
-    })
+    Ok(SplatRender { features, alpha, depth, top_id })
 }
 
 /// Accumulates the per-Gaussian norm of the screen-space mean gradient over iterations, as 3DGS
@@ -239,10 +226,6 @@ impl ScreenGradAccumulator {
 
     /// Mean norm per Gaussian over the views that saw it.
     pub fn mean(&self) -> Vec<f32> {
-        self.norm_sum
-            .iter()
-            .zip(&self.count)
-            .map(|(&s, &c)| if c > 0 { s / c as f32 } else { 0.0 })
-            .collect()
+        self.norm_sum.iter().zip(&self.count).map(|(&s, &c)| if c > 0 { s / c as f32 } else { 0.0 }).collect()
     }
 }

@@ -47,12 +47,8 @@ impl Camera {
         // Rows of the world->camera rotation are the camera axes in world coordinates.
         let rot = Mat3::from_cols(r, d, f).transpose();
         let t = -(rot * eye);
-        let w2c = Mat4::from_cols(
-            rot.x_axis.extend(0.0),
-            rot.y_axis.extend(0.0),
-            rot.z_axis.extend(0.0),
-            t.extend(1.0),
-        );
+        let w2c =
+            Mat4::from_cols(rot.x_axis.extend(0.0), rot.y_axis.extend(0.0), rot.z_axis.extend(0.0), t.extend(1.0));
         let fy = 0.5 * height as f32 / (0.5 * fov_y_deg.to_radians()).tan();
         Self::new(w2c, fy, fy, width, height)
     }
@@ -75,10 +71,7 @@ impl Camera {
 
     /// Limits of the Jacobian clamp: `FRUSTUM_CLAMP * tan(fov/2)` in x and y.
     pub fn clamp_limits(&self) -> [f32; 2] {
-        [
-            FRUSTUM_CLAMP * 0.5 * self.width as f32 / self.fx,
-            FRUSTUM_CLAMP * 0.5 * self.height as f32 / self.fy,
-        ]
+        [FRUSTUM_CLAMP * 0.5 * self.width as f32 / self.fx, FRUSTUM_CLAMP * 0.5 * self.height as f32 / self.fy]
     }
 
     /// Number of tiles in x and y.
@@ -107,10 +100,7 @@ impl Camera {
             }
         }
         if !(self.near.is_finite() && self.near > 0.0 && self.far > self.near) {
-            return bad(format!(
-                "near = {} and far = {} must satisfy 0 < near < far",
-                self.near, self.far
-            ));
+            return bad(format!("near = {} and far = {} must satisfy 0 < near < far", self.near, self.far));
         }
         if !self.world_to_cam.is_finite() {
             return bad("world_to_cam has a non-finite entry".into());

@@ -53,12 +53,7 @@ pub struct RasterConfig {
 
 impl Default for RasterConfig {
     fn default() -> Self {
-        Self {
-            alpha_max: 0.99,
-            alpha_min: 1.0 / 255.0,
-            t_min: 1e-4,
-            extent: 3.0,
-        }
+        Self { alpha_max: 0.99, alpha_min: 1.0 / 255.0, t_min: 1e-4, extent: 3.0 }
     }
 }
 
@@ -66,11 +61,6 @@ impl RasterConfig {
     /// No alpha skip, no early stop and an 8-sigma footprint: the output is smooth in every input
     /// as long as no alpha reaches `alpha_max` and no Gaussian changes tiles.
     pub fn smooth() -> Self {
-        Self {
-            alpha_max: 0.99,
-            alpha_min: 0.0,
-            t_min: 0.0,
-            extent: 8.0,
-        }
+        Self { alpha_max: 0.99, alpha_min: 0.0, t_min: 0.0, extent: 8.0 }
     }
 }

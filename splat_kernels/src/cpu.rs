@@ -74,11 +74,7 @@ impl SplatInputsRef<'_> {
                 )));
             }
             if let Some(k) = data.iter().position(|v| !v.is_finite()) {
-                return Err(crate::SplatError::NonFinite {
-                    tensor: name,
-                    row: k / width.max(1),
-                    value: data[k],
-                });
+                return Err(crate::SplatError::NonFinite { tensor: name, row: k / width.max(1), value: data[k] });
             }
         }
         Ok(())
@@ -186,11 +182,7 @@ pub fn bin(inp: &SplatInputsRef, cam: &Camera, cfg: &RasterConfig) -> Binned {
             da.total_cmp(&db).then(a.cmp(&b))
         })
     });
-    Binned {
-        projected,
-        tile_offsets,
-        gids,
-    }
+    Binned { projected, tile_offsets, gids }
 }
 
 /// Pixel coordinates covered by tile `t`, clipped to the image.
@@ -212,12 +204,20 @@ fn eval_power(p: &Projected, px: f32, py: f32) -> (f32, f32, f32) {
     (power, dx, dy)
 }
 
-/// Pixel window `[x0, x1) x [y0, y1)` (local to the tile whose first pixel is `(ox, oy)`) outside which the Gaussian's alpha is
+/// Pixel window `[x0, x1) x [y0, y1)` (local to the tile whose first pixel is `(ox, oy)`) outside
+/// which the Gaussian's alpha is
 /// provably below `alpha_min`: the ellipse `o exp(power) >= alpha_min` and its bounding box,
 /// widened by one pixel against rounding. Skipping pixels outside it changes no result (they
 /// would be skipped by the alpha test anyway); it only saves work for small Gaussians.
 #[inline]
-fn pixel_window(p: &Projected, cfg: &RasterConfig, ox: u32, oy: u32, w: usize, h: usize) -> (usize, usize, usize, usize) {
+fn pixel_window(
+    p: &Projected,
+    cfg: &RasterConfig,
+    ox: u32,
+    oy: u32,
+    w: usize,
+    h: usize,
+) -> (usize, usize, usize, usize) {
     let full = (0, w, 0, h);
     if !(cfg.alpha_min > 0.0) {
         return full;
@@ -238,13 +238,9 @@ fn pixel_window(p: &Projected, cfg: &RasterConfig, ox: u32, oy: u32, w: usize, h
     }
     // Pixel centres are at integer + 0.5.
     let lo = |m: f32, half: f32, o: u32, n: usize| ((m - half - 0.5 - o as f32).floor().max(0.0) as usize).min(n);
-    let hi = |m: f32, half: f32, o: u32, n: usize| ((m + half - 0.5 - o as f32).ceil() + 1.0).clamp(0.0, n as f32) as usize;
-    (
-        lo(p.mean2d[0], hx, ox, w),
-        hi(p.mean2d[0], hx, ox, w),
-        lo(p.mean2d[1], hy, oy, h),
-        hi(p.mean2d[1], hy, oy, h),
-    )
+    let hi =
+        |m: f32, half: f32, o: u32, n: usize| ((m + half - 0.5 - o as f32).ceil() + 1.0).clamp(0.0, n as f32) as usize;
+    (lo(p.mean2d[0], hx, ox, w), hi(p.mean2d[0], hx, ox, w), lo(p.mean2d[1], hy, oy, h), hi(p.mean2d[1], hy, oy, h))
 }
 
 struct TileFwd {
@@ -297,7 +293,8 @@ pub fn forward_binned(inp: &SplatInputsRef, cam: &Camera, cfg: &RasterConfig, b:
                         if done[q] {
                             continue;
                         }
-                        let (power, _, _) = eval_power(p, (x0 as usize + px) as f32 + 0.5, (y0 as usize + py) as f32 + 0.5);
+                        let (power, _, _) =
+                            eval_power(p, (x0 as usize + px) as f32 + 0.5, (y0 as usize + py) as f32 + 0.5);
                         if power > 0.0 {
                             continue;
                         }
@@ -432,7 +429,8 @@ pub fn backward(
                         if k >= last[q] {
                             continue;
                         }
-                        let (power, dx, dy) = eval_power(p, (x0 as usize + px) as f32 + 0.5, (y0 as usize + py) as f32 + 0.5);
+                        let (power, dx, dy) =
+                            eval_power(p, (x0 as usize + px) as f32 + 0.5, (y0 as usize + py) as f32 + 0.5);
                         if power > 0.0 {
                             continue;
                         }
@@ -515,22 +513,19 @@ pub fn backward(
             if counts[i] == counts[i + 1] {
                 return (GaussianGrad::default(), [0.0; 2]);
             }
-            let gg = project::project_backward(cam, inp.mean(i), inp.log_scale(i), inp.quat(i), inp.opacity_logits[i], &pg);
+            let gg =
+                project::project_backward(cam, inp.mean(i), inp.log_scale(i), inp.quat(i), inp.opacity_logits[i], &pg);
             (gg, pg.mean2d)
         })
         .collect();
-    out.features
-        .par_chunks_mut(c)
-        .enumerate()
-        .with_min_len(256)
-        .for_each(|(i, fg)| {
-            for &k in &by_gid[counts[i]..counts[i + 1]] {
-                let s = &isect[k * stride + ISECT_FIXED..(k + 1) * stride];
-                for ch in 0..c {
-                    fg[ch] += s[ch];
-                }
+    out.features.par_chunks_mut(c).enumerate().with_min_len(256).for_each(|(i, fg)| {
+        for &k in &by_gid[counts[i]..counts[i + 1]] {
+            let s = &isect[k * stride + ISECT_FIXED..(k + 1) * stride];
+            for ch in 0..c {
+                fg[ch] += s[ch];
             }
-        });
+        }
+    });
     for (i, (gg, m2)) in per.into_iter().enumerate() {
         out.means[3 * i..3 * i + 3].copy_from_slice(&gg.mean);
         out.log_scales[3 * i..3 * i + 3].copy_from_slice(&gg.log_scale);

@@ -23,8 +23,8 @@ use crate::camera::Camera;
 use crate::constants::{LOG_SCALE_MAX, LOG_SCALE_MIN, LOW_PASS, QUAT_MIN_NORM, RasterConfig, TILE_PIXELS, TILE_SIZE};
 use crate::ext::{SplatBackend, SplatFwdPrims, SplatPrims, SplatSaved};
 use burn::backend::ops::FloatTensorOps;
-use burn::backend::wgpu::{CubeBackend, CubeTensor};
 use burn::backend::try_read_sync;
+use burn::backend::wgpu::{CubeBackend, CubeTensor};
 use burn::tensor::{DType, Shape, TensorData};
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::{empty_device_dtype, zeros_client};
@@ -213,6 +213,8 @@ fn covar(means: &[f32], log_scales: &[f32], quats: &[f32], cam: &[f32], iu: usiz
 }
 
 /// Thread per Gaussian: projection, culling, tile rectangle and per-tile counts.
+// `x - x == 0.0` is the finiteness test (false for NaN and infinities): #[cube] has no is_finite.
+#[allow(clippy::eq_op)]
 #[cube(launch)]
 fn project_kernel(
     means: &[f32],
@@ -487,7 +489,9 @@ fn raster_fwd_kernel(
                 let ju = j as usize;
                 let dx = pxf - s_p[ju * 7];
                 let dy = pyf - s_p[ju * 7 + 1];
-                let power = 0.0f32 - 0.5f32 * (s_p[ju * 7 + 2] * dx * dx + s_p[ju * 7 + 4] * dy * dy) - s_p[ju * 7 + 3] * dx * dy;
+                let power = 0.0f32
+                    - 0.5f32 * (s_p[ju * 7 + 2] * dx * dx + s_p[ju * 7 + 4] * dy * dy)
+                    - s_p[ju * 7 + 3] * dx * dy;
                 if power <= 0.0 {
                     let alpha = f32::min(alpha_max, s_p[ju * 7 + 6] * f32::exp(power));
                     if alpha >= alpha_min {
@@ -669,6 +673,8 @@ fn raster_bwd_kernel(
 }
 
 /// Thread per Gaussian: screen-space gradients -> gradients of the 3D parameters.
+// #[cube] code has no `RangeInclusive::contains`.
+#[allow(clippy::manual_range_contains)]
 #[cube(launch)]
 fn project_bwd_kernel(
     means: &[f32],
@@ -719,9 +725,11 @@ fn project_bwd_kernel(
         let fx = cam[12];
         let fy = cam[13];
         let (qw, qx, qy, qz, inv_norm) = (k.qw, k.qx, k.qy, k.qz, k.inv_norm);
-        let (r00, r01, r02, r10, r11, r12, r20, r21, r22) = (k.r00, k.r01, k.r02, k.r10, k.r11, k.r12, k.r20, k.r21, k.r22);
+        let (r00, r01, r02, r10, r11, r12, r20, r21, r22) =
+            (k.r00, k.r01, k.r02, k.r10, k.r11, k.r12, k.r20, k.r21, k.r22);
         let (s0, s1, s2) = (k.s0, k.s1, k.s2);
-        let (c00, c01, c02, c10, c11, c12, c20, c21, c22) = (k.c00, k.c01, k.c02, k.c10, k.c11, k.c12, k.c20, k.c21, k.c22);
+        let (c00, c01, c02, c10, c11, c12, c20, c21, c22) =
+            (k.c00, k.c01, k.c02, k.c10, k.c11, k.c12, k.c20, k.c21, k.c22);
         let (u, v, uc, vc) = (k.u, k.v, k.uc, k.vc);
         let (j00, j02, j11, j12) = (k.j00, k.j02, k.j11, k.j12);
         let (t00, t01, t02, t10, t11, t12) = (k.t00, k.t01, k.t02, k.t10, k.t11, k.t12);
@@ -764,7 +772,8 @@ fn project_bwd_kernel(
         let z2 = z * z;
         let mut dp0 = gm0 * fx / z;
         let mut dp1 = gm1 * fy / z;
-        let mut dp2 = dj00 * (0.0f32 - fx / z2) + dj11 * (0.0f32 - fy / z2) + dj02 * (fx * uc / z2) + dj12 * (fy * vc / z2);
+        let mut dp2 =
+            dj00 * (0.0f32 - fx / z2) + dj11 * (0.0f32 - fy / z2) + dj02 * (fx * uc / z2) + dj12 * (fy * vc / z2);
         if f32::abs(u) <= cam[16] {
             dp0 += dj02 * (0.0f32 - fx / z2);
             dp2 += dj02 * (fx * p0 / (z2 * z));
@@ -807,9 +816,16 @@ fn project_bwd_kernel(
             let d21 = dm21 * s1;
             let d22 = dm22 * s2;
             let gw = 2.0 * (0.0f32 - qz * d01 + qy * d02 + qz * d10 - qx * d12 - qy * d20 + qx * d21);
-            let gx = 2.0 * (qy * d01 + qz * d02 + qy * d10 - 2.0 * qx * d11 - qw * d12 + qz * d20 + qw * d21 - 2.0 * qx * d22);
-            let gy = 2.0 * (0.0f32 - 2.0 * qy * d00 + qx * d01 + qw * d02 + qx * d10 + qz * d12 - qw * d20 + qz * d21 - 2.0 * qy * d22);
-            let gz = 2.0 * (0.0f32 - 2.0 * qz * d00 - qw * d01 + qx * d02 + qw * d10 - 2.0 * qz * d11 + qy * d12 + qx * d20 + qy * d21);
+            let gx = 2.0
+                * (qy * d01 + qz * d02 + qy * d10 - 2.0 * qx * d11 - qw * d12 + qz * d20 + qw * d21 - 2.0 * qx * d22);
+            let gy = 2.0
+                * (0.0f32 - 2.0 * qy * d00 + qx * d01 + qw * d02 + qx * d10 + qz * d12 - qw * d20 + qz * d21
+                    - 2.0 * qy * d22);
+            let gz = 2.0
+                * (0.0f32 - 2.0 * qz * d00 - qw * d01 + qx * d02 + qw * d10 - 2.0 * qz * d11
+                    + qy * d12
+                    + qx * d20
+                    + qy * d21);
             let dot = gw * qw + gx * qx + gy * qy + gz * qz;
             g_quats[iu * 4] = (gw - qw * dot) * inv_norm;
             g_quats[iu * 4 + 1] = (gx - qx * dot) * inv_norm;
@@ -838,11 +854,7 @@ fn zeros(like: &CubeTensor, shape: Vec<usize>, dtype: DType) -> CubeTensor {
 
 /// A 1-element placeholder for empty inputs (wgpu does not bind zero-sized buffers).
 fn non_empty(t: CubeTensor) -> CubeTensor {
-    if t.meta.shape().num_elements() == 0 {
-        zeros(&t, vec![1], DType::F32)
-    } else {
-        into_contiguous(t)
-    }
+    if t.meta.shape().num_elements() == 0 { zeros(&t, vec![1], DType::F32) } else { into_contiguous(t) }
 }
 
 fn cam_block(like: &CubeTensor, camera: &Camera, config: &RasterConfig) -> CubeTensor {
@@ -933,9 +945,10 @@ fn bin(p: &SplatPrims<CubeBackend>, camera: &Camera, config: &RasterConfig) -> D
         num_tiles as u32,
     );
     // The one host read of the pipeline: how many intersections to allocate.
-    let total_data = try_read_sync(<CubeBackend as burn::backend::ops::IntTensorOps<CubeBackend>>::int_into_data(total))
-        .expect("synchronous read is supported")
-        .expect("tensor read succeeds");
+    let total_data =
+        try_read_sync(<CubeBackend as burn::backend::ops::IntTensorOps<CubeBackend>>::int_into_data(total))
+            .expect("synchronous read is supported")
+            .expect("tensor read succeeds");
     let n_isect = total_data.convert::<i64>().into_vec::<i64>().expect("int data")[0] as usize;
     let keys = alloc(like, vec![n_isect.max(1)], DType::F32);
     let gids = zeros(like, vec![n_isect.max(1)], DType::I32);
@@ -965,14 +978,7 @@ fn bin(p: &SplatPrims<CubeBackend>, camera: &Camera, config: &RasterConfig) -> D
             tx,
         );
     }
-    DeviceBins {
-        proj,
-        rects,
-        offsets,
-        counts,
-        gids,
-        cam,
-    }
+    DeviceBins { proj, rects, offsets, counts, gids, cam }
 }
 
 fn contiguous_inputs(p: SplatPrims<CubeBackend>) -> SplatPrims<CubeBackend> {
@@ -1018,12 +1024,7 @@ impl SplatBackend for CubeBackend {
             tx,
             c as u32,
         );
-        SplatFwdPrims {
-            packed,
-            top_id,
-            final_t,
-            n_visited,
-        }
+        SplatFwdPrims { packed, top_id, final_t, n_visited }
     }
 
     fn splat_backward(
@@ -1102,11 +1103,7 @@ impl SplatBackend for CubeBackend {
                 Some(k) => vec![n, k],
                 None => vec![n],
             };
-            if n == 0 {
-                zeros(&t, shape, DType::F32)
-            } else {
-                t
-            }
+            if n == 0 { zeros(&t, shape, DType::F32) } else { t }
         };
         SplatPrims {
             means: shape_n(g_means, Some(3)),

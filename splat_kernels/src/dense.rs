@@ -29,14 +29,16 @@ pub fn project(g: &Gaussians, cam: &Camera, cfg: &RasterConfig) -> DenseProjecte
     let rc = cam.rotation_rows();
     let tc = cam.translation();
     let (mx, my, mz) = (col(&g.means, 0), col(&g.means, 1), col(&g.means, 2));
-    let p: Vec<Tensor<1>> = (0..3)
-        .map(|i| mx.clone() * rc[i][0] + my.clone() * rc[i][1] + mz.clone() * rc[i][2] + tc[i])
-        .collect();
+    let p: Vec<Tensor<1>> =
+        (0..3).map(|i| mx.clone() * rc[i][0] + my.clone() * rc[i][1] + mz.clone() * rc[i][2] + tc[i]).collect();
     let valid = p[2].clone().greater_equal_elem(cam.near).bool_and(p[2].clone().lower_equal_elem(cam.far));
     let z = p[2].clone().mask_where(valid.clone().bool_not(), Tensor::ones_like(&p[2]));
     // Quaternion -> rotation (identity policy below QUAT_MIN_NORM).
     let q: Vec<Tensor<1>> = (0..4).map(|k| col(&g.quats, k)).collect();
-    let norm2 = q[0].clone().powi_scalar(2) + q[1].clone().powi_scalar(2) + q[2].clone().powi_scalar(2) + q[3].clone().powi_scalar(2);
+    let norm2 = q[0].clone().powi_scalar(2)
+        + q[1].clone().powi_scalar(2)
+        + q[2].clone().powi_scalar(2)
+        + q[3].clone().powi_scalar(2);
     let tiny = norm2.clone().lower_elem(QUAT_MIN_NORM * QUAT_MIN_NORM);
     let inv = norm2.clamp_min(QUAT_MIN_NORM * QUAT_MIN_NORM).sqrt().recip();
     let qn: Vec<Tensor<1>> = q
@@ -81,12 +83,15 @@ pub fn project(g: &Gaussians, cam: &Camera, cfg: &RasterConfig) -> DenseProjecte
     let j12 = -(vc * cam.fy) / z.clone();
     let t0: Vec<Tensor<1>> = (0..3).map(|k| j00.clone() * e[0][k].clone() + j02.clone() * e[2][k].clone()).collect();
     let t1: Vec<Tensor<1>> = (0..3).map(|k| j11.clone() * e[1][k].clone() + j12.clone() * e[2][k].clone()).collect();
-    let dot = |a: &[Tensor<1>], b: &[Tensor<1>]| a[0].clone() * b[0].clone() + a[1].clone() * b[1].clone() + a[2].clone() * b[2].clone();
+    let dot = |a: &[Tensor<1>], b: &[Tensor<1>]| {
+        a[0].clone() * b[0].clone() + a[1].clone() * b[1].clone() + a[2].clone() * b[2].clone()
+    };
     let a = dot(&t0, &t0) + LOW_PASS;
     let b = dot(&t0, &t1);
     let c = dot(&t1, &t1) + LOW_PASS;
     let det = a.clone() * c.clone() - b.clone() * b.clone();
-    let lambda = (a.clone() + c.clone()) * 0.5 + ((a.clone() - c.clone()).powi_scalar(2) * 0.25 + b.clone().powi_scalar(2)).sqrt();
+    let lambda = (a.clone() + c.clone()) * 0.5
+        + ((a.clone() - c.clone()).powi_scalar(2) * 0.25 + b.clone().powi_scalar(2)).sqrt();
     let radius = (lambda.sqrt() * cfg.extent).ceil().detach();
     let cx2 = p[0].clone() / z.clone() * cam.fx + cam.cx;
     let cy2 = p[1].clone() / z.clone() * cam.fy + cam.cy;

@@ -244,11 +244,7 @@ impl<B: Backend + SplatBackend> Backward<B, 7> for SplatBackwardOp {
         let s = ops.state;
         let g = B::splat_backward(
             s.inputs,
-            SplatSaved {
-                final_t: s.final_t,
-                n_visited: s.n_visited,
-                grad_packed,
-            },
+            SplatSaved { final_t: s.final_t, n_visited: s.n_visited, grad_packed },
             s.camera,
             s.config,
         );

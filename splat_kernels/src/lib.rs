@@ -27,26 +27,15 @@ pub use camera::Camera;
 pub use constants::RasterConfig;
 
 /// Errors of the splatting op: bad shapes, non-finite inputs, bad cameras.
-#[derive(Debug, Clone, PartialEq)]
+#[derive(Debug, Clone, PartialEq, thiserror::Error)]
 pub enum SplatError {
     /// A tensor has the wrong shape.
+    #[error("splat: bad input shape: {0}")]
     Shape(String),
     /// An input holds NaN or an infinity (policy: rejected with this error, never rendered).
+    #[error("splat: {tensor} row {row} holds a non-finite value ({value})")]
     NonFinite { tensor: &'static str, row: usize, value: f32 },
     /// The camera cannot be used.
+    #[error("splat: invalid camera: {0}")]
     InvalidCamera(String),
 }
-
-impl std::fmt::Display for SplatError {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match self {
-            SplatError::Shape(s) => write!(f, "splat: bad input shape: {s}"),
-            SplatError::NonFinite { tensor, row, value } => {
-                write!(f, "splat: {tensor} row {row} holds a non-finite value ({value})")
-            }
-            SplatError::InvalidCamera(s) => write!(f, "splat: invalid camera: {s}"),
-        }
-    }
-}
-
-impl std::error::Error for SplatError {}

@@ -231,12 +231,7 @@ pub fn tile_rect(center: [f32; 2], radius: f32, tiles: [u32; 2]) -> [u32; 4] {
     let ts = TILE_SIZE as f32;
     let lo = |c: f32, n: u32| ((c - radius) / ts).floor().clamp(0.0, n as f32) as u32;
     let hi = |c: f32, n: u32| (((c + radius) / ts).floor() + 1.0).clamp(0.0, n as f32) as u32;
-    [
-        lo(center[0], tiles[0]),
-        lo(center[1], tiles[1]),
-        hi(center[0], tiles[0]),
-        hi(center[1], tiles[1]),
-    ]
+    [lo(center[0], tiles[0]), lo(center[1], tiles[1]), hi(center[0], tiles[0]), hi(center[1], tiles[1])]
 }
 
 /// Projects one Gaussian; `None` when it is culled (behind the near plane, beyond the far plane,
@@ -272,10 +267,7 @@ pub fn project_backward(
     let Some((f, _)) = forward_parts(cam, mean, log_scale, quat, opacity_logit) else {
         return GaussianGrad::default();
     };
-    let mut out = GaussianGrad {
-        opacity_logit: g.opacity * f.opacity * (1.0 - f.opacity),
-        ..Default::default()
-    };
+    let mut out = GaussianGrad { opacity_logit: g.opacity * f.opacity * (1.0 - f.opacity), ..Default::default() };
     let z = f.p[2];
     // conic -> covariance: dL/dSigma = -Sigma^-1 G Sigma^-1 with G = [[ga, gb/2], [gb/2, gc]].
     let [ia, ib, ic] = f.conic;
@@ -361,8 +353,7 @@ pub fn project_backward(
                 + zq * dr[2][0]
                 + w * dr[2][1]
                 - 2.0 * x * dr[2][2]),
-            2.0 * (-2.0 * y * dr[0][0] + x * dr[0][1] + w * dr[0][2] + x * dr[1][0] + zq * dr[1][2]
-                - w * dr[2][0]
+            2.0 * (-2.0 * y * dr[0][0] + x * dr[0][1] + w * dr[0][2] + x * dr[1][0] + zq * dr[1][2] - w * dr[2][0]
                 + zq * dr[2][1]
                 - 2.0 * y * dr[2][2]),
             2.0 * (-2.0 * zq * dr[0][0] - w * dr[0][1] + x * dr[0][2] + w * dr[1][0] - 2.0 * zq * dr[1][1]

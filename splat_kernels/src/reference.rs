@@ -26,7 +26,6 @@ fn in_rect(r: &[i64; 4], tx: i64, ty: i64) -> bool {
     tx >= r[0] && tx < r[2] && ty >= r[1] && ty < r[3]
 }
 
-
 fn project_one(inp: &SplatInputsRef, cam: &Camera, cfg: &RasterConfig, i: usize) -> Option<RefGaussian> {
     let f = |v: f32| v as f64;
     let mean = DVec3::new(f(inp.means[3 * i]), f(inp.means[3 * i + 1]), f(inp.means[3 * i + 2]));

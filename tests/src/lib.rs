@@ -11,6 +11,7 @@ pub use model::rng::Rng;
 pub type Scene = splat_kernels::ext::HostInputs;
 
 /// Test conveniences on [`Scene`].
+#[allow(clippy::len_without_is_empty)]
 pub trait SceneExt {
     fn len(&self) -> usize;
     fn inputs(&self) -> SplatInputsRef<'_>;
@@ -30,11 +31,7 @@ impl SceneExt for Scene {
         self.as_ref()
     }
     fn empty(channels: usize) -> Self {
-        Self {
-            background: vec![0.25; channels],
-            channels,
-            ..Default::default()
-        }
+        Self { background: vec![0.25; channels], channels, ..Default::default() }
     }
     fn push(&mut self, mean: [f32; 3], log_scale: [f32; 3], quat: [f32; 4], logit: f32, feat: &[f32]) {
         assert_eq!(feat.len(), self.channels);
@@ -161,7 +158,7 @@ pub fn fuzz_scene(seed: u64) -> Scene {
         let z = pick(&mut r, &depth);
         let f: Vec<f32> = (0..c).map(|_| pick(&mut r, &feat)).collect();
         let mut m = [pick(&mut r, &pos) * 1e-3, pick(&mut r, &pos) * 1e-3, z];
-        if seed % 3 == 0 {
+        if seed.is_multiple_of(3) {
             // Keep some centres on screen so the extreme shapes are actually rasterised.
             m = [r.range(-0.5, 0.5) * z.abs(), r.range(-0.5, 0.5) * z.abs(), z];
         }
@@ -202,4 +199,3 @@ pub fn wgpu_device() -> Option<Device> {
         }
     }
 }
-

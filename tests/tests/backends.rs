@@ -43,12 +43,7 @@ fn render_and_grad_with(
     let bg = bg.require_grad();
     let n = scene.len();
     let offsets = Tensor::<2>::zeros([n, 2], device).require_grad();
-    let opts = SplatOptions {
-        config: cfg,
-        validate: true,
-        screen_offsets: Some(offsets.clone()),
-        max_pass_bytes,
-    };
+    let opts = SplatOptions { config: cfg, validate: true, screen_offsets: Some(offsets.clone()), max_pass_bytes };
     let out = splat(&g, cam, bg.clone(), &opts).expect("valid inputs");
     let (h, w, c) = (cam.height as usize, cam.width as usize, scene.channels);
     let mut r = Rng::new(seed);
@@ -172,7 +167,7 @@ fn screen_gradient_accumulator_collects_per_view_norms() {
     for i in 0..scene.len() {
         assert!((acc.norm_sum[i] - expected[i]).abs() <= 1e-6 * expected[i].max(1.0));
     }
-    assert!(acc.count.iter().any(|&c| c == 2), "visible Gaussians are counted in both views");
+    assert!(acc.count.contains(&2), "visible Gaussians are counted in both views");
     assert!(acc.mean().iter().zip(&acc.norm_sum).all(|(m, s)| *m <= *s + 1e-9));
 }
 
@@ -184,10 +179,7 @@ fn ndarray_api_rejects_bad_input_with_clear_errors() {
     scene.log_scales[5] = f32::NAN;
     let (g, bg) = scene.gaussians(&device);
     let err = splat(&g, &cam, bg, &SplatOptions::default()).unwrap_err();
-    assert!(
-        matches!(err, SplatError::NonFinite { tensor: "log_scales", row: 1, value } if value.is_nan()),
-        "{err:?}"
-    );
+    assert!(matches!(err, SplatError::NonFinite { tensor: "log_scales", row: 1, value } if value.is_nan()), "{err:?}");
     assert_eq!(err.to_string(), "splat: log_scales row 1 holds a non-finite value (NaN)");
     let scene = random_scene(4, 3, &cam, 2);
     let (g, _) = scene.gaussians(&device);
@@ -222,13 +214,7 @@ fn wgpu_matches_ndarray_forward_backward_and_hard_cases() {
         let ids: Vec<i32> = out.top_id.into_data().convert::<i32>().to_vec::<i32>().unwrap();
         let (gn, bgn) = scene.gaussians(&nd);
         let want = splat(&gn, &cam, bgn, &SplatOptions::default()).unwrap();
-        let fast = cpu::ForwardOut {
-            image: feats,
-            alpha,
-            depth,
-            top_id: ids,
-            ..Default::default()
-        };
+        let fast = cpu::ForwardOut { image: feats, alpha, depth, top_id: ids, ..Default::default() };
         // Pixels where f32 rounding may flip a threshold are taken from the wgpu result.
         let r = reference::render(&scene.inputs(), &cam, &cfg);
         let masked = masked_reference(&r, &fast, c);

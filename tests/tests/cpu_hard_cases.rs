@@ -49,7 +49,11 @@ fn one(mean: [f32; 3], ls: [f32; 3], q: [f32; 4], logit: f32, c: usize) -> Scene
 #[test]
 fn degenerate_quaternions_use_the_identity_policy() {
     let cam = front_camera(33, 29, 30.0);
-    let identity = cpu::forward(&one([0.1, 0.0, 3.0], [-1.0, -2.0, -1.5], [1.0, 0.0, 0.0, 0.0], 1.0, 3).inputs(), &cam, &RasterConfig::default());
+    let identity = cpu::forward(
+        &one([0.1, 0.0, 3.0], [-1.0, -2.0, -1.5], [1.0, 0.0, 0.0, 0.0], 1.0, 3).inputs(),
+        &cam,
+        &RasterConfig::default(),
+    );
     for q in [[0.0f32; 4], [1e-40, 0.0, -1e-41, 0.0], [1e-13, 1e-13, 0.0, 0.0]] {
         let s = one([0.1, 0.0, 3.0], [-1.0, -2.0, -1.5], q, 1.0, 3);
         let (f, g) = run(&s, &cam);

@@ -146,7 +146,13 @@ fn gradients_match_finite_differences_with_a_rotated_camera_and_clamped_jacobian
     let mut r = Rng::new(5);
     for _ in 0..5 {
         let m = [r.range(-0.7, 0.7), r.range(-0.7, 0.7), r.range(0.5, 1.5)];
-        scene.push(m, [r.range(-2.0, -1.2); 3], [r.normal(), r.normal(), r.normal(), r.normal()], r.range(-1.0, 1.0), &[r.f(), r.f()]);
+        scene.push(
+            m,
+            [r.range(-2.0, -1.2); 3],
+            [r.normal(), r.normal(), r.normal(), r.normal()],
+            r.range(-1.0, 1.0),
+            &[r.f(), r.f()],
+        );
     }
     // One Gaussian far off-axis (beyond the 1.3 x tan(fov/2) clamp) but wide enough to reach the image.
     let c2w = cam.world_to_cam.inverse();

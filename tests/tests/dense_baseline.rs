@@ -48,7 +48,8 @@ fn dense_burn_ops_forward_and_gradients_match_the_kernels() {
     let loss = (f * Tensor::<2>::from_data(TensorData::new(wf.clone(), [hw, 3]), &ad)).sum();
     let grads = loss.backward();
     let fw = cpu::forward(&scene.inputs(), &cam, &cfg);
-    let want = cpu::backward(&scene.inputs(), &cam, &cfg, &fw.final_t, &fw.n_visited, &wf, &vec![0.0; hw], &vec![0.0; hw]);
+    let want =
+        cpu::backward(&scene.inputs(), &cam, &cfg, &fw.final_t, &fw.n_visited, &wf, &vec![0.0; hw], &vec![0.0; hw]);
     for (name, got, want) in [
         ("features", host(g.features.grad(&grads).unwrap()), want.features),
         ("opacity", host(g.opacity_logits.grad(&grads).unwrap()), want.opacity_logits),

@@ -5,14 +5,20 @@
 
 use burn::tensor::{Device, Tensor, TensorData};
 use chatsplat_tests::{host, temp_dir};
-use model::splats::SplatModel;
-use train::data::nerfstudio::{load, Dataset, LoadOptions};
-use train::geometry::{ssim, view_at, GeometryConfig, GeometryTrainer};
+use model::data::nerfstudio::{Dataset, LoadOptions, load};
+use model::run::GeometryRun;
+use model::splats::{SplatModel, SplatParams};
+use train::geometry::{GeometryConfig, GeometryTrainer, data_ref, ssim, view_at};
+
+/// The tensors of a model in name order, on the host.
+fn rows(m: &SplatModel) -> Vec<Vec<f32>> {
+    m.tensors().into_named().into_iter().map(|(_, t)| host(t)).collect()
+}
 
 fn tiny_scene(tag: &str, views: usize) -> Dataset {
     let dir = temp_dir(tag);
-    let opts = train::data::synth::SynthOptions { views, width: 48, height: 40, ..Default::default() };
-    train::data::synth::write_dataset(&dir, &opts, |_, _| {}).unwrap();
+    let opts = model::data::synth::SynthOptions { views, width: 48, height: 40, ..Default::default() };
+    model::data::synth::write_dataset(&dir, &opts, |_, _| {}).unwrap();
     load(&dir, &LoadOptions { holdout_every: 8, ..Default::default() }).unwrap()
 }
 
@@ -61,7 +67,15 @@ fn short_training_raises_psnr_and_learns_identity() {
     train(&mut t, &ds, 150);
     let after = t.evaluate(&ds.train).unwrap();
     let held = t.evaluate(&ds.test).unwrap();
-    eprintln!("PSNR {:.2} -> {:.2} dB (held-out {:.2}), mIoU {:?} -> {:?}, N {n0} -> {}", before.psnr, after.psnr, held.psnr, before.miou, after.miou, t.model.len());
+    eprintln!(
+        "PSNR {:.2} -> {:.2} dB (held-out {:.2}), mIoU {:?} -> {:?}, N {n0} -> {}",
+        before.psnr,
+        after.psnr,
+        held.psnr,
+        before.miou,
+        after.miou,
+        t.model.len()
+    );
     // Deterministic run (CPU path): measured 14.65 -> 18.62 dB, mIoU 0.14 -> 0.83.
     assert!(after.psnr > before.psnr + 3.0, "PSNR {} -> {}", before.psnr, after.psnr);
     assert!(after.miou.unwrap() > 0.6, "mIoU {:?}", after.miou);
@@ -73,23 +87,23 @@ fn short_training_raises_psnr_and_learns_identity() {
 fn checkpoint_resume_gives_the_same_parameters() {
     let ds = tiny_scene("geo-resume", 6);
     let dev = Device::ndarray();
-    let dir = temp_dir("geo-resume-run");
+    let run = GeometryRun::new(temp_dir("geo-resume-run"));
+    let data = data_ref(std::path::Path::new("scene"), &LoadOptions::default(), &run);
     let mut a = GeometryTrainer::new(&ds, cfg(80), &dev).unwrap();
     train(&mut a, &ds, 25);
-    a.save(&dir).unwrap();
+    a.save(&run, &data).unwrap();
     train(&mut a, &ds, 15); // crosses a densification step (iteration 30)
-    let mut b = GeometryTrainer::load(&dir, &dev).unwrap();
+    let (mut b, stored) = GeometryTrainer::load(&run, &dev).unwrap();
     assert_eq!(b.iter, 25);
+    assert_eq!(stored, data);
     train(&mut b, &ds, 15);
     assert_eq!(a.model.len(), b.model.len());
-    for (x, y) in a.model.tensors().into_iter().zip(b.model.tensors()) {
-        assert_eq!(host(x), host(y), "resumed run diverged");
-    }
+    assert_eq!(rows(&a.model), rows(&b.model), "resumed run diverged");
     // A damaged checkpoint is a clear error, not a panic.
-    let ck = dir.join("checkpoint.safetensors");
+    let ck = run.checkpoint();
     let len = std::fs::metadata(&ck).unwrap().len();
     std::fs::OpenOptions::new().write(true).open(&ck).unwrap().set_len(len / 2).unwrap();
-    let e = GeometryTrainer::load(&dir, &dev).err().unwrap();
+    let e = GeometryTrainer::load(&run, &dev).err().unwrap().to_string();
     assert!(e.contains("checkpoint.safetensors"), "{e}");
 }
 
@@ -102,11 +116,15 @@ fn densification_keeps_adam_moments_aligned() {
     let mut t = GeometryTrainer::new(&ds, c, &dev).unwrap();
     train(&mut t, &ds, 5);
     let n = t.model.len();
-    let before: Vec<Vec<f32>> = t.model.tensors()[..7].iter().map(|x| host(x.clone())).collect();
+    let names = &SplatParams::<()>::NAMES[..7];
+    let before: Vec<Vec<f32>> = rows(&t.model)[..7].to_vec();
     // Parameters that got gradients have Adam state (sh_rest is unused at SH degree 0).
-    let tracked: Vec<usize> = (0..7).filter(|&p| t.states[p].is_some()).collect();
+    let tracked: Vec<usize> = (0..7).filter(|&p| t.states.get(names[p]).is_some()).collect();
     assert!(tracked.contains(&0) && tracked.contains(&3) && tracked.contains(&6), "{tracked:?}");
-    let m1: Vec<Vec<f32>> = (0..7).map(|p| t.states[p].as_ref().map(|s| host(s.momentum.moment_1.clone())).unwrap_or_default()).collect();
+    let moment = |t: &GeometryTrainer, p: usize| -> Vec<f32> {
+        t.states.get(names[p]).map(|s| host(s.momentum.moment_1.clone())).unwrap_or_default()
+    };
+    let m1: Vec<Vec<f32>> = (0..7).map(|p| moment(&t, p)).collect();
     // Gaussian 0: large gradient + small -> clone; 1: large gradient + big -> split; 2: transparent -> pruned.
     t.screen.norm_sum = vec![0.0; n];
     t.screen.count = vec![1; n];
@@ -116,20 +134,19 @@ fn densification_keeps_adam_moments_aligned() {
     let mut ls = before[1].clone();
     ls[0..3].copy_from_slice(&[-9.0; 3]);
     ls[3..6].copy_from_slice(&[2.0; 3]);
-    tensors[1] = Tensor::from_data(TensorData::new(ls.clone(), [n, 3]), &dev);
+    tensors.log_scales = Tensor::from_data(TensorData::new(ls.clone(), [n, 3]), &dev);
     let mut op = before[3].clone();
     op[2] = -20.0;
-    tensors[3] = Tensor::from_data(TensorData::new(op, [n, 1]), &dev);
+    tensors.opacity_logits = Tensor::from_data(TensorData::new(op, [n, 1]), &dev);
     t.model = SplatModel::from_tensors(tensors);
     t.densify(false);
     let m = t.model.len();
     assert_eq!(m, n + 1, "clone adds one, split replaces one by two, prune removes one");
-    let after: Vec<Vec<f32>> = t.model.tensors()[..7].iter().map(|x| host(x.clone())).collect();
-    let m1_after: Vec<Vec<f32>> = (0..7).map(|p| t.states[p].as_ref().map(|s| host(s.momentum.moment_1.clone())).unwrap_or_default()).collect();
-    let widths = SplatModel::row_widths();
+    let after: Vec<Vec<f32>> = rows(&t.model)[..7].to_vec();
+    let m1_after: Vec<Vec<f32>> = (0..7).map(|p| moment(&t, p)).collect();
     // Output order: kept 0, clone of 0, split children of 1 (x2), then 3.. kept (2 pruned).
     for p in 0..7 {
-        let w = widths[p];
+        let w = SplatParams::<()>::row_width(names[p]);
         assert_eq!(after[p].len(), m * w);
         assert_eq!(&after[p][4 * w..], &before[p][3 * w..]);
         if !tracked.contains(&p) {
@@ -158,15 +175,13 @@ fn ply_export_import_round_trips_bit_exactly() {
     let back = model::ply::read(&path).unwrap();
     assert_eq!(back, cloud);
     let m2 = SplatModel::from_cloud(&back, Some(&cls), t.model.num_classes(), &dev);
-    for (x, y) in t.model.tensors().into_iter().zip(m2.tensors()) {
-        assert_eq!(host(x), host(y));
-    }
+    assert_eq!(rows(&t.model), rows(&m2));
 }
 
 #[test]
 fn colmap_points_initialise_the_gaussians() {
-    use train::data::colmap::SparsePoints;
-    use train::geometry::{initial_cloud, SceneExtent};
+    use model::data::colmap::SparsePoints;
+    use train::geometry::{SceneExtent, initial_cloud};
     let ds = tiny_scene("geo-init", 3);
     let pts = SparsePoints { xyz: vec![[0.1, 0.2, 0.3], [-1.0, 0.5, 2.0]], rgb: vec![[255, 0, 0], [0, 128, 255]] };
     let cams: Vec<_> = ds.train.iter().map(|v| &v.camera).collect();
@@ -178,8 +193,9 @@ fn colmap_points_initialise_the_gaussians() {
     // every initial point lies inside the table's footprint (x, z within the table half-size) or above it.
     let d = initial_cloud(&ds.train, None, &SceneExtent::from_cameras(&cams), &cfg(1));
     assert!(d.len() > 100);
-    let half = model::synthetic::TABLE_HALF;
-    let inside = d.means.iter().filter(|m| m[0].abs() <= half * 1.05 + 0.05 && m[2].abs() <= half * 1.05 + 0.05).count();
+    let half = model::data::synth::scene::TABLE_HALF;
+    let inside =
+        d.means.iter().filter(|m| m[0].abs() <= half * 1.05 + 0.05 && m[2].abs() <= half * 1.05 + 0.05).count();
     assert!(inside as f32 > 0.95 * d.len() as f32, "{inside} of {} depth points on the table", d.len());
 }
 

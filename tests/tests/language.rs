@@ -7,11 +7,13 @@
 use burn::tensor::{Device, Tensor, TensorData};
 use chatsplat_tests::{host, temp_dir};
 use glam::{Vec3, Vec4};
-use model::language::{object_box, Encoder, LanguageConfig, LanguageField};
+use model::language::{Encoder, LanguageConfig, LanguageField, object_box};
 use model::rng::Rng;
+use model::run::{GeometryRun, LanguageRun, TeacherDir};
 use model::vlm::{GenerateOptions, LlavaOnevision};
 use std::path::{Path, PathBuf};
-use train::language::{run, LanguageTrainConfig, LanguageTrainer, TeacherSet};
+use train::language::{LanguageTrainConfig, LanguageTrainer, run};
+use train::teacher::TeacherSet;
 
 fn fixture() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../checkpoints/tiny-llava-ov")
@@ -25,11 +27,24 @@ fn random_map(h: usize, w: usize, c: usize, seed: u64, dev: &Device) -> Tensor<3
 #[test]
 fn encoder_equals_a_plain_convolution_loop() {
     let dev = Device::ndarray();
-    let cfg = LanguageConfig { view_channels: 2, object_channels: 2, hidden: 3, dim: 4, grid: 2, patch: 3, teacher_image: 28, teacher_patch: 14, ..Default::default() };
+    let cfg = LanguageConfig {
+        view_channels: 2,
+        object_channels: 2,
+        hidden: 3,
+        dim: 4,
+        grid: 2,
+        patch: 3,
+        teacher_image: 28,
+        teacher_patch: 14,
+        ..Default::default()
+    };
     let mut enc = Encoder::new(&cfg, 5, &dev);
     let mut r = Rng::new(9);
     let t = cfg.tokens();
-    enc.scale = Some(burn::module::Param::from_tensor(Tensor::from_data(TensorData::new((0..t * 4).map(|_| r.normal()).collect::<Vec<f32>>(), [t, 4]), &dev)));
+    enc.scale = Some(burn::module::Param::from_tensor(Tensor::from_data(
+        TensorData::new((0..t * 4).map(|_| r.normal()).collect::<Vec<f32>>(), [t, 4]),
+        &dev,
+    )));
     let (h, w, c) = (6, 6, 2);
     let map = random_map(h, w, c, 1, &dev);
     let got = host(enc.forward(map.clone()));
@@ -47,7 +62,8 @@ fn encoder_equals_a_plain_convolution_loop() {
     let gelu = |x: f32| 0.5 * x * (1.0 + erf(x / 2f32.sqrt()));
     let mut lifted = vec![0f32; h * w * 4];
     for p in 0..h * w {
-        let hid: Vec<f32> = (0..w0d[1]).map(|j| gelu(b0[j] + (0..c).map(|i| m[p * c + i] * w0[i * w0d[1] + j]).sum::<f32>())).collect();
+        let hid: Vec<f32> =
+            (0..w0d[1]).map(|j| gelu(b0[j] + (0..c).map(|i| m[p * c + i] * w0[i * w0d[1] + j]).sum::<f32>())).collect();
         for o in 0..4 {
             lifted[p * 4 + o] = b1[o] + (0..w1d[0]).map(|j| hid[j] * w1[j * 4 + o]).sum::<f32>();
         }
@@ -66,7 +82,12 @@ fn encoder_equals_a_plain_convolution_loop() {
                 }
                 let k = (ty * 2 + tx) * 4 + o;
                 let want = acc * a[k] + b[k];
-                assert!((got[k] - want).abs() < 1e-4 * (1.0 + want.abs()), "token {} ch {o}: {} vs {want}", ty * 2 + tx, got[k]);
+                assert!(
+                    (got[k] - want).abs() < 1e-4 * (1.0 + want.abs()),
+                    "token {} ch {o}: {} vs {want}",
+                    ty * 2 + tx,
+                    got[k]
+                );
             }
         }
     }
@@ -75,7 +96,10 @@ fn encoder_equals_a_plain_convolution_loop() {
 /// Abramowitz-Stegun 7.1.26 (|error| < 1.5e-7).
 fn erf(x: f32) -> f32 {
     let t = 1.0 / (1.0 + 0.327_591_1 * x.abs());
-    let y = 1.0 - (((((1.061_405_4 * t - 1.453_152_1) * t) + 1.421_413_7) * t - 0.284_496_74) * t + 0.254_829_6) * t * (-x * x).exp();
+    let y = 1.0
+        - (((((1.061_405_4 * t - 1.453_152_1) * t) + 1.421_413_7) * t - 0.284_496_74) * t + 0.254_829_6)
+            * t
+            * (-x * x).exp();
     if x >= 0.0 { y } else { -y }
 }
 
@@ -93,7 +117,10 @@ fn token_cameras_frame_what_the_teacher_saw() {
         let (u, v) = project(&cam, p);
         let (u2, v2) = project(&vc, p);
         // the teacher resizes the view to 384x384; its tokens (and our map) cover the top-left 378
-        assert!((u2 - u * 384.0 / 160.0).abs() < 1e-2 && (v2 - v * 384.0 / 120.0).abs() < 1e-2, "({u},{v}) -> ({u2},{v2})");
+        assert!(
+            (u2 - u * 384.0 / 160.0).abs() < 1e-2 && (v2 - v * 384.0 / 120.0).abs() < 1e-2,
+            "({u},{v}) -> ({u2},{v2})"
+        );
     }
     // object crop: a 40x20 box is padded to a 40x40 square centred on it, scaled to 384
     let bbox = [50, 30, 90, 50];
@@ -117,12 +144,20 @@ fn token_cameras_frame_what_the_teacher_saw() {
 #[test]
 fn encoder_export_round_trips_bit_exactly_in_conv_layout() {
     let dev = Device::ndarray();
-    let cfg = LanguageConfig { view_channels: 3, object_channels: 3, hidden: 5, dim: 6, grid: 3, patch: 2, ..Default::default() };
+    let cfg = LanguageConfig {
+        view_channels: 3,
+        object_channels: 3,
+        hidden: 5,
+        dim: 6,
+        grid: 3,
+        patch: 2,
+        ..Default::default()
+    };
     let field = LanguageField::new(&cfg, 4, 11, &dev);
     let path = temp_dir("enc-export").with_extension("safetensors");
-    let params = train::export::write_encoder(&path, &field.encoder, &cfg, "tiny").unwrap();
+    let params = model::language::export::write_encoder(&path, &field.encoder, &cfg, "tiny").unwrap();
     assert_eq!(params, 3 * 5 + 5 + 5 * 6 + 6 + 2 * 2 * 6 * 6 + 6 + 4 * 9 * 6); // lift, patch, two (a, b) pairs
-    let (back, cfg2) = train::export::read_encoder(&path, &dev).unwrap();
+    let (back, cfg2) = model::language::export::read_encoder(&path, &dev).unwrap();
     assert_eq!(cfg2.dim, 6);
     assert_eq!(cfg2.patch, 2);
     let map = random_map(6, 6, 3, 4, &dev);
@@ -139,17 +174,17 @@ fn encoder_export_round_trips_bit_exactly_in_conv_layout() {
     }
     let bad = temp_dir("enc-export-bad").with_extension("safetensors");
     std::fs::write(&bad, b"garbage").unwrap();
-    let e = train::export::read_encoder(&bad, &dev).err().unwrap();
+    let e = model::language::export::read_encoder(&bad, &dev).err().unwrap().to_string();
     assert!(e.contains(&bad.display().to_string()), "{e}");
 }
 
 /// Geometry run + teacher tokens of a tiny synthetic scene (shared by the end-to-end test).
 fn scene_with_teacher(tag: &str) -> (PathBuf, PathBuf, LlavaOnevision) {
-    use train::data::nerfstudio::{load, LoadOptions};
-    use train::geometry::{view_at, GeometryConfig, GeometryTrainer};
+    use model::data::nerfstudio::{LoadOptions, load};
+    use train::geometry::{GeometryConfig, GeometryTrainer, data_ref, view_at, write_cameras};
     let data = temp_dir(&format!("{tag}-data"));
-    let opts = train::data::synth::SynthOptions { views: 14, width: 64, height: 56, ..Default::default() };
-    train::data::synth::write_dataset(&data, &opts, |_, _| {}).unwrap();
+    let opts = model::data::synth::SynthOptions { views: 14, width: 64, height: 56, ..Default::default() };
+    model::data::synth::write_dataset(&data, &opts, |_, _| {}).unwrap();
     let ds = load(&data, &LoadOptions::default()).unwrap();
     let dev = Device::ndarray();
     let cfg = GeometryConfig {
@@ -171,10 +206,12 @@ fn scene_with_teacher(tag: &str) -> (PathBuf, PathBuf, LlavaOnevision) {
         g.step(v).unwrap();
     }
     let run_dir = temp_dir(&format!("{tag}-run"));
-    g.save(&run_dir).unwrap();
+    let run = GeometryRun::new(&run_dir);
+    g.save(&run, &data_ref(&data, &LoadOptions::default(), &run)).unwrap();
+    write_cameras(&run, &ds).unwrap();
     let vlm = LlavaOnevision::load(&fixture(), &dev).unwrap();
     let teacher = temp_dir(&format!("{tag}-teacher"));
-    train::teacher::extract(&vlm, &data, &teacher, &Default::default(), |_| {}, |_, _| {}).unwrap();
+    train::teacher::extract(&vlm, &data, &TeacherDir::new(&teacher), &Default::default(), |_| {}, |_, _| {}).unwrap();
     (run_dir, teacher, vlm)
 }
 
@@ -193,13 +230,17 @@ fn end_to_end_language_field_chat_and_export() {
     let dev = Device::ndarray();
     let (run_dir, teacher_dir, vlm) = scene_with_teacher("lang-e2e");
     let teacher = TeacherSet::open(&teacher_dir).unwrap();
-    assert_eq!(teacher.grid, 27);
+    assert_eq!(teacher.index.grid, 27);
+    let geometry = GeometryRun::new(&run_dir);
     assert!(teacher.views.iter().all(|v| !v.objects.is_empty()), "every synthetic view shows objects");
 
     // --- training: the token L1 on training views must fall
     let lang_dir = run_dir.join("language");
-    let s = run(&run_dir, &teacher_dir, &lang_dir, lang_cfg(100), &dev, false, |_| {}).unwrap();
-    eprintln!("token L1 view {:.4} -> {:.4}, object {:.4} -> {:.4}, {:.3} s/iter, {} of {} Gaussians used", s.before.0, s.after.0, s.before.1, s.after.1, s.seconds_per_iter, s.gaussians_used, s.gaussians);
+    let s = run(&geometry, &teacher_dir, &LanguageRun::new(&lang_dir), lang_cfg(100), &dev, false, |_| {}).unwrap();
+    eprintln!(
+        "token L1 view {:.4} -> {:.4}, object {:.4} -> {:.4}, {:.3} s/iter, {} of {} Gaussians used",
+        s.before.0, s.after.0, s.before.1, s.after.1, s.seconds_per_iter, s.gaussians_used, s.gaussians
+    );
     // The scaling adjustment starts at the teacher's per-token mean and per-channel spread, so
     // `before` is already the "predict the mean" error; falling below it means the field carries
     // what differs between views and objects. Measured (paper lr 0.05, 30 warm-up iterations):
@@ -209,17 +250,17 @@ fn end_to_end_language_field_chat_and_export() {
     assert!(s.gaussians_used > 0 && s.gaussians_used <= s.gaussians);
 
     // --- resume: 40 + 20 iterations == the state after 60 uninterrupted iterations
-    let mut a = LanguageTrainer::new(&run_dir, teacher.clone(), lang_cfg(60), &dev).unwrap();
+    let mut a = LanguageTrainer::new(&geometry, teacher.clone(), lang_cfg(60), &dev).unwrap();
     let order: Vec<usize> = (0..60).map(|i| train::geometry::view_at(i, a.views.len(), 0)).collect();
     for &v in &order[..40] {
         a.step(v).unwrap();
     }
-    let ck = temp_dir("lang-e2e-resume");
+    let ck = LanguageRun::new(temp_dir("lang-e2e-resume"));
     a.save(&ck).unwrap();
     for &v in &order[40..] {
         a.step(v).unwrap();
     }
-    let mut b = LanguageTrainer::resume(&run_dir, &ck, &dev).unwrap();
+    let mut b = LanguageTrainer::resume(&geometry, &ck, &dev).unwrap();
     assert_eq!(b.iter, 40);
     for &v in &order[40..] {
         b.step(v).unwrap();
@@ -229,19 +270,23 @@ fn end_to_end_language_field_chat_and_export() {
     }
 
     // --- object picking on held-out views: the rendered identity under GT-mask pixels
-    let session = eval::chat::ChatSession::open(&run_dir, None, &fixture(), &dev).unwrap();
+    let session = model::chat::ChatSession::open(&geometry, None, &fixture(), &dev).unwrap();
     let ds = teacher.dataset().unwrap();
     assert!(!ds.test.is_empty());
     let (mut right, mut total) = (0, 0);
     for (k, v) in ds.test.iter().enumerate() {
         let gt = v.instance_ids.as_ref().unwrap();
         let (w, h) = (v.camera.width as usize, v.camera.height as usize);
-        let ids = session.scene.identity(&v.camera).unwrap();
+        let ids = session.scene.render(&v.camera).unwrap().ids;
         for y in 2..h - 2 {
             for x in 2..w - 2 {
                 let id = gt[y * w + x];
                 // interior pixels of objects (not the table or the background)
-                if id < train::data::synth::FIRST_OBJECT_ID || [(0, 2), (2, 0), (0, -2), (-2, 0)].iter().any(|&(dx, dy)| gt[(y as i32 + dy) as usize * w + (x as i32 + dx) as usize] != id) {
+                if id < model::data::synth::FIRST_OBJECT_ID
+                    || [(0, 2), (2, 0), (0, -2), (-2, 0)]
+                        .iter()
+                        .any(|&(dx, dy)| gt[(y as i32 + dy) as usize * w + (x as i32 + dx) as usize] != id)
+                {
                     continue;
                 }
                 total += 1;
@@ -250,7 +295,7 @@ fn end_to_end_language_field_chat_and_export() {
         }
         // the click API agrees for one pixel of the first object
         if k == 0 {
-            let p = (0..w * h).find(|&p| gt[p] >= train::data::synth::FIRST_OBJECT_ID && ids[p] == gt[p]).unwrap();
+            let p = (0..w * h).find(|&p| gt[p] >= model::data::synth::FIRST_OBJECT_ID && ids[p] == gt[p]).unwrap();
             let picked = session.scene.pick(&v.camera, p % w, p / w).unwrap().unwrap();
             assert_eq!(picked.0, gt[p]);
         }
@@ -259,16 +304,21 @@ fn end_to_end_language_field_chat_and_export() {
     assert!(total > 50 && right as f32 >= 0.9 * total as f32, "{right}/{total}");
 
     // --- chat at the three levels: tokens reach the LLM and a generation comes back
-    use eval::chat::Target;
+    use model::chat::Target;
     let opts = GenerateOptions { max_new_tokens: 4, ignore_stop: true, ..Default::default() };
     let first = ds.train[0].instance_ids.as_ref().unwrap();
     let w0 = ds.train[0].camera.width as usize;
-    let p = (0..first.len()).find(|&p| first[p] >= train::data::synth::FIRST_OBJECT_ID).unwrap();
-    let tagged = |n: usize| vlm.tokenizer.encode(&model::vlm::chat_template(&[model::vlm::Turn::user(n, "What is this?")], true)).unwrap().len();
+    let p = (0..first.len()).find(|&p| first[p] >= model::data::synth::FIRST_OBJECT_ID).unwrap();
+    let tagged = |n: usize| {
+        vlm.tokenizer
+            .encode(&model::vlm::chat_template(&[model::vlm::Turn::user(n, "What is this?")], true))
+            .unwrap()
+            .len()
+    };
     for (target, images) in [
         (Target::View(0), 1),
         (Target::Object { view: 0, x: p % w0, y: p / w0 }, 1),
-        (Target::Scene(session.scene_views(3)), 3),
+        (Target::Scene(session.scene_views(3).unwrap()), 3),
     ] {
         let t = session.tokens(&target).unwrap();
         assert_eq!(t.images.len(), images);
@@ -279,28 +329,38 @@ fn end_to_end_language_field_chat_and_export() {
         assert_eq!(g.prompt_tokens, tagged(images) - images + images * 730, "{target:?}");
         assert_eq!(picked.is_some(), matches!(target, Target::Object { .. }));
     }
-    assert_eq!(session.scene_views(3).len(), 3);
+    assert_eq!(session.scene_views(3).unwrap().len(), 3);
     let png = lang_dir.join("picked.png");
     session.show(0, Some(first[p]), &png).unwrap();
     assert!(png.exists());
 
     // --- export: the exported encoder reproduces the tokens bit-exactly
     let out = lang_dir.join("encoder.safetensors");
-    train::export::write_encoder(&out, &session.scene.field.encoder, &session.scene.cfg, "tiny").unwrap();
-    let (enc, _) = train::export::read_encoder(&out, &dev).unwrap();
-    let map = session.scene.render_map(session.scene.field.view_features.val(), &session.scene.cfg.view_camera(&ds.train[1].camera)).unwrap();
+    model::language::export::write_encoder(&out, &session.scene.field.encoder, &session.scene.cfg, "tiny").unwrap();
+    let (enc, _) = model::language::export::read_encoder(&out, &dev).unwrap();
+    let map = session
+        .scene
+        .render_map(session.scene.field.view_features.val(), &session.scene.cfg.view_camera(&ds.train[1].camera))
+        .unwrap();
     assert_eq!(host(enc.forward(map.clone())), host(session.scene.field.encoder.forward(map)));
 }
 
 /// A small language scene on `dev`: the built-in Gaussian tabletop with a fresh field.
-fn small_scene(dev: &Device) -> train::language::LanguageScene {
-    let (cloud, _) = model::synthetic::tabletop(7, 14);
-    let geo = model::splats::SplatModel::from_cloud(&cloud, None, 2, dev);
-    let extent = train::geometry::SceneExtent { center: Vec3::ZERO, radius: 3.0, focus: Vec3::ZERO };
-    let geometry = train::geometry::GeometryTrainer::with_model(geo, Default::default(), extent, dev);
-    let cfg = LanguageConfig { view_channels: 4, object_channels: 4, hidden: 8, dim: 8, grid: 6, patch: 5, teacher_image: 84, ..Default::default() };
+fn small_scene(dev: &Device) -> model::scene::LanguageScene {
+    let (cloud, _) = model::data::synth::gaussians::tabletop(7, 14);
+    let splats = model::splats::SplatModel::from_cloud(&cloud, None, 2, dev);
+    let cfg = LanguageConfig {
+        view_channels: 4,
+        object_channels: 4,
+        hidden: 8,
+        dim: 8,
+        grid: 6,
+        patch: 5,
+        teacher_image: 84,
+        ..Default::default()
+    };
     let field = LanguageField::new(&cfg, cloud.len(), 3, dev);
-    train::language::LanguageScene { cfg, geometry, field, margin: 0.1 }
+    model::scene::LanguageScene { cfg, splats, sh_degree: 0, background: [1.0; 3], field, margin: 0.1 }
 }
 
 #[test]
@@ -312,7 +372,8 @@ fn wgpu_tokens_and_gradients_match_ndarray() {
         let ad = dev.clone().autodiff();
         let feats = s.field.view_features.val().autodiff().require_grad();
         let pw = s.field.encoder.patch_weight.val().autodiff().require_grad();
-        let mut enc = Encoder::from_named(s.field.encoder.named().into_iter().map(|(n, t)| (n, t.autodiff())).collect()).unwrap();
+        let mut enc =
+            Encoder::from_named(s.field.encoder.named().into_iter().map(|(n, t)| (n, t.autodiff())).collect()).unwrap();
         enc.patch_weight = burn::module::Param::from_tensor(pw.clone());
         let map = s.render_map(feats.clone(), &s.cfg.view_camera(&cam)).unwrap();
         let tokens = enc.forward(map);
@@ -327,7 +388,12 @@ fn wgpu_tokens_and_gradients_match_ndarray() {
         let scale = a.iter().map(|x| x.abs()).fold(0f32, f32::max).max(1e-6);
         a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0f32, f32::max) / scale
     };
-    eprintln!("wgpu vs ndarray: tokens {:.2e}, feature grads {:.2e}, patch grads {:.2e}", rel(&t_cpu, &t_gpu), rel(&gf_cpu, &gf_gpu), rel(&gw_cpu, &gw_gpu));
+    eprintln!(
+        "wgpu vs ndarray: tokens {:.2e}, feature grads {:.2e}, patch grads {:.2e}",
+        rel(&t_cpu, &t_gpu),
+        rel(&gf_cpu, &gf_gpu),
+        rel(&gw_cpu, &gw_gpu)
+    );
     assert!(gf_cpu.iter().any(|g| *g != 0.0), "some features receive gradient");
     assert!(rel(&t_cpu, &t_gpu) < 1e-4);
     assert!(rel(&gf_cpu, &gf_gpu) < 1e-3);

@@ -5,18 +5,12 @@
 #![allow(deprecated)]
 
 use chatsplat_tests::temp_dir;
+use model::data::nerfstudio::{LoadOptions, load};
+use model::data::synth::{self, SynthOptions};
 use std::path::{Path, PathBuf};
-use train::data::nerfstudio::{LoadOptions, load};
-use train::data::synth::{self, SynthOptions};
 
 fn synth_dir(tag: &str) -> (PathBuf, SynthOptions) {
-    let o = SynthOptions {
-        seed: 5,
-        views: 6,
-        width: 48,
-        height: 40,
-        ..Default::default()
-    };
+    let o = SynthOptions { seed: 5, views: 6, width: 48, height: 40, ..Default::default() };
     let d = temp_dir(tag);
     synth::write_dataset(&d, &o, |_, _| {}).unwrap();
     (d, o)
@@ -27,14 +21,14 @@ fn synthetic_dataset_round_trips_through_the_loader() {
     let (dir, o) = synth_dir("rt");
     let ds = load(&dir, &LoadOptions { holdout_every: 3, ..Default::default() }).unwrap();
     assert_eq!((ds.train.len(), ds.test.len()), (4, 2));
-    let objects = model::synthetic::tabletop_objects(o.seed);
+    let objects = model::data::synth::scene::tabletop_objects(o.seed);
     // Views 2 and 5 are held out.
     for (view, i) in ds.train.iter().zip([0usize, 1, 3, 4]).chain(ds.test.iter().zip([2, 5])) {
         let want = synth::view_camera(i, &o);
         let d = (view.camera.world_to_cam - want.world_to_cam).abs().to_cols_array().into_iter().fold(0.0f32, f32::max);
         assert!(d < 1e-4, "view {i}: pose differs by {d}");
         assert!((view.camera.fx - want.fx).abs() < 1e-3 && (view.camera.cx - want.cx).abs() < 1e-4);
-        let r = synth::render_view(&want, &objects);
+        let r = synth::raycast::render_view(&want, &objects);
         let e = view.rgb.iter().zip(&r.rgb).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
         assert!(e <= 0.5 / 255.0 + 1e-6, "view {i}: image differs by {e}");
         assert_eq!(view.instance_ids.as_ref().unwrap(), &r.ids);
@@ -51,7 +45,7 @@ fn synthetic_dataset_round_trips_through_the_loader() {
 }
 
 fn expect_err(dir: &Path, needle: &str) {
-    let e = load(dir, &LoadOptions::default()).unwrap_err();
+    let e = load(dir, &LoadOptions::default()).unwrap_err().to_string();
     assert!(e.contains(needle), "expected `{needle}` in: {e}");
 }
 
@@ -125,7 +119,9 @@ fn fox_jpegs_from_shared_datasets_decode() {
             })
         })
         .collect();
-    let tf = serde_json::json!({ "fl_x": 1375.52, "fl_y": 1374.49, "cx": 554.558, "cy": 965.268, "w": 1080, "h": 1920, "frames": frames });
+    let tf = serde_json::json!({
+        "fl_x": 1375.52, "fl_y": 1374.49, "cx": 554.558, "cy": 965.268, "w": 1080, "h": 1920, "frames": frames
+    });
     std::fs::write(dir.join("transforms.json"), tf.to_string()).unwrap();
     let mean = |rgb: &[f32]| -> [f32; 3] {
         let n = (rgb.len() / 3) as f32;
@@ -181,7 +177,10 @@ fn undistort(xd: f64, yd: f64) -> (f64, f64) {
         (x, y) = ((xd - tx) / radial, (yd - ty) / radial);
     }
     let (cx, cy) = distort(x, y);
-    assert!((cx - xd).abs() < 1e-9 && (cy - yd).abs() < 1e-9, "fixed-point undistortion did not converge at ({xd}, {yd})");
+    assert!(
+        (cx - xd).abs() < 1e-9 && (cy - yd).abs() < 1e-9,
+        "fixed-point undistortion did not converge at ({xd}, {yd})"
+    );
     (x, y)
 }
 
@@ -201,7 +200,14 @@ fn normalised(i: u32, j: u32) -> (f64, f64) {
 
 /// [`pattern`] on the undistorted pinhole grid: `[DH, DW, 3]`.
 fn pinhole_image() -> Vec<f32> {
-    (0..DH).flat_map(|j| (0..DW).flat_map(move |i| { let (x, y) = normalised(i, j); pattern(x, y) })).collect()
+    (0..DH)
+        .flat_map(|j| {
+            (0..DW).flat_map(move |i| {
+                let (x, y) = normalised(i, j);
+                pattern(x, y)
+            })
+        })
+        .collect()
 }
 
 /// A one-frame dataset whose image is [`pattern`] seen through the distortion [`DIST`]: each
@@ -220,7 +226,9 @@ fn distorted_dir(tag: &str, extra: serde_json::Value) -> PathBuf {
         })
         .collect();
     model::images::write_rgb(&dir.join("rgb.png"), DW, DH, &rgb).unwrap();
-    let mask: Vec<u8> = (0..DH).flat_map(|j| (0..DW).map(move |i| if (24..40).contains(&i) && (16..32).contains(&j) { 7 } else { 0 })).collect();
+    let mask: Vec<u8> = (0..DH)
+        .flat_map(|j| (0..DW).map(move |i| if (24..40).contains(&i) && (16..32).contains(&j) { 7 } else { 0 }))
+        .collect();
     model::images::write_gray8(&dir.join("mask.png"), DW, DH, &mask).unwrap();
     model::images::write_gray16(&dir.join("depth.png"), DW, DH, &vec![1000u16; (DW * DH) as usize]).unwrap();
     let [fx, fy, cx, cy] = INTR;
@@ -244,7 +252,7 @@ fn distorted_dir(tag: &str, extra: serde_json::Value) -> PathBuf {
     dir
 }
 
-fn load_one(dir: &Path, downscale: u32) -> train::data::View {
+fn load_one(dir: &Path, downscale: u32) -> model::data::View {
     let mut ds = load(dir, &LoadOptions { downscale, holdout_every: 0, ..Default::default() }).unwrap();
     assert_eq!((ds.train.len(), ds.test.len()), (1, 0));
     ds.train.remove(0)
@@ -351,10 +359,13 @@ fn masks_and_depth_are_undistorted_by_nearest_sample() {
 fn fisheye_distortion_is_refused() {
     for (tag, extra) in [
         ("fisheye-k4", serde_json::json!({ "k4": 0.01 })),
-        ("fisheye-model", serde_json::json!({ "camera_model": "OPENCV_FISHEYE", "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0 })),
+        (
+            "fisheye-model",
+            serde_json::json!({ "camera_model": "OPENCV_FISHEYE", "k1": 0.0, "k2": 0.0, "p1": 0.0, "p2": 0.0 }),
+        ),
     ] {
         let dir = distorted_dir(tag, extra);
-        let e = load(&dir, &LoadOptions::default()).unwrap_err();
+        let e = load(&dir, &LoadOptions::default()).unwrap_err().to_string();
         assert!(e.contains("fisheye") && e.contains("not supported"), "{tag}: {e}");
         assert!(e.contains(&dir.join("transforms.json").display().to_string()), "{tag}: the file is not named: {e}");
         std::fs::remove_dir_all(&dir).ok();
@@ -370,7 +381,12 @@ fn fox_from_shared_datasets_loads_undistorted() {
     }
     let t = std::time::Instant::now();
     let ds = load(&fox, &LoadOptions { downscale: 8, ..Default::default() }).unwrap();
-    eprintln!("fox: {} + {} views loaded (undistorted, downscale 8) in {:.2?}", ds.train.len(), ds.test.len(), t.elapsed());
+    eprintln!(
+        "fox: {} + {} views loaded (undistorted, downscale 8) in {:.2?}",
+        ds.train.len(),
+        ds.test.len(),
+        t.elapsed()
+    );
     assert_eq!(ds.train.len() + ds.test.len(), 67);
     for v in ds.train.iter().chain(&ds.test) {
         assert_eq!((v.camera.width, v.camera.height), (135, 240));
@@ -380,12 +396,16 @@ fn fox_from_shared_datasets_loads_undistorted() {
     }
     // The same JPEG without distortion coefficients: a plain decode. Undistortion moves pixels
     // (by up to a few full-resolution pixels), so the images differ, but only slightly.
-    let first = ds.train.iter().find(|v| v.image_path.ends_with("images/0001.jpg")).expect("0001.jpg is a training view");
+    let first =
+        ds.train.iter().find(|v| v.image_path.ends_with("images/0001.jpg")).expect("0001.jpg is a training view");
     let dir = temp_dir("fox-plain");
     std::fs::create_dir_all(&dir).unwrap();
     let tf = serde_json::json!({
         "fl_x": 1375.52, "fl_y": 1374.49, "cx": 554.558, "cy": 965.268, "w": 1080, "h": 1920,
-        "frames": [{ "file_path": fox.join("images/0001.jpg").to_str().unwrap(), "transform_matrix": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 3], [0, 0, 0, 1]] }],
+        "frames": [{
+            "file_path": fox.join("images/0001.jpg").to_str().unwrap(),
+            "transform_matrix": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 3], [0, 0, 0, 1]]
+        }],
     });
     std::fs::write(dir.join("transforms.json"), tf.to_string()).unwrap();
     let plain = load_one(&dir, 8);

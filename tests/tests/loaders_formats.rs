@@ -6,10 +6,10 @@
 
 use chatsplat_tests::temp_dir;
 use glam::Vec3;
+use model::data::{LoadOptions, colmap, llff, load_any, replica};
 use model::images::{write_gray8, write_gray16, write_rgb};
 use splat_kernels::Camera;
 use std::path::{Path, PathBuf};
-use train::data::{LoadOptions, colmap, llff, load_any, replica};
 
 const W: u32 = 8;
 const H: u32 = 6;
@@ -40,12 +40,12 @@ fn close3(a: Vec3, b: [f32; 3], tol: f32) -> bool {
     (a - Vec3::from_array(b)).abs().max_element() < tol
 }
 
-fn names(views: &[train::data::View]) -> Vec<String> {
+fn names(views: &[model::data::View]) -> Vec<String> {
     views.iter().map(|v| v.image_path.file_name().unwrap().to_string_lossy().into_owned()).collect()
 }
 
-fn expect_err<T: std::fmt::Debug>(r: Result<T, String>, needles: &[&str]) -> String {
-    let e = r.expect_err("expected an error");
+fn expect_err<T: std::fmt::Debug>(r: model::Result<T>, needles: &[&str]) -> String {
+    let e = r.expect_err("expected an error").to_string();
     for n in needles {
         assert!(e.contains(n), "expected `{n}` in: {e}");
     }
@@ -259,7 +259,9 @@ impl Colmap {
     }
     fn images_txt(&self) -> String {
         let mut s = String::from(
-            "# Image list with two lines of data per image:\n#   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n#   POINTS2D[] as (X, Y, POINT3D_ID)\n",
+            "# Image list with two lines of data per image:\n\
+                #   IMAGE_ID, QW, QX, QY, QZ, TX, TY, TZ, CAMERA_ID, NAME\n\
+                #   POINTS2D[] as (X, Y, POINT3D_ID)\n",
         );
         s += &format!("# Number of images: {}, mean observations per image: 4\n", self.imgs.len());
         for im in &self.imgs {
@@ -273,7 +275,8 @@ impl Colmap {
     }
     fn points_txt(&self) -> String {
         let mut s = String::from(
-            "# 3D point list with one line of data per point:\n#   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)\n",
+            "# 3D point list with one line of data per point:\n\
+                #   POINT3D_ID, X, Y, Z, R, G, B, ERROR, TRACK[] as (IMAGE_ID, POINT2D_IDX)\n",
         );
         s += &format!("# Number of points: {}, mean track length: 4\n", self.pts.len());
         for p in &self.pts {
@@ -352,7 +355,11 @@ fn colmap_cameras_reproduce_the_points2d_and_bin_equals_txt() {
         for &(x, y, id) in im.pts.iter().filter(|p| p.2 >= 0) {
             let p = fx.pts.iter().find(|p| p.id as i64 == id).unwrap();
             let (u, w) = project(&v.camera, p.xyz);
-            assert!((u as f64 - x).abs() < 1e-3 && (w as f64 - y).abs() < 1e-3, "{}: ({u}, {w}) vs ({x}, {y})", im.name);
+            assert!(
+                (u as f64 - x).abs() < 1e-3 && (w as f64 - y).abs() < 1e-3,
+                "{}: ({u}, {w}) vs ({x}, {y})",
+                im.name
+            );
             checked += 1;
         }
         // A point on the optical axis lands on the principal point; the camera centre is -R^T t.
@@ -388,14 +395,18 @@ fn colmap_split_downscale_masks_and_layouts() {
     for (h, f) in half.train.iter().zip(&full.train) {
         let c = h.camera;
         assert_eq!((c.width, c.height), (4, 3));
-        assert_eq!([c.fx, c.fy, c.cx, c.cy], [f.camera.fx / 2.0, f.camera.fy / 2.0, f.camera.cx / 2.0, f.camera.cy / 2.0]);
+        assert_eq!(
+            [c.fx, c.fy, c.cx, c.cy],
+            [f.camera.fx / 2.0, f.camera.fy / 2.0, f.camera.cx / 2.0, f.camera.cy / 2.0]
+        );
         for p in &fx.pts {
             let (a, b) = (project(&c, p.xyz), project(&f.camera, p.xyz));
             assert!((a.0 - b.0 / 2.0).abs() < 1e-4 && (a.1 - b.1 / 2.0).abs() < 1e-4);
         }
         for y in 0..3 {
             for x in 0..4 {
-                let want: f32 = (0..4).map(|s| f.rgb[(((2 * y + s / 2) * 8 + 2 * x + s % 2) * 3) as usize]).sum::<f32>() / 4.0;
+                let want: f32 =
+                    (0..4).map(|s| f.rgb[(((2 * y + s / 2) * 8 + 2 * x + s % 2) * 3) as usize]).sum::<f32>() / 4.0;
                 assert!((h.rgb[((y * 4 + x) * 3) as usize] - want).abs() < 1e-6);
             }
         }
@@ -419,7 +430,9 @@ fn colmap_split_downscale_masks_and_layouts() {
 fn colmap_truncated_and_miscounted_binaries_are_reported() {
     let (dir, fx) = colmap_dir("colmap-trunc", true);
     let sparse = dir.join("sparse/0");
-    for (file, bytes) in [("cameras.bin", fx.cameras_bin()), ("images.bin", fx.images_bin()), ("points3D.bin", fx.points_bin())] {
+    for (file, bytes) in
+        [("cameras.bin", fx.cameras_bin()), ("images.bin", fx.images_bin()), ("points3D.bin", fx.points_bin())]
+    {
         let name_at = bytes.windows(4).position(|w| w == b"img_").unwrap_or(9);
         for cut in [0, 5, 8, 9, 13, 30, name_at + 2, bytes.len() / 2, bytes.len() - 1] {
             std::fs::write(sparse.join(file), &bytes[..cut]).unwrap();
@@ -623,7 +636,7 @@ fn llff_downscale_prefers_images_k_and_reads_masks() {
     assert!((h.rgb[0] - want).abs() < 1e-6);
     // images_2 with the right count is used as is: its own colours, f scaled by 4 / 16.
     for (i, n) in ["a.png", "b.png", "c.png"].iter().enumerate() {
-        write_rgb(&dir.join("images_2").join(n), 4, 3, &vec![0.2 * i as f32 + 0.1; 36]).unwrap();
+        write_rgb(&dir.join("images_2").join(n), 4, 3, &[0.2 * i as f32 + 0.1; 36]).unwrap();
     }
     let pre = llff::load(&dir, &opts(2, 0)).unwrap();
     let c = pre.train[1].camera;
@@ -715,7 +728,8 @@ fn replica_dir(tag: &str, frames: usize) -> PathBuf {
         write_rgb(&dir.join(format!("rgb/rgb_{i}.png")), W, H, &gradient(i as f32 / 8.0, W, H)).unwrap();
         let mm: Vec<u16> = (0..W * H).map(|p| 1000 + 250 * i as u16 + p as u16).collect();
         write_gray16(&dir.join(format!("depth/depth_{i}.png")), W, H, &mm).unwrap();
-        write_gray16(&dir.join(format!("semantic_instance/semantic_instance_{i}.png")), W, H, &replica_labels(i)).unwrap();
+        write_gray16(&dir.join(format!("semantic_instance/semantic_instance_{i}.png")), W, H, &replica_labels(i))
+            .unwrap();
     }
     std::fs::write(dir.join("traj_w_c.txt"), traj).unwrap();
     dir
@@ -820,7 +834,10 @@ fn replica_8bit_labels_and_errors() {
     write_rgb(&d.join("rgb/rgb_0.png"), 16, 17, &gradient(0.0, 16, 17)).unwrap();
     let ids: Vec<u16> = (0..16 * 17).map(|p| 1 + p as u16).collect();
     write_gray16(&d.join("semantic_instance/semantic_instance_0.png"), 16, 17, &ids).unwrap();
-    expect_err(replica::load(&d, &opts(1, 0)), &["semantic_instance_0.png: more than 255 distinct non-zero instance ids"]);
+    expect_err(
+        replica::load(&d, &opts(1, 0)),
+        &["semantic_instance_0.png: more than 255 distinct non-zero instance ids"],
+    );
     std::fs::remove_dir_all(&d).ok();
     // Missing files and a bad trajectory.
     std::fs::remove_dir_all(dir.join("semantic_instance")).unwrap();
@@ -861,14 +878,21 @@ fn load_any_detects_each_format() {
     let r = replica_dir("any-replica", 2);
     assert_eq!(load_any(&r, &o).unwrap().train[1].depth.as_ref().unwrap().len(), 48);
     let n = temp_dir("any-nerfstudio");
-    let so = train::data::synth::SynthOptions { views: 3, width: 16, height: 12, ..Default::default() };
-    train::data::synth::write_dataset(&n, &so, |_, _| {}).unwrap();
+    let so = model::data::synth::SynthOptions { views: 3, width: 16, height: 12, ..Default::default() };
+    model::data::synth::write_dataset(&n, &so, |_, _| {}).unwrap();
     assert_eq!(load_any(&n, &o).unwrap().train.len(), 3);
     let empty = temp_dir("any-empty");
     std::fs::create_dir_all(&empty).unwrap();
     expect_err(
         load_any(&empty, &o),
-        &["no known scene format", "transforms.json", "transforms_train.json", "poses_bounds.npy", "sparse/", "traj_w_c.txt"],
+        &[
+            "no known scene format",
+            "transforms.json",
+            "transforms_train.json",
+            "poses_bounds.npy",
+            "sparse/",
+            "traj_w_c.txt",
+        ],
     );
     expect_err(load_any(&empty.join("nope"), &o), &["nope: not a directory"]);
     for d in [c, l, r, n, empty] {

@@ -5,7 +5,7 @@
 use model::{GaussianCloud, ply};
 
 fn sample() -> GaussianCloud {
-    let (mut cloud, _) = model::synthetic::tabletop(3, 8);
+    let (mut cloud, _) = model::data::synth::gaussians::tabletop(3, 8);
     cloud.rest_per_gaussian = 9;
     cloud.sh_rest = (0..cloud.len() * 9).map(|k| (k as f32).sin() * 1e-3).collect();
     let n = cloud.len();
@@ -31,12 +31,15 @@ fn round_trip_is_bit_exact() {
 
 #[test]
 fn ascii_and_big_endian_files_with_missing_optional_properties_load() {
-    let ascii = b"ply\nformat ascii 1.0\ncomment made by hand\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nproperty uchar red\nend_header\n1 2 3 255\n4 5 6 0\n";
+    let ascii = b"ply\nformat ascii 1.0\ncomment made by hand\nelement vertex 2\nproperty float x\n\
+        property float y\nproperty float z\nproperty uchar red\nend_header\n1 2 3 255\n4 5 6 0\n";
     let c = ply::parse(ascii, "hand.ply").unwrap();
     assert_eq!(c.means, vec![[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]);
     assert_eq!(c.quats[0], [1.0, 0.0, 0.0, 0.0]);
     assert_eq!(c.extra["red"], (1, vec![255.0, 0.0]));
-    let mut be = b"ply\nformat binary_big_endian 1.0\nelement vertex 1\nproperty double x\nproperty float y\nproperty float z\nend_header\n".to_vec();
+    let mut be = b"ply\nformat binary_big_endian 1.0\nelement vertex 1\nproperty double x\nproperty float y\n\
+        property float z\nend_header\n"
+        .to_vec();
     be.extend_from_slice(&2.5f64.to_be_bytes());
     be.extend_from_slice(&(-1.0f32).to_be_bytes());
     be.extend_from_slice(&7.0f32.to_be_bytes());
@@ -47,13 +50,25 @@ fn ascii_and_big_endian_files_with_missing_optional_properties_load() {
 fn malformed_files_give_errors_naming_the_file_and_the_problem() {
     let cases: [(&[u8], &str); 5] = [
         (b"hello", "not a PLY file"),
-        (b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\nproperty float y\nproperty float z\nend_header\n\x00\x00", "truncated"),
-        (b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\nproperty float y\nend_header\n", "lacks the `z` property"),
+        (
+            b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\nproperty float y\n\
+            property float z\nend_header\n\x00\x00",
+            "truncated",
+        ),
+        (
+            b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\nproperty float y\n\
+            end_header\n",
+            "lacks the `z` property",
+        ),
         (b"ply\nformat weird 1.0\nelement vertex 1\nend_header\n", "unsupported PLY format"),
-        (b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\nend_header\n1 2 3\n4 5\n", "truncated"),
+        (
+            b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\n\
+            end_header\n1 2 3\n4 5\n",
+            "truncated",
+        ),
     ];
     for (bytes, want) in cases {
-        let e = ply::parse(bytes, "scene.ply").unwrap_err();
+        let e = ply::parse(bytes, "scene.ply").unwrap_err().to_string();
         let msg = e.to_string();
         assert!(msg.starts_with("scene.ply: ") && msg.contains(want), "{msg}");
     }

@@ -5,20 +5,14 @@
 #![allow(deprecated)]
 
 use burn::tensor::{Device, Tensor};
+use chatsplat_tests::temp_dir;
 use glam::{Mat4, Vec3, Vec4};
+use model::data::synth::{self, SynthOptions};
 use model::images::{read_gray16, read_png8};
 use splat_kernels::api::{SplatOptions, splat};
-use chatsplat_tests::temp_dir;
-use train::data::synth::{self, SynthOptions};
 
 fn opts() -> SynthOptions {
-    SynthOptions {
-        seed: 11,
-        views: 6,
-        width: 64,
-        height: 56,
-        ..Default::default()
-    }
+    SynthOptions { seed: 11, views: 6, width: 64, height: 56, ..Default::default() }
 }
 
 #[test]
@@ -28,8 +22,14 @@ fn dataset_is_deterministic_complete_and_geometrically_consistent() {
     synth::write_dataset(&a, &opts(), |_, _| calls += 1).unwrap();
     synth::write_dataset(&b, &opts(), |_, _| {}).unwrap();
     assert_eq!(calls, 6, "progress reported once per view");
-    for rel in ["transforms.json", "scene.json", "images/frame_0003.png", "masks/frame_0003.png", "depth/frame_0003.png"] {
-        assert_eq!(std::fs::read(a.join(rel)).unwrap(), std::fs::read(b.join(rel)).unwrap(), "{rel} differs between runs");
+    for rel in
+        ["transforms.json", "scene.json", "images/frame_0003.png", "masks/frame_0003.png", "depth/frame_0003.png"]
+    {
+        assert_eq!(
+            std::fs::read(a.join(rel)).unwrap(),
+            std::fs::read(b.join(rel)).unwrap(),
+            "{rel} differs between runs"
+        );
     }
     let tf: serde_json::Value = serde_json::from_slice(&std::fs::read(a.join("transforms.json")).unwrap()).unwrap();
     let scene: serde_json::Value = serde_json::from_slice(&std::fs::read(a.join("scene.json")).unwrap()).unwrap();
@@ -72,7 +72,12 @@ fn dataset_is_deterministic_complete_and_geometrically_consistent() {
                 let z = depth[o] as f32 * synth::DEPTH_SCALE;
                 let pc = Vec3::new((x - cx) / fx * z, (y - cy) / fy * z, z);
                 let pw = c2w.transform_point3(pc);
-                let pos: Vec<f32> = objects[id - 2]["position"].as_array().unwrap().iter().map(|v| v.as_f64().unwrap() as f32).collect();
+                let pos: Vec<f32> = objects[id - 2]["position"]
+                    .as_array()
+                    .unwrap()
+                    .iter()
+                    .map(|v| v.as_f64().unwrap() as f32)
+                    .collect();
                 let r = objects[id - 2]["size"].as_f64().unwrap() as f32;
                 let dist = (pw - Vec3::from_slice(&pos)).length();
                 // 1 mm depth quantisation along a ray at up to ~60 degrees incidence.
@@ -92,22 +97,16 @@ fn dataset_is_deterministic_complete_and_geometrically_consistent() {
 
 #[test]
 fn gaussian_tabletop_covers_the_same_pixels_as_the_analytic_scene() {
-    let o = SynthOptions {
-        seed: 7,
-        views: 4,
-        width: 80,
-        height: 80,
-        ..Default::default()
-    };
-    let objects = model::synthetic::tabletop_objects(o.seed);
-    let (cloud, _) = model::synthetic::tabletop(o.seed, 60);
+    let o = SynthOptions { seed: 7, views: 4, width: 80, height: 80, ..Default::default() };
+    let objects = model::data::synth::scene::tabletop_objects(o.seed);
+    let (cloud, _) = model::data::synth::gaussians::tabletop(o.seed, 60);
     let device = Device::ndarray();
     let g = cloud.to_gaussians(&device);
     let mut agree = 0usize;
     let mut total = 0usize;
     for i in 0..o.views {
         let cam = synth::view_camera(i, &o);
-        let v = synth::render_view(&cam, &objects);
+        let v = synth::raycast::render_view(&cam, &objects);
         let out = splat(&g, &cam, Tensor::zeros([3], &device), &SplatOptions::default()).unwrap();
         let alpha = out.alpha.into_data().to_vec::<f32>().unwrap();
         for (a, id) in alpha.iter().zip(&v.ids) {

@@ -8,7 +8,7 @@ use burn::tensor::{Device, Tensor, TensorData};
 use chatsplat_tests::{host, max_abs_diff, temp_dir, wgpu_device};
 use model::vlm::preprocess::{anyres_views, base_view};
 use model::vlm::weights::WeightStore;
-use model::vlm::{chat_template, GenerateOptions, LlavaOnevision, RgbImage, Turn, VlmError};
+use model::vlm::{GenerateOptions, LlavaOnevision, RgbImage, Turn, VlmError, chat_template};
 use safetensors::{Dtype, SafeTensors};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -30,14 +30,18 @@ fn reference() -> (HashMap<String, Ref>, serde_json::Value) {
     for (name, v) in st.tensors() {
         let d = v.data();
         let r = match v.dtype() {
-            Dtype::F32 => Ref::F32(v.shape().to_vec(), d.chunks_exact(4).map(|b| f32::from_le_bytes(b.try_into().unwrap())).collect()),
+            Dtype::F32 => Ref::F32(
+                v.shape().to_vec(),
+                d.chunks_exact(4).map(|b| f32::from_le_bytes(b.try_into().unwrap())).collect(),
+            ),
             Dtype::I64 => Ref::I64(d.chunks_exact(8).map(|b| i64::from_le_bytes(b.try_into().unwrap())).collect()),
             Dtype::U8 => Ref::U8(d.to_vec()),
             other => panic!("unexpected dtype {other:?}"),
         };
         out.insert(name, r);
     }
-    let meta: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(fixture().join("reference.json")).unwrap()).unwrap();
+    let meta: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(fixture().join("reference.json")).unwrap()).unwrap();
     (out, meta)
 }
 
@@ -88,7 +92,8 @@ fn preprocessing_is_bit_exact_with_the_hf_pil_processor() {
     let diff = got.iter().zip(want).filter(|(a, b)| a != b).count();
     assert_eq!(diff, 0, "{diff} of {} anyres pixels differ from transformers", want.len());
     // Two images: each padded to a square with the mean colour, base view only.
-    let views: Vec<RgbImage> = ["image_a.png", "image_b.png"].iter().map(|n| base_view(&image(n), &m.processor).views.remove(0)).collect();
+    let views: Vec<RgbImage> =
+        ["image_a.png", "image_b.png"].iter().map(|n| base_view(&image(n), &m.processor).views.remove(0)).collect();
     let want = bytes(&r, "multi_patches_u8");
     let got = chw(&views);
     let diff = got.iter().zip(want).filter(|(a, b)| a != b).count();
@@ -104,7 +109,8 @@ fn chat_template_and_token_ids_match_transformers() {
     assert_eq!(one, meta["prompt_single"].as_str().unwrap());
     let two = chat_template(&[Turn::user(2, q2)], true);
     assert_eq!(two, meta["prompt_multi"].as_str().unwrap());
-    let follow = chat_template(&[Turn::user(1, q1), Turn::assistant("A red sphere."), Turn::user(0, "Where is it?")], true);
+    let follow =
+        chat_template(&[Turn::user(1, q1), Turn::assistant("A red sphere."), Turn::user(0, "Where is it?")], true);
     assert_eq!(follow, meta["prompt_followup"].as_str().unwrap());
 
     let dev = Device::ndarray();
@@ -114,7 +120,8 @@ fn chat_template_and_token_ids_match_transformers() {
     assert_eq!(n as u64, meta["single_num_image_tokens"].as_u64().unwrap());
     let got = m.expand_image_tokens(&m.tokenizer.encode(&one).unwrap(), &[n]).unwrap();
     assert_eq!(got, ids(&r, "single_input_ids"));
-    let counts: Vec<usize> = ["image_a.png", "image_b.png"].iter().map(|f| m.num_image_tokens(&m.preprocess(&image(f), true))).collect();
+    let counts: Vec<usize> =
+        ["image_a.png", "image_b.png"].iter().map(|f| m.num_image_tokens(&m.preprocess(&image(f), true))).collect();
     let got = m.expand_image_tokens(&m.tokenizer.encode(&two).unwrap(), &counts).unwrap();
     assert_eq!(got, ids(&r, "multi_input_ids"));
     // A tag/image mismatch is an error, not a silent misalignment.
@@ -154,13 +161,19 @@ fn parity(dev: &Device) {
     assert_eq!(g.text, m.tokenizer.decode(&want_ids, true).unwrap());
 
     // Two images in one prompt: base views + newline each, logits at the end of the prompt.
-    let imgs: Vec<Tensor<2>> = ["image_a.png", "image_b.png"].iter().map(|f| m.image_embeds(&m.preprocess(&image(f), true))).collect();
+    let imgs: Vec<Tensor<2>> =
+        ["image_a.png", "image_b.png"].iter().map(|f| m.image_embeds(&m.preprocess(&image(f), true))).collect();
     let packed2 = Tensor::cat(imgs.clone(), 0);
     assert_close("multi-image embeds", &host(packed2), f32s(&r, "multi_packed").1, 1e-4);
     let ids2 = ids(&r, "multi_input_ids");
     let logits = m.logits(m.embed_prompt(&ids2, &imgs).unwrap());
     let t = logits.dims()[0];
-    assert_close("multi-image logits (last 4)", &host(logits.narrow(0, t - 4, 4)), f32s(&r, "multi_logits_last").1, 1e-4);
+    assert_close(
+        "multi-image logits (last 4)",
+        &host(logits.narrow(0, t - 4, 4)),
+        f32s(&r, "multi_logits_last").1,
+        1e-4,
+    );
 }
 
 #[test]
@@ -213,7 +226,10 @@ fn loader_errors_name_the_file_and_the_problem() {
     // Unknown architecture.
     let dir = copy_fixture("vlm-arch");
     let cfg = dir.join("config.json");
-    let text = std::fs::read_to_string(&cfg).unwrap().replace("LlavaOnevisionForConditionalGeneration", "MllamaForConditionalGeneration").replace("\"llava_onevision\"", "\"mllama\"");
+    let text = std::fs::read_to_string(&cfg)
+        .unwrap()
+        .replace("LlavaOnevisionForConditionalGeneration", "MllamaForConditionalGeneration")
+        .replace("\"llava_onevision\"", "\"mllama\"");
     std::fs::write(&cfg, text).unwrap();
     let e = load_err(&dir);
     assert!(e.contains("config.json") && e.contains("unsupported architecture") && e.contains("Mllama"), "{e}");
@@ -283,7 +299,7 @@ fn weights_convert_bf16_f16_and_reject_other_dtypes() {
 
 #[test]
 fn object_images_keep_only_the_object_cropped_with_a_margin_and_squared() {
-    use train::teacher::object_image;
+    use model::language::object_image;
     let (w, h) = (40, 20);
     let data: Vec<u8> = (0..w * h * 3).map(|i| (i % 251) as u8 + 1).collect();
     let img = RgbImage::new(w, h, data);
@@ -293,7 +309,8 @@ fn object_images_keep_only_the_object_cropped_with_a_margin_and_squared() {
             ids[y * w + x] = if (x + y) % 7 == 0 { 3 } else { 2 };
         }
     }
-    let (obj, bbox) = object_image(&img, &ids, 2, 0.1).unwrap();
+    let (obj, crop) = object_image(&img, &ids, 2, 0.1).unwrap();
+    let bbox = crop.bbox;
     // box 10..30 x 5..15 grown by 2 and 1 pixels; squared to the longer side.
     assert_eq!(bbox, [8, 4, 32, 16]);
     assert_eq!((obj.width, obj.height), (24, 24));
@@ -316,24 +333,28 @@ fn object_images_keep_only_the_object_cropped_with_a_margin_and_squared() {
 
 #[test]
 fn teacher_extraction_writes_f16_tokens_and_resumes() {
-    use train::teacher::{extract, read_tokens, view_file, ExtractOptions};
+    use model::run::TeacherDir;
+    use train::teacher::{ExtractOptions, extract, read_tokens};
+    let view_file = TeacherDir::view_file_name;
     let data = temp_dir("vlm-extract");
-    let opts = train::data::synth::SynthOptions { views: 3, width: 64, height: 48, ..Default::default() };
-    train::data::synth::write_dataset(&data, &opts, |_, _| {}).unwrap();
+    let opts = model::data::synth::SynthOptions { views: 3, width: 64, height: 48, ..Default::default() };
+    model::data::synth::write_dataset(&data, &opts, |_, _| {}).unwrap();
     let dev = Device::ndarray();
     let m = LlavaOnevision::load(&fixture(), &dev).unwrap();
     let out = data.join("teacher");
+    let teacher = TeacherDir::new(&out);
     let eo = ExtractOptions { min_object_pixels: 16, ..Default::default() };
     let mut planned = 0;
-    let s = extract(&m, &data, &out, &eo, |p| planned = p.views.len(), |_, _| {}).unwrap();
+    let s = extract(&m, &data, &teacher, &eo, |p| planned = p.views.len(), |_, _| {}).unwrap();
     assert_eq!((s.written, s.skipped), (planned, 0));
     assert!(planned >= 2 && s.images > planned, "{s:?}: objects must be encoded too");
-    let index: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(out.join("teacher.json")).unwrap()).unwrap();
+    let index: serde_json::Value =
+        serde_json::from_str(&std::fs::read_to_string(out.join("teacher.json")).unwrap()).unwrap();
     let v0 = &index["views"][0];
     let objects: Vec<u64> = v0["objects"].as_array().unwrap().iter().map(|x| x.as_u64().unwrap()).collect();
     assert!(!objects.is_empty());
     // The stored view tokens are the tower's output for that image, rounded to f16.
-    let ds = train::data::nerfstudio::load(&data, &eo.load).unwrap();
+    let ds = model::data::nerfstudio::load(&data, &eo.load).unwrap();
     let img = RgbImage::from_f32(64, 48, &ds.train[0].rgb);
     let want = host(m.teacher_tokens(&img));
     let (shape, got) = read_tokens(&out.join(view_file(0)), "view").unwrap();
@@ -351,12 +372,12 @@ fn teacher_extraction_writes_f16_tokens_and_resumes() {
     let f1 = out.join(view_file(1));
     let len = std::fs::metadata(&f1).unwrap().len();
     std::fs::OpenOptions::new().write(true).open(&f1).unwrap().set_len(len / 3).unwrap();
-    let s = extract(&m, &data, &out, &eo, |_| {}, |_, _| {}).unwrap();
+    let s = extract(&m, &data, &teacher, &eo, |_| {}, |_, _| {}).unwrap();
     assert_eq!((s.written, s.skipped), (2, planned - 2));
     let (_, again) = read_tokens(&out.join(view_file(0)), "view").unwrap();
     assert_eq!(again, got, "extraction is deterministic");
     // A dataset path that does not exist is a clear error.
-    let e = extract(&m, Path::new("/nonexistent/scene"), &out, &eo, |_| {}, |_, _| {}).unwrap_err();
+    let e = extract(&m, Path::new("/nonexistent/scene"), &teacher, &eo, |_| {}, |_, _| {}).unwrap_err().to_string();
     assert!(e.contains("/nonexistent/scene"), "{e}");
 }
 

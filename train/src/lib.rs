@@ -1,10 +1,12 @@
-//! Training stages of chatsplat and their scene data: the geometry stage (3DGS with a 16-channel
-//! identity field) and the language-field stage render through `splat_kernels::splat` and
-//! optimise with burn optimizers (see ARCHITECTURE.md). `data` holds the scene sources; `teacher` extracts LLaVA-OneVision teacher tokens.
+//! The training stages of chatsplat, in data-flow order: [`geometry`] (3DGS with a 16-channel
+//! identity field, from posed photos), [`teacher`] (LLaVA-OneVision's SigLIP tokens of every
+//! training view and masked object) and [`language`] (the per-Gaussian language field, the
+//! encoder and the scaling adjustment against those tokens). All render through
+//! `splat_kernels::splat` and optimise with burn's Adam; [`ckpt`] keeps the optimizer state by
+//! parameter name. Inference (chat) lives in `model` and does not depend on this crate.
+#![allow(deprecated)] // burn-ndarray is deprecated in burn 0.22 in favour of burn-flex.
 
 pub mod ckpt;
-pub mod data;
-pub mod export;
 pub mod geometry;
 pub mod language;
 pub mod teacher;

@@ -1,17 +1,20 @@
 //! Teacher targets for the language field: LLaVA-OneVision's SigLIP patch features of every
 //! training view and of every masked object in it, stored as f16 safetensors (one file per view,
-//! written atomically, so an interrupted extraction resumes where it stopped).
+//! written atomically, so an interrupted extraction resumes where it stopped), indexed by
+//! `teacher.json` ([`TeacherIndex`]).
 //!
-//! Object images (the choice ChatSplat's object loss needs, documented here): pixels whose
-//! instance id is not the object's are blanked to black, the image is cropped to the object's
-//! bounding box grown by `margin` of its size on each side (clamped to the image), padded to a
-//! square with black (centred), and resized to the tower's 384x384 with the processor's
-//! resampling. Views are the processor's base view: the whole image resized to 384x384.
+//! Views are the processor's base view: the whole image resized to the tower's input. Object
+//! images follow the one crop rule of `model::language::crop`: the object's pixels, black
+//! elsewhere, the box + margin padded to a square, resized to the tower's input.
 
-use crate::data::nerfstudio::{self, LoadOptions, View};
 use burn::tensor::Tensor;
-use model::vlm::preprocess::RgbImage;
+use model::data::{Dataset, LoadOptions, View, load_any};
+use model::error::{Error, IoContext, Result};
+use model::io;
+use model::language::{ObjectCrop, objects_in};
+use model::run::{StoredPath, TeacherDir, TeacherIndex, TeacherViewEntry};
 use model::vlm::LlavaOnevision;
+use model::vlm::preprocess::RgbImage;
 use safetensors::tensor::TensorView;
 use safetensors::{Dtype, SafeTensors};
 use std::collections::HashMap;
@@ -36,6 +39,13 @@ impl Default for ExtractOptions {
     }
 }
 
+impl ExtractOptions {
+    /// The objects of a view that get tokens.
+    pub fn objects(&self, ids: &[u8]) -> Vec<u8> {
+        objects_in(ids, self.min_object_pixels, &self.ignore_ids)
+    }
+}
+
 /// What will be extracted for one view.
 #[derive(Clone, Debug, PartialEq)]
 pub struct ViewPlan {
@@ -55,61 +65,36 @@ pub struct Plan {
     pub dim: usize,
 }
 
-/// Per-view file name.
-pub fn view_file(index: usize) -> String {
-    format!("view_{index:04}.safetensors")
-}
-
-/// Object ids present in a mask with at least `min_pixels` pixels.
-pub fn objects_in(ids: &[u8], opts: &ExtractOptions) -> Vec<u8> {
-    let mut count = [0usize; 256];
-    for &i in ids {
-        count[i as usize] += 1;
-    }
-    (0..=255u8).filter(|&i| count[i as usize] >= opts.min_object_pixels && !opts.ignore_ids.contains(&i)).collect()
-}
-
 pub fn plan(views: &[View], grid: usize, dim: usize, opts: &ExtractOptions) -> Plan {
     let views: Vec<ViewPlan> = views
         .iter()
         .enumerate()
-        .map(|(index, v)| ViewPlan { index, image: v.image_path.clone(), objects: v.instance_ids.as_deref().map(|m| objects_in(m, opts)).unwrap_or_default() })
+        .map(|(index, v)| ViewPlan {
+            index,
+            image: v.image_path.clone(),
+            objects: v.instance_ids.as_deref().map(|m| opts.objects(m)).unwrap_or_default(),
+        })
         .collect();
     let images: usize = views.iter().map(|v| 1 + v.objects.len()).sum();
     let tokens = grid * grid;
     Plan { bytes: (images * tokens * dim * 2) as u64, views, tokens_per_image: tokens, dim }
 }
 
-/// The masked object image (see the module docs) and its box (x0, y0, x1, y1), or `None` if absent.
-pub fn object_image(img: &RgbImage, ids: &[u8], id: u8, margin: f32) -> Option<(RgbImage, [usize; 4])> {
-    let w = img.width;
-    let [bx0, by0, bx1, by1] = model::language::object_box(ids, img.width, img.height, id, margin)?;
-    let (cw, ch) = (bx1 - bx0, by1 - by0);
-    let side = cw.max(ch);
-    let (ox, oy) = ((side - cw) / 2, (side - ch) / 2);
-    let mut data = vec![0u8; side * side * 3];
-    for y in by0..by1 {
-        for x in bx0..bx1 {
-            if ids[y * w + x] == id {
-                let d = ((y - by0 + oy) * side + (x - bx0 + ox)) * 3;
-                data[d..d + 3].copy_from_slice(&img.data[(y * w + x) * 3..(y * w + x) * 3 + 3]);
-            }
-        }
-    }
-    Some((RgbImage::new(side, side, data), [bx0, by0, bx1, by1]))
-}
-
-fn f16_bytes(t: Tensor<2>) -> Result<Vec<u8>, String> {
-    let v = t.into_data().convert::<f32>().try_to_vec::<f32>().map_err(|e| format!("reading tokens: {e:?}"))?;
+fn f16_bytes(t: Tensor<2>) -> Result<Vec<u8>> {
+    let v =
+        t.into_data().convert::<f32>().to_vec::<f32>().map_err(|e| Error::input(format!("reading tokens: {e:?}")))?;
     Ok(v.iter().flat_map(|x| half::f16::from_f32(*x).to_le_bytes()).collect())
 }
 
-/// Whether `path` already holds a complete view file for `vp`.
-fn complete(path: &Path, vp: &ViewPlan, grid: usize, dim: usize) -> bool {
+/// Whether `path` already holds a complete view file for `vp` made with these settings.
+fn complete(path: &Path, vp: &ViewPlan, grid: usize, dim: usize, margin: f32) -> bool {
     let Ok(bytes) = std::fs::read(path) else { return false };
     let Ok(st) = SafeTensors::deserialize(&bytes) else { return false };
-    let want = |n: &str| st.tensor(n).map(|t| t.shape() == [grid, grid, dim] && t.dtype() == Dtype::F16).unwrap_or(false);
-    want("view") && vp.objects.iter().all(|id| want(&format!("object_{id}")))
+    let Ok((_, meta)) = SafeTensors::read_metadata(&bytes) else { return false };
+    let same_margin = meta.metadata().as_ref().and_then(|m| m.get("margin")).is_some_and(|m| *m == margin.to_string());
+    let want =
+        |n: &str| st.tensor(n).map(|t| t.shape() == [grid, grid, dim] && t.dtype() == Dtype::F16).unwrap_or(false);
+    same_margin && want("view") && vp.objects.iter().all(|id| want(&format!("object_{id}")))
 }
 
 /// Summary of a run.
@@ -120,31 +105,33 @@ pub struct ExtractSummary {
     pub images: usize,
 }
 
-/// Runs the vision tower over every training view of `data` (and its masked objects), writing
-/// `out/view_NNNN.safetensors` and `out/teacher.json`. `on_start(plan)` sees the plan before any
-/// work; `progress(done, total)` is called after each view.
+/// Runs the vision tower over every training view of the dataset in `data` (any supported format)
+/// and its masked objects, writing one token file per view and `teacher.json` into `out`.
+/// Complete files made with the same settings are kept (an interrupted run resumes);
+/// `teacher.json` is written last. `on_start(plan)` sees the plan before any work;
+/// `progress(done, total)` is called after each view.
 pub fn extract(
     vlm: &LlavaOnevision,
     data: &Path,
-    out: &Path,
+    out: &TeacherDir,
     opts: &ExtractOptions,
     on_start: impl FnOnce(&Plan),
     mut progress: impl FnMut(usize, usize),
-) -> Result<ExtractSummary, String> {
-    let ds = nerfstudio::load(data, &opts.load)?;
+) -> Result<ExtractSummary> {
+    let ds = load_any(data, &opts.load)?;
     if ds.train.is_empty() {
-        return Err(format!("{}: the dataset has no training views", data.display()));
+        return Err(Error::invalid(data, "the dataset has no training views"));
     }
     let grid = vlm.cfg.vision.grid();
     let dim = vlm.cfg.vision.hidden_size;
     let plan = plan(&ds.train, grid, dim, opts);
     on_start(&plan);
-    std::fs::create_dir_all(out).map_err(|e| format!("{}: cannot create: {e}", out.display()))?;
+    io::create_dir(&out.dir)?;
     let (mut written, mut skipped, mut images) = (0, 0, 0);
     let total = plan.views.len();
     for (vp, view) in plan.views.iter().zip(&ds.train) {
-        let path = out.join(view_file(vp.index));
-        if complete(&path, vp, grid, dim) {
+        let path = out.view_file(vp.index);
+        if complete(&path, vp, grid, dim, opts.margin) {
             skipped += 1;
             progress(vp.index + 1, total);
             continue;
@@ -155,55 +142,160 @@ pub fn extract(
         let mut boxes = Vec::new();
         if let Some(ids) = &view.instance_ids {
             for &id in &vp.objects {
-                let Some((obj, bbox)) = object_image(&img, ids, id, opts.margin) else { continue };
+                let Some(crop) = ObjectCrop::of(ids, w, h, id, opts.margin) else { continue };
+                let obj = crop.masked_image(&img, ids, id);
                 tensors.push((format!("object_{id}"), f16_bytes(vlm.teacher_tokens(&obj))?));
-                boxes.push(format!("{id}:{},{},{},{}", bbox[0], bbox[1], bbox[2], bbox[3]));
+                let b = crop.bbox;
+                boxes.push(format!("{id}:{},{},{},{}", b[0], b[1], b[2], b[3]));
             }
         }
         images += tensors.len();
-        let views: Vec<(String, TensorView)> = tensors
+        let shape = vec![grid, grid, dim];
+        let views = tensors
             .iter()
-            .map(|(n, b)| (n.clone(), TensorView::new(Dtype::F16, vec![grid, grid, dim], b).expect("token tensor shape")))
-            .collect();
+            .map(|(n, b)| TensorView::new(Dtype::F16, shape.clone(), b).map(|v| (n.clone(), v)))
+            .collect::<std::result::Result<Vec<_>, _>>()
+            .map_err(|e| Error::invalid(&path, e.to_string()))?;
         let mut meta = HashMap::new();
         meta.insert("image".to_string(), vp.image.display().to_string());
         meta.insert("boxes_xyxy".to_string(), boxes.join(" "));
-        let tmp = path.with_extension("safetensors.tmp");
-        safetensors::serialize_to_file(views, Some(meta), &tmp).map_err(|e| format!("{}: cannot write: {e}", tmp.display()))?;
-        std::fs::rename(&tmp, &path).map_err(|e| format!("{}: cannot rename: {e}", path.display()))?;
+        meta.insert("margin".to_string(), opts.margin.to_string());
+        io::write_atomic_with(&path, |tmp| {
+            safetensors::serialize_to_file(views, Some(meta), tmp)
+                .map_err(|e| Error::invalid(tmp, format!("cannot write: {e}")))
+        })?;
         written += 1;
         progress(vp.index + 1, total);
     }
-    let index = serde_json::json!({
-        "teacher": vlm.dir.display().to_string(),
-        "data": data.display().to_string(),
-        "vision_feature_layer": vlm.cfg.vision_feature_layer,
-        "grid": grid,
-        "dim": dim,
-        "dtype": "F16",
-        "object_margin": opts.margin,
-        "downscale": opts.load.downscale,
-        "min_object_pixels": opts.min_object_pixels,
-        "views": plan.views.iter().map(|v| serde_json::json!({
-            "file": view_file(v.index),
-            "image": v.image.display().to_string(),
-            "objects": v.objects,
-        })).collect::<Vec<_>>(),
-    });
-    let path = out.join("teacher.json");
-    let tmp = out.join("teacher.json.tmp");
-    std::fs::write(&tmp, serde_json::to_string_pretty(&index).unwrap()).map_err(|e| format!("{}: cannot write: {e}", tmp.display()))?;
-    std::fs::rename(&tmp, &path).map_err(|e| format!("{}: cannot rename: {e}", path.display()))?;
+    let index = TeacherIndex {
+        teacher: vlm.dir.display().to_string(),
+        data: StoredPath::new(data, &out.dir),
+        vision_feature_layer: vlm.cfg.vision_feature_layer,
+        grid,
+        dim,
+        image_size: vlm.cfg.vision.image_size,
+        patch_size: vlm.cfg.vision.patch_size,
+        dtype: "F16".into(),
+        object_margin: opts.margin,
+        downscale: opts.load.downscale,
+        min_object_pixels: opts.min_object_pixels,
+        views: plan
+            .views
+            .iter()
+            .map(|v| TeacherViewEntry {
+                file: TeacherDir::view_file_name(v.index),
+                image: v.image.display().to_string(),
+                objects: v.objects.clone(),
+            })
+            .collect(),
+    };
+    io::write_json(&out.index(), &index)?;
     Ok(ExtractSummary { written, skipped, images })
 }
 
 /// Reads one stored token grid back as f32 `[grid*grid*dim]` (for training and tests).
-pub fn read_tokens(path: &Path, name: &str) -> Result<(Vec<usize>, Vec<f32>), String> {
-    let bytes = std::fs::read(path).map_err(|e| format!("{}: {e}", path.display()))?;
-    let st = SafeTensors::deserialize(&bytes).map_err(|e| format!("{}: not a valid safetensors file: {e}", path.display()))?;
-    let t = st.tensor(name).map_err(|e| format!("{}: {name}: {e}", path.display()))?;
+pub fn read_tokens(path: &Path, name: &str) -> Result<(Vec<usize>, Vec<f32>)> {
+    let bytes = std::fs::read(path).at(path, "cannot read")?;
+    let st = SafeTensors::deserialize(&bytes)
+        .map_err(|e| Error::invalid(path, format!("not a valid safetensors file: {e}")))?;
+    let t = st.tensor(name).map_err(|e| Error::invalid(path, format!("{name}: {e}")))?;
     if t.dtype() != Dtype::F16 {
-        return Err(format!("{}: {name} has dtype {:?}, expected F16", path.display(), t.dtype()));
+        return Err(Error::invalid(path, format!("{name} has dtype {:?}, expected F16", t.dtype())));
     }
-    Ok((t.shape().to_vec(), t.data().chunks_exact(2).map(|b| half::f16::from_le_bytes([b[0], b[1]]).to_f32()).collect()))
+    let v: Vec<f32> = t.data().chunks_exact(2).map(|b| half::f16::from_le_bytes([b[0], b[1]]).to_f32()).collect();
+    if let Some(i) = v.iter().position(|x| !x.is_finite()) {
+        return Err(Error::invalid(path, format!("{name} holds a non-finite value at flat index {i}")));
+    }
+    Ok((t.shape().to_vec(), v))
+}
+
+/// One object of one teacher view.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TeacherObject {
+    pub id: u8,
+    /// `[x0, y0, x1, y1)` crop box in view pixels.
+    pub bbox: [usize; 4],
+}
+
+/// One training view's teacher file.
+#[derive(Clone, Debug, PartialEq)]
+pub struct TeacherViewInfo {
+    pub file: PathBuf,
+    pub objects: Vec<TeacherObject>,
+}
+
+/// A teacher directory opened for training: its index and every view's object boxes.
+#[derive(Clone, Debug)]
+pub struct TeacherSet {
+    pub dir: TeacherDir,
+    pub index: TeacherIndex,
+    pub views: Vec<TeacherViewInfo>,
+}
+
+impl TeacherSet {
+    /// Reads `teacher.json` and every view file's object boxes.
+    pub fn open(dir: &Path) -> Result<Self> {
+        let dir = TeacherDir::new(dir);
+        let index = dir.read_index()?;
+        let mut views = Vec::with_capacity(index.views.len());
+        for v in &index.views {
+            let file = dir.dir.join(&v.file);
+            let objects = read_boxes(&file)?;
+            views.push(TeacherViewInfo { file, objects });
+        }
+        Ok(Self { dir, index, views })
+    }
+
+    /// The dataset directory the tokens were extracted from.
+    pub fn data_dir(&self) -> PathBuf {
+        self.index.data.resolve(&self.dir.dir)
+    }
+
+    /// The dataset the tokens were extracted from (same split and downscale).
+    pub fn dataset(&self) -> Result<Dataset> {
+        let data = self.data_dir();
+        let ds = load_any(&data, &LoadOptions { downscale: self.index.downscale, ..Default::default() })?;
+        if ds.train.len() != self.views.len() {
+            return Err(Error::invalid(
+                self.dir.index(),
+                format!(
+                    "{} teacher views but the dataset {} has {} training views",
+                    self.views.len(),
+                    data.display(),
+                    ds.train.len()
+                ),
+            ));
+        }
+        Ok(ds)
+    }
+
+    /// Tokens `[grid * grid * dim]` of the view (`None`) or of object `id`.
+    pub fn tokens(&self, view: usize, object: Option<u8>) -> Result<Vec<f32>> {
+        let name = object.map(|id| format!("object_{id}")).unwrap_or_else(|| "view".into());
+        let file = &self.views[view].file;
+        let (shape, v) = read_tokens(file, &name)?;
+        let (g, d) = (self.index.grid, self.index.dim);
+        if shape != [g, g, d] {
+            return Err(Error::invalid(file, format!("{name} has shape {shape:?}, expected [{g}, {g}, {d}]")));
+        }
+        Ok(v)
+    }
+}
+
+fn read_boxes(file: &Path) -> Result<Vec<TeacherObject>> {
+    let bytes = std::fs::read(file).at(file, "cannot read")?;
+    let (_, meta) = SafeTensors::read_metadata(&bytes)
+        .map_err(|e| Error::invalid(file, format!("not a valid safetensors file: {e}")))?;
+    let boxes = meta.metadata().as_ref().and_then(|m| m.get("boxes_xyxy").cloned()).unwrap_or_default();
+    let mut out = Vec::new();
+    for item in boxes.split_whitespace() {
+        let bad = || Error::invalid(file, format!("malformed box \"{item}\" in boxes_xyxy"));
+        let (id, rest) = item.split_once(':').ok_or_else(bad)?;
+        let c: Vec<usize> = rest.split(',').map(|x| x.parse().map_err(|_| bad())).collect::<Result<_>>()?;
+        if c.len() != 4 || c[2] <= c[0] || c[3] <= c[1] {
+            return Err(bad());
+        }
+        out.push(TeacherObject { id: id.parse().map_err(|_| bad())?, bbox: [c[0], c[1], c[2], c[3]] });
+    }
+    Ok(out)
 }

@@ -12,19 +12,21 @@
 //! cargo run --release -p eval --bin lang-bench -- --run RUN [--vlm DIR] [--backend ndarray|wgpu]
 #![allow(deprecated)]
 
-use burn::tensor::{activation, Device, Tensor, TensorData};
+use burn::tensor::{Device, Tensor, TensorData, activation};
 use clap::Parser;
-use eval::chat::{prompt_embeds, ChatSession};
 use eval::plot::{Chart, Series};
-use eval::{catch_backend, BackendChoice};
-use model::language::{Encoder, LanguageConfig};
+use model::chat::ChatSession;
+use model::data::View;
+use model::language::{Encoder, LanguageConfig, object_image};
+use model::run::{GeometryRun, LanguageRun};
+use model::scene::LanguageScene;
 use model::splats::host;
 use model::vlm::{LlavaOnevision, RgbImage};
-use std::path::{Path, PathBuf};
+use model::{Backend, Result, catch_backend};
+use std::path::PathBuf;
 use std::time::Instant;
-use train::data::nerfstudio::View;
-use train::language::{run, LanguageScene, LanguageTrainConfig, TeacherSet};
-use train::teacher::{object_image, objects_in, ExtractOptions};
+use train::language::{LanguageTrainConfig, run};
+use train::teacher::{ExtractOptions, TeacherSet};
 
 #[derive(Parser)]
 #[command(name = "lang-bench", about = "ChatSplat: token fidelity, LLM agreement and speed against error")]
@@ -35,11 +37,11 @@ struct Args {
     /// Language run (default: RUN/language).
     #[arg(long)]
     language: Option<PathBuf>,
-    /// LLaVA-OneVision directory (default: the tiny fixture checkpoints/tiny-llava-ov).
+    /// LLaVA-OneVision directory (default: the built-in model).
     #[arg(long)]
     vlm: Option<PathBuf>,
-    #[arg(long, value_enum, default_value_t = BackendChoice::Ndarray)]
-    backend: BackendChoice,
+    #[arg(long, default_value_t = Backend::Ndarray)]
+    backend: Backend,
     /// Output directory for sweep runs, bench.json and the plot (default: RUN/bench).
     #[arg(long)]
     out: Option<PathBuf>,
@@ -55,7 +57,8 @@ struct Args {
     full_size: bool,
 }
 
-const QUESTIONS: [&str; 3] = ["Describe this image.", "What objects are on the table?", "What colour is the largest object?"];
+const QUESTIONS: [&str; 3] =
+    ["Describe this image.", "What objects are on the table?", "What colour is the largest object?"];
 
 #[derive(Default, Clone, Copy, Debug, serde::Serialize)]
 struct Pair {
@@ -102,10 +105,10 @@ fn tokens_host(vlm: &LlavaOnevision, img: &RgbImage) -> Vec<f32> {
     host(vlm.teacher_tokens(img))
 }
 
-fn next_token_probs(vlm: &LlavaOnevision, tokens: &[f32], q: &str) -> Result<Vec<f64>, String> {
+fn next_token_probs(vlm: &LlavaOnevision, tokens: &[f32], q: &str) -> Result<Vec<f64>> {
     let d = vlm.cfg.vision.hidden_size;
     let t = Tensor::<2>::from_data(TensorData::new(tokens.to_vec(), [tokens.len() / d, d]), vlm.device());
-    let embeds = prompt_embeds(vlm, &[t], q)?;
+    let embeds = vlm.prompt_embeds(q, &[vlm.token_embeds(t)])?;
     let logits = vlm.logits(embeds);
     let [n, v] = logits.dims();
     Ok(host(activation::softmax(logits.narrow(0, n - 1, 1).reshape([v]), 0)).into_iter().map(|p| p as f64).collect())
@@ -116,7 +119,13 @@ fn kl(p: &[f64], q: &[f64]) -> f64 {
 }
 
 /// Token fidelity (and, with `questions`, LLM agreement) of `scene` on `views`.
-fn fidelity(scene: &LanguageScene, vlm: &LlavaOnevision, views: &[View], with_baseline: bool, questions: bool) -> Result<Fidelity, String> {
+fn fidelity(
+    scene: &LanguageScene,
+    vlm: &LlavaOnevision,
+    views: &[View],
+    with_baseline: bool,
+    questions: bool,
+) -> Result<Fidelity> {
     let d = vlm.cfg.vision.hidden_size;
     let mut f = Fidelity::default();
     let opts = ExtractOptions::default();
@@ -126,7 +135,13 @@ fn fidelity(scene: &LanguageScene, vlm: &LlavaOnevision, views: &[View], with_ba
         let cs = host(scene.view_tokens(&scene.field, &v.camera)?);
         f.view.add(&cs, &gt, d);
         let (w, h) = (v.camera.width as usize, v.camera.height as usize);
-        let base_img = with_baseline.then(|| scene.geometry.render(&v.camera).map(|r| RgbImage::from_f32(w, h, &r.rgb.iter().map(|x| x.clamp(0.0, 1.0)).collect::<Vec<_>>()))).transpose()?;
+        let base_img = with_baseline
+            .then(|| {
+                scene
+                    .render(&v.camera)
+                    .map(|r| RgbImage::from_f32(w, h, &r.rgb.iter().map(|x| x.clamp(0.0, 1.0)).collect::<Vec<_>>()))
+            })
+            .transpose()?;
         let base = base_img.as_ref().map(|b| tokens_host(vlm, b));
         if let Some(b) = &base {
             f.view_baseline.add(b, &gt, d);
@@ -142,10 +157,10 @@ fn fidelity(scene: &LanguageScene, vlm: &LlavaOnevision, views: &[View], with_ba
             }
         }
         let Some(ids) = &v.instance_ids else { continue };
-        for id in objects_in(ids, &opts) {
-            let Some((obj, bbox)) = object_image(&gt_img, ids, id, scene.margin) else { continue };
+        for id in opts.objects(ids) {
+            let Some((obj, crop)) = object_image(&gt_img, ids, id, scene.margin) else { continue };
             let gt_o = tokens_host(vlm, &obj);
-            let (oc, mask) = scene.object_crop(&v.camera, id, bbox)?;
+            let (oc, mask) = scene.object_crop(&v.camera, id, crop.bbox)?;
             f.object.add(&host(scene.object_tokens_with(&scene.field, &oc, &mask)?), &gt_o, d);
             if let Some(b) = &base_img {
                 let (bo, _) = object_image(b, ids, id, scene.margin).expect("same mask");
@@ -177,7 +192,8 @@ struct Speed {
 fn clicks(v: &View) -> Vec<(usize, usize)> {
     let Some(ids) = &v.instance_ids else { return vec![] };
     let w = v.camera.width as usize;
-    objects_in(ids, &ExtractOptions::default())
+    ExtractOptions::default()
+        .objects(ids)
         .into_iter()
         .filter_map(|id| {
             let px: Vec<usize> = (0..ids.len()).filter(|&p| ids[p] == id).collect();
@@ -186,7 +202,7 @@ fn clicks(v: &View) -> Vec<(usize, usize)> {
         .collect()
 }
 
-fn speed(scene: &LanguageScene, vlm: Option<&LlavaOnevision>, views: &[View], reps: usize) -> Result<Speed, String> {
+fn speed(scene: &LanguageScene, vlm: Option<&LlavaOnevision>, views: &[View], reps: usize) -> Result<Speed> {
     let mut s = Speed::default();
     // warm-up (kernel compilation on wgpu)
     let _ = host(scene.view_tokens(&scene.field, &views[0].camera)?);
@@ -213,8 +229,15 @@ fn speed(scene: &LanguageScene, vlm: Option<&LlavaOnevision>, views: &[View], re
         let t0 = Instant::now();
         for _ in 0..reps {
             for v in views {
-                let r = scene.geometry.render(&v.camera)?;
-                let _ = tokens_host(vlm, &RgbImage::from_f32(v.camera.width as usize, v.camera.height as usize, &r.rgb.iter().map(|x| x.clamp(0.0, 1.0)).collect::<Vec<_>>()));
+                let r = scene.render(&v.camera)?;
+                let _ = tokens_host(
+                    vlm,
+                    &RgbImage::from_f32(
+                        v.camera.width as usize,
+                        v.camera.height as usize,
+                        &r.rgb.iter().map(|x| x.clamp(0.0, 1.0)).collect::<Vec<_>>(),
+                    ),
+                );
             }
         }
         s.baseline_views_per_s = (reps * views.len()) as f64 / t0.elapsed().as_secs_f64();
@@ -222,9 +245,13 @@ fn speed(scene: &LanguageScene, vlm: Option<&LlavaOnevision>, views: &[View], re
         for _ in 0..reps {
             for v in views {
                 let Some(ids) = &v.instance_ids else { continue };
-                let r = scene.geometry.render(&v.camera)?;
-                let img = RgbImage::from_f32(v.camera.width as usize, v.camera.height as usize, &r.rgb.iter().map(|x| x.clamp(0.0, 1.0)).collect::<Vec<_>>());
-                for id in objects_in(ids, &ExtractOptions::default()) {
+                let r = scene.render(&v.camera)?;
+                let img = RgbImage::from_f32(
+                    v.camera.width as usize,
+                    v.camera.height as usize,
+                    &r.rgb.iter().map(|x| x.clamp(0.0, 1.0)).collect::<Vec<_>>(),
+                );
+                for id in ExtractOptions::default().objects(ids) {
                     if let Some((o, _)) = object_image(&img, ids, id, scene.margin) {
                         let _ = tokens_host(vlm, &o);
                         n += 1;
@@ -251,7 +278,14 @@ struct Row {
     train_s_per_iter: Option<f64>,
 }
 
-fn row(name: &str, scene: &LanguageScene, vlm: &LlavaOnevision, views: &[View], reps: usize, train_s: Option<f64>) -> Result<Row, String> {
+fn row(
+    name: &str,
+    scene: &LanguageScene,
+    vlm: &LlavaOnevision,
+    views: &[View],
+    reps: usize,
+    train_s: Option<f64>,
+) -> Result<Row> {
     let f = fidelity(scene, vlm, views, false, false)?;
     let s = speed(scene, None, views, reps)?;
     let c = scene.field.view_features.val().dims()[1];
@@ -285,23 +319,27 @@ fn row(name: &str, scene: &LanguageScene, vlm: &LlavaOnevision, views: &[View], 
 
 fn main() -> std::process::ExitCode {
     let a = Args::parse();
-    match catch_backend("lang-bench", || bench(&a)) {
-        Ok(Ok(())) => std::process::ExitCode::SUCCESS,
-        Ok(Err(e)) | Err(e) => {
+    match catch_backend("lang-bench", || bench(&a)).and_then(|r| r) {
+        Ok(()) => std::process::ExitCode::SUCCESS,
+        Err(e) => {
             eprintln!("error: {e}");
             std::process::ExitCode::FAILURE
         }
     }
 }
 
-fn bench(a: &Args) -> Result<(), String> {
+fn bench(a: &Args) -> Result<()> {
     let device: Device = a.backend.device();
-    let vlm_dir = a.vlm.clone().unwrap_or_else(|| Path::new(env!("CARGO_MANIFEST_DIR")).join("../checkpoints/tiny-llava-ov"));
-    let lang = a.language.clone().unwrap_or_else(|| a.run.join("language"));
+    let vlm_dir = match &a.vlm {
+        Some(d) => d.clone(),
+        None => model::vlm::default_model_dir()?,
+    };
+    let geometry = GeometryRun::new(&a.run);
+    let lang = a.language.as_ref().map(LanguageRun::new).unwrap_or_else(|| geometry.language());
     let out = a.out.clone().unwrap_or_else(|| a.run.join("bench"));
-    std::fs::create_dir_all(&out).map_err(|e| format!("{}: cannot create: {e}", out.display()))?;
-    let session = ChatSession::open(&a.run, Some(&lang), &vlm_dir, &device)?;
-    let teacher_dir = train::language::teacher_dir(&lang)?;
+    model::io::create_dir(&out)?;
+    let session = ChatSession::open(&geometry, Some(&lang.dir), &vlm_dir, &device)?;
+    let teacher_dir = lang.teacher()?.dir;
     let ds = TeacherSet::open(&teacher_dir)?.dataset()?;
     let held: &[View] = if ds.test.is_empty() { &ds.train } else { &ds.test };
     let vlm = &session.vlm;
@@ -322,23 +360,41 @@ fn bench(a: &Args) -> Result<(), String> {
     println!("\n## Token fidelity on held-out views (against teacher(ground truth))\n");
     println!("| tokens | view L1 | view cosine | object L1 | object cosine | objects | KL next token (nats) |");
     println!("|---|---|---|---|---|---|---|");
-    println!("| ChatSplat (rendered language maps -> encoder) | {:.4} | {:.4} | {:.4} | {:.4} | {} | {:.4} |", f.view.l1, f.view.cos, f.object.l1, f.object.cos, f.object.n, f.kl);
-    println!("| LLaVA-OV baseline: teacher(rendered RGB) | {:.4} | {:.4} | {:.4} | {:.4} | {} | {:.4} |", f.view_baseline.l1, f.view_baseline.cos, f.object_baseline.l1, f.object_baseline.cos, f.object_baseline.n, f.kl_baseline);
+    println!(
+        "| ChatSplat (rendered language maps -> encoder) | {:.4} | {:.4} | {:.4} | {:.4} | {} | {:.4} |",
+        f.view.l1, f.view.cos, f.object.l1, f.object.cos, f.object.n, f.kl
+    );
+    println!(
+        "| LLaVA-OV baseline: teacher(rendered RGB) | {:.4} | {:.4} | {:.4} | {:.4} | {} | {:.4} |",
+        f.view_baseline.l1,
+        f.view_baseline.cos,
+        f.object_baseline.l1,
+        f.object_baseline.cos,
+        f.object_baseline.n,
+        f.kl_baseline
+    );
     println!("\n(KL averaged over {} view x question pairs: {:?})", f.kl_n, QUESTIONS);
 
     let s = speed(scene, Some(vlm), held, a.reps)?;
     println!("\n## Speed ({:?}, {} views x {} reps)\n", a.backend, held.len(), a.reps);
     println!("| path | views/s | objects/s |");
     println!("|---|---|---|");
-    println!("| ChatSplat: render language map + encode (object: identity render, crop camera, mask, encode) | {:.2} | {:.2} |", s.views_per_s, s.objects_per_s);
-    println!("| baseline: render RGB + vision tower (object: + masked crop) | {:.2} | {:.2} |", s.baseline_views_per_s, s.baseline_objects_per_s);
+    println!(
+        "| ChatSplat: render language map + encode (object: identity render, crop camera, mask, encode) | \
+            {:.2} | {:.2} |",
+        s.views_per_s, s.objects_per_s
+    );
+    println!(
+        "| baseline: render RGB + vision tower (object: + masked crop) | {:.2} | {:.2} |",
+        s.baseline_views_per_s, s.baseline_objects_per_s
+    );
     println!("| paper (A6000, real LLaVA-OV) ChatSplat / baseline | 72-81 / 9-11 FPS | 289 objects/s |");
 
     // Render only the tiles of an object's crop vs rendering the whole frame at the same density.
     let (mut t_crop, mut t_full, mut px_crop, mut px_full, mut n_obj) = (0.0, 0.0, 0usize, 0usize, 0);
     for v in held {
         let Some(ids) = &v.instance_ids else { continue };
-        for id in objects_in(ids, &ExtractOptions::default()) {
+        for id in ExtractOptions::default().objects(ids) {
             let (w, h) = (v.camera.width as usize, v.camera.height as usize);
             let Some(bbox) = model::language::object_box(ids, w, h, id, scene.margin) else { continue };
             let oc = scene.cfg.object_camera(&v.camera, bbox);
@@ -366,7 +422,8 @@ fn bench(a: &Args) -> Result<(), String> {
     }
     if n_obj > 0 {
         println!(
-            "\nObject maps: rendering only the crop's tiles takes {:.2} ms per object ({:.0} kpx) vs {:.2} ms for the whole frame at the same density ({:.0} kpx): {:.1}x faster ({n_obj} objects).",
+            "\nObject maps: rendering only the crop's tiles takes {:.2} ms per object ({:.0} kpx) vs {:.2} ms \
+                for the whole frame at the same density ({:.0} kpx): {:.1}x faster ({n_obj} objects).",
             1e3 * t_crop / n_obj as f64,
             px_crop as f64 / n_obj as f64 / 1e3,
             1e3 * t_full / n_obj as f64,
@@ -379,21 +436,31 @@ fn bench(a: &Args) -> Result<(), String> {
     if a.full_size {
         let cfg = LanguageConfig::default();
         let enc = Encoder::new(&cfg, 0, &device);
-        let map = Tensor::<3>::random([cfg.map_size(), cfg.map_size(), cfg.view_channels], burn::tensor::Distribution::Normal(0.0, 1.0), &device);
+        let map = Tensor::<3>::random(
+            [cfg.map_size(), cfg.map_size(), cfg.view_channels],
+            burn::tensor::Distribution::Normal(0.0, 1.0),
+            &device,
+        );
         let _ = host(enc.forward(map.clone()));
         let t0 = Instant::now();
         let _ = host(enc.forward(map));
         let secs = t0.elapsed().as_secs_f64();
-        println!("\nfull-size encoder (32 -> 128 -> 1152, 14x14 patches, 378x378 map -> 729 x 1152 tokens): {secs:.3} s per view on {:?}", a.backend);
+        println!(
+            "\nfull-size encoder (32 -> 128 -> 1152, 14x14 patches, 378x378 map -> 729 x 1152 tokens): \
+                {secs:.3} s per view on {}",
+            a.backend
+        );
         full = Some(secs);
     }
 
     let mut rows = Vec::new();
-    let header = "| field | channels | Gaussians | feature memory | held-out view L1 | view cosine | object L1 | views/s | objects/s | train s/iter |\n|---|---|---|---|---|---|---|---|---|---|";
+    let header = "| field | channels | Gaussians | feature memory | held-out view L1 | view cosine | object \
+        L1 | views/s | objects/s | train s/iter |\n|---|---|---|---|---|---|---|---|---|---|";
     println!("\n## Speed against error\n\n{header}");
     rows.push(row("trained (this run)", scene, vlm, held, a.reps, None)?);
     // model only what a scene needs: Gaussians ranked by their language contribution
-    let (base_cfg, _, _, _, contribution) = train::language::load_field(&lang, &device)?;
+    let contribution = lang.read_contribution()?;
+    let base_cfg: LanguageTrainConfig = model::io::read_json(&lang.config())?;
     let mut order: Vec<usize> = (0..contribution.len()).filter(|&i| contribution[i] > 0.0).collect();
     order.sort_by(|&i, &j| contribution[j].total_cmp(&contribution[i]));
     let used = order.len();
@@ -401,7 +468,14 @@ fn bench(a: &Args) -> Result<(), String> {
         let k = ((used as f64 * frac).round() as usize).max(1);
         let mut keep = order[..k].to_vec();
         keep.sort_unstable();
-        rows.push(row(&format!("kept {:.0}% of contributing", frac * 100.0), &scene.subset(&keep), vlm, held, a.reps, None)?);
+        rows.push(row(
+            &format!("kept {:.0}% of contributing", frac * 100.0),
+            &scene.subset(&keep),
+            vlm,
+            held,
+            a.reps,
+            None,
+        )?);
     }
     if a.sweep_iters > 0 {
         let mut variants: Vec<(String, LanguageTrainConfig)> = Vec::new();
@@ -420,28 +494,50 @@ fn bench(a: &Args) -> Result<(), String> {
         for (name, mut cfg) in variants {
             cfg.iters = a.sweep_iters;
             cfg.checkpoint_every = 0;
-            let dir = out.join(name.replace([' ', '/', '(', ')', '='], "_"));
-            let bar = eval::Progress::new(name.clone(), "it");
-            let summary = run(&a.run, &teacher_dir, &dir, cfg, &device, true, |p| bar.update_with(p.iter, p.iters, &format!("loss {:.4}", p.step.loss)))?;
-            let sc = LanguageScene::load(&a.run, &dir, &device)?;
+            let dir = LanguageRun::new(out.join(name.replace([' ', '/', '(', ')', '='], "_")));
+            let bar = eval::progress::Progress::new(name.clone(), "it");
+            let resume = dir.checkpoint().is_file();
+            let summary = run(&geometry, &teacher_dir, &dir, cfg, &device, resume, |p| {
+                bar.update_with(p.iter, p.iters, &format!("loss {:.4}", p.step.loss))
+            })?;
+            let sc = LanguageScene::load(&geometry, &dir, &device)?;
             rows.push(row(&name, &sc, vlm, held, a.reps, Some(summary.seconds_per_iter))?);
         }
     }
     let d = 1152usize;
     let n = scene.field.len();
     println!(
-        "\nWithout the lifting network a LLaVA-OneVision field stores D = {d} channels per level: {:.1} MB for these {n} Gaussians (vs {:.1} MB at 32 channels), {:.1} GB for 1M Gaussians, x3 with Adam moments.",
+        "\nWithout the lifting network a LLaVA-OneVision field stores D = {d} channels per level: {:.1} MB \
+            for these {n} Gaussians (vs {:.1} MB at 32 channels), {:.1} GB for 1M Gaussians, x3 with Adam moments.",
         (n * d * 2 * 4) as f64 / 1e6,
         (n * 32 * 2 * 4) as f64 / 1e6,
         (1_000_000 * d * 2 * 4) as f64 / 1e9
     );
 
     let mut series = Vec::new();
-    let pick = |pred: &dyn Fn(&Row) -> bool| rows.iter().filter(|r| pred(r)).map(|r| (r.views_per_s, r.view_l1)).collect::<Vec<_>>();
-    series.push(Series { label: "channels 8-64".into(), points: pick(&|r| r.name.starts_with("channels")), color: [31, 119, 180] });
-    series.push(Series { label: "Gaussians kept".into(), points: pick(&|r| r.name.starts_with("kept") || r.name.starts_with("trained")), color: [214, 39, 40] });
-    series.push(Series { label: "ablations".into(), points: pick(&|r| r.name.starts_with("no ")), color: [44, 160, 44] });
-    series.push(Series { label: "LLaVA-OV on render".into(), points: vec![(s.baseline_views_per_s, f.view_baseline.l1)], color: [120, 120, 120] });
+    let pick = |pred: &dyn Fn(&Row) -> bool| {
+        rows.iter().filter(|r| pred(r)).map(|r| (r.views_per_s, r.view_l1)).collect::<Vec<_>>()
+    };
+    series.push(Series {
+        label: "channels 8-64".into(),
+        points: pick(&|r| r.name.starts_with("channels")),
+        color: [31, 119, 180],
+    });
+    series.push(Series {
+        label: "Gaussians kept".into(),
+        points: pick(&|r| r.name.starts_with("kept") || r.name.starts_with("trained")),
+        color: [214, 39, 40],
+    });
+    series.push(Series {
+        label: "ablations".into(),
+        points: pick(&|r| r.name.starts_with("no ")),
+        color: [44, 160, 44],
+    });
+    series.push(Series {
+        label: "LLaVA-OV on render".into(),
+        points: vec![(s.baseline_views_per_s, f.view_baseline.l1)],
+        color: [120, 120, 120],
+    });
     let chart = Chart {
         title: format!("held-out token L1 vs views/s ({:?})", a.backend),
         x_label: "views per second (render + encode)".into(),
@@ -451,9 +547,13 @@ fn bench(a: &Args) -> Result<(), String> {
     };
     let png = out.join("speed_vs_error.png");
     chart.write_png(&png, 900, 600)?;
-    let json = serde_json::json!({ "fidelity": f, "speed": s, "rows": rows, "full_size_encoder_s_per_view": full,
-        "object_crop_ms": 1e3 * t_crop / n_obj.max(1) as f64, "object_full_frame_ms": 1e3 * t_full / n_obj.max(1) as f64, "backend": format!("{:?}", a.backend) });
-    train::ckpt::write_json(&out.join("bench.json"), &json)?;
+    let per_object = |t: f64| 1e3 * t / n_obj.max(1) as f64;
+    let json = serde_json::json!({
+        "fidelity": f, "speed": s, "rows": rows, "full_size_encoder_s_per_view": full,
+        "object_crop_ms": per_object(t_crop), "object_full_frame_ms": per_object(t_full),
+        "backend": a.backend.to_string(),
+    });
+    model::io::write_json(&out.join("bench.json"), &json)?;
     println!("\nplot -> {}, figures -> {}", png.display(), out.join("bench.json").display());
     Ok(())
 }

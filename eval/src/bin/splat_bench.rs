@@ -9,8 +9,8 @@
 
 use burn::tensor::{Device, Tensor, TensorData};
 use clap::Parser;
-use eval::{BackendChoice, catch_backend};
 use model::rng::Rng;
+use model::{Backend, catch_backend};
 use splat_kernels::api::{SplatOptions, splat};
 use splat_kernels::{Camera, Gaussians, RasterConfig, dense};
 use std::time::Instant;
@@ -28,7 +28,7 @@ struct Args {
     #[arg(long, value_delimiter = ',', default_values_t = ["384x384".to_string(), "1280x720".to_string()])]
     res: Vec<String>,
     /// Backends to time (the dense baseline always runs on ndarray).
-    #[arg(long, value_delimiter = ',', default_values_t = ["ndarray".to_string(), "wgpu".to_string(), "dense".to_string()])]
+    #[arg(long, value_delimiter = ',', default_values = ["ndarray", "wgpu", "dense"])]
     impls: Vec<String>,
     /// Seconds of dense-baseline work per cell before extrapolating.
     #[arg(long, default_value_t = 3.0)]
@@ -66,7 +66,7 @@ fn accuracy() {
         let r = reference::render(&inp, &cam, &cfg);
         let amb = r.ambiguous.iter().filter(|&&a| a).count();
         let mut rows: Vec<(&str, Vec<f32>, Vec<f32>)> = vec![];
-        for (name, dev) in [("ndarray", Device::ndarray()), ("wgpu", BackendChoice::Wgpu.device())] {
+        for (name, dev) in [("ndarray", Device::ndarray()), ("wgpu", Backend::Wgpu.device())] {
             let got = catch_backend(name, || {
                 let (g, bgt) = tensors(&host, n, c, &dev, false);
                 let out = splat(&g, &cam, bgt, &SplatOptions::default()).expect("valid");
@@ -82,7 +82,11 @@ fn accuracy() {
         let (g, bgt) = tensors(&host, n, c, &Device::ndarray(), false);
         let proj = dense::project(&g, &cam, &cfg);
         let (f, a, _) = dense::composite(&proj, &cam, &cfg, bgt, 0, (w * h) as usize);
-        rows.push(("dense burn ops", f.into_data().to_vec::<f32>().expect("f32"), a.into_data().to_vec::<f32>().expect("f32")));
+        rows.push((
+            "dense burn ops",
+            f.into_data().to_vec::<f32>().expect("f32"),
+            a.into_data().to_vec::<f32>().expect("f32"),
+        ));
         for (name, f, a) in rows {
             // Threshold-ambiguous pixels (f32 rounding may flip a 1/255 or 1e-4 test) are excluded.
             let mut fmax = 0.0f64;
@@ -168,10 +172,7 @@ fn time_runs(mut f: impl FnMut()) -> f64 {
 
 fn op_fwd(host: &[Vec<f32>], n: usize, c: usize, cam: &Camera, device: &Device) -> f64 {
     let (g, bg) = tensors(host, n, c, device, false);
-    let opts = SplatOptions {
-        validate: false,
-        ..Default::default()
-    };
+    let opts = SplatOptions { validate: false, ..Default::default() };
     time_runs(|| {
         let out = splat(&g, cam, bg.clone(), &opts).expect("valid");
         let _ = out.alpha.sum().into_data().to_vec::<f32>();
@@ -181,10 +182,7 @@ fn op_fwd(host: &[Vec<f32>], n: usize, c: usize, cam: &Camera, device: &Device) 
 fn op_fwd_bwd(host: &[Vec<f32>], n: usize, c: usize, cam: &Camera, device: &Device) -> f64 {
     let device = device.clone().autodiff();
     let (g, bg) = tensors(host, n, c, &device, true);
-    let opts = SplatOptions {
-        validate: false,
-        ..Default::default()
-    };
+    let opts = SplatOptions { validate: false, ..Default::default() };
     time_runs(|| {
         let out = splat(&g, cam, bg.clone(), &opts).expect("valid");
         let loss = out.features.sum() + out.alpha.sum();
@@ -237,10 +235,15 @@ fn main() {
         return;
     }
     let want = |s: &str| a.impls.iter().any(|x| x == s);
-    println!("| res | N | C | ndarray fwd | ndarray f+b | wgpu fwd | wgpu f+b | dense fwd | dense f+b | ndarray vs dense (fwd / f+b) |");
+    println!(
+        "| res | N | C | ndarray fwd | ndarray f+b | wgpu fwd | wgpu f+b | dense fwd | dense f+b | ndarray vs \
+            dense (fwd / f+b) |"
+    );
     println!("|---|---|---|---|---|---|---|---|---|---|");
     for res in &a.res {
-        let Some((w, h)) = res.split_once('x').and_then(|(w, h)| Some((w.parse::<u32>().ok()?, h.parse::<u32>().ok()?))) else {
+        let Some((w, h)) =
+            res.split_once('x').and_then(|(w, h)| Some((w.parse::<u32>().ok()?, h.parse::<u32>().ok()?)))
+        else {
             eprintln!("error: --res expects WxH, got `{res}`");
             std::process::exit(2);
         };
@@ -262,7 +265,7 @@ fn main() {
                 let nd = Device::ndarray();
                 let ndf = run(0, want("ndarray"), &mut || op_fwd(&host, n, c, &cam, &nd));
                 let ndb = run(1, want("ndarray"), &mut || op_fwd_bwd(&host, n, c, &cam, &nd));
-                let wg = BackendChoice::Wgpu.device();
+                let wg = Backend::Wgpu.device();
                 let wgf = run(2, want("wgpu"), &mut || {
                     catch_backend("wgpu", || op_fwd(&host, n, c, &cam, &wg)).unwrap_or(f64::NAN)
                 });

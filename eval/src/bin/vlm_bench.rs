@@ -7,20 +7,20 @@
 
 use burn::tensor::Tensor;
 use clap::Parser;
-use eval::{BackendChoice, catch_backend};
 use model::vlm::config::LlavaConfig;
 use model::vlm::{GenerateOptions, LlavaOnevision, RgbImage};
+use model::{Backend, catch_backend};
 use std::path::PathBuf;
 use std::time::Instant;
 
 #[derive(Parser)]
 #[command(name = "vlm-bench", about = "LLaVA-OneVision port: speed and memory")]
 struct Args {
-    /// Model directory (default: checkpoints/tiny-llava-ov).
+    /// Model directory (default: the built-in model).
     #[arg(long)]
     vlm: Option<PathBuf>,
-    #[arg(long, value_enum, num_args = 1.., default_values_t = [BackendChoice::Ndarray, BackendChoice::Wgpu])]
-    backend: Vec<BackendChoice>,
+    #[arg(long, num_args = 1.., default_values_t = [Backend::Ndarray, Backend::Wgpu])]
+    backend: Vec<Backend>,
     /// Timed repetitions.
     #[arg(long, default_value_t = 5)]
     reps: usize,
@@ -56,21 +56,30 @@ fn memory_table(name: &str, cfg: &LlavaConfig) {
     );
 }
 
-fn main() {
+fn main() -> std::process::ExitCode {
     let a = Args::parse();
-    let dir = a.vlm.clone().unwrap_or_else(|| PathBuf::from(env!("CARGO_MANIFEST_DIR")).join("../checkpoints/tiny-llava-ov"));
+    let dir = match a.vlm.clone().map(Ok).unwrap_or_else(model::vlm::default_model_dir) {
+        Ok(d) => d,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return std::process::ExitCode::FAILURE;
+        }
+    };
     println!("## vlm-bench: {}", dir.display());
     println!();
-    println!("| backend | vision tower (1 view 384x384) | images/s | anyres image (3 views) | prefill tokens | prefill tokens/s | decode tokens/s |");
+    println!(
+        "| backend | vision tower (1 view 384x384) | images/s | anyres image (3 views) | prefill tokens | \
+            prefill tokens/s | decode tokens/s |"
+    );
     println!("|---|---|---|---|---|---|---|");
     for backend in &a.backend {
-        let r = catch_backend("benchmark", || -> Result<String, String> {
+        let r = catch_backend("benchmark", || -> model::Result<String> {
             let device = backend.device();
-            let m = LlavaOnevision::load(&dir, &device).map_err(|e| e.to_string())?;
-            let img = RgbImage::read_png(&dir.join("image_wide.png")).or_else(|_| {
+            let m = LlavaOnevision::load(&dir, &device)?;
+            let img = RgbImage::read_png(&dir.join("image_wide.png")).unwrap_or_else(|_| {
                 let (w, h) = (700, 300);
-                Ok::<_, String>(RgbImage::new(w, h, (0..w * h * 3).map(|i| (i * 37 % 256) as u8).collect()))
-            })?;
+                RgbImage::new(w, h, (0..w * h * 3).map(|i| (i * 37 % 256) as u8).collect())
+            });
             // Vision tower alone, one base view.
             let one = m.preprocess(&img, true);
             let px = m.pixels(&one);
@@ -89,47 +98,53 @@ fn main() {
             }
             let anyres = t0.elapsed().as_secs_f64() / a.reps as f64;
             // Prefill of the full prompt and decode.
-            let prompt = model::vlm::chat_template(&[model::vlm::Turn::user(1, "What is on the table?")], true);
-            let ids = m.expand_image_tokens(&m.tokenizer.encode(&prompt).map_err(|e| e.to_string())?, &[m.num_image_tokens(&p)]).map_err(|e| e.to_string())?;
-            let embeds = m.embed_prompt(&ids, &[m.image_embeds(&p)]).map_err(|e| e.to_string())?;
+            let embeds = m.prompt_embeds("What is on the table?", &[m.image_embeds(&p)])?;
+            let prompt_tokens = embeds.dims()[0];
             let opts = GenerateOptions { max_new_tokens: 1, ignore_stop: true, ..Default::default() };
-            m.generate(embeds.clone(), &opts, |_| {}).map_err(|e| e.to_string())?;
+            m.generate(embeds.clone(), &opts, |_| {})?;
             let t0 = Instant::now();
             for _ in 0..a.reps {
-                m.generate(embeds.clone(), &opts, |_| {}).map_err(|e| e.to_string())?;
+                m.generate(embeds.clone(), &opts, |_| {})?;
             }
             let prefill = t0.elapsed().as_secs_f64() / a.reps as f64;
             let opts = GenerateOptions { max_new_tokens: a.decode + 1, ignore_stop: true, ..Default::default() };
-            m.generate(embeds.clone(), &opts, |_| {}).map_err(|e| e.to_string())?;
+            m.generate(embeds.clone(), &opts, |_| {})?;
             let t0 = Instant::now();
             for _ in 0..a.reps {
-                m.generate(embeds.clone(), &opts, |_| {}).map_err(|e| e.to_string())?;
+                m.generate(embeds.clone(), &opts, |_| {})?;
             }
             let total = t0.elapsed().as_secs_f64() / a.reps as f64;
             let decode = (total - prefill).max(1e-9);
             Ok(format!(
-                "| {backend:?} | {:.1} ms | {:.1} | {:.1} ms | {} | {:.0} | {:.1} |",
+                "| {backend} | {:.1} ms | {:.1} | {:.1} ms | {} | {:.0} | {:.1} |",
                 vis * 1e3,
                 1.0 / vis,
                 anyres * 1e3,
-                ids.len(),
-                ids.len() as f64 / prefill,
+                prompt_tokens,
+                prompt_tokens as f64 / prefill,
                 a.decode as f64 / decode
             ))
         });
         match r {
             Ok(Ok(line)) => println!("{line}"),
-            Ok(Err(e)) | Err(e) => println!("| {backend:?} | n/a: {e} | | | | | |"),
+            Ok(Err(e)) | Err(e) => println!("| {backend} | n/a: {e} | | | | | |"),
         }
     }
     println!();
-    println!("Parameters and memory (weights as loaded here in f32, and f16 as stored; KV cache for 4,096 tokens in f32; vision attention scores of one 10-view anyres image in f32):");
+    println!(
+        "Parameters and memory (weights as loaded here in f32, and f16 as stored; KV cache for 4,096 tokens \
+            in f32; vision attention scores of one 10-view anyres image in f32):"
+    );
     println!();
-    println!("| model | vision (used layers) | projector | LLM | total | weights f32 GiB | weights f16 GiB | KV 4k GiB | vision attn GiB |");
+    println!(
+        "| model | vision (used layers) | projector | LLM | total | weights f32 GiB | weights f16 GiB | KV 4k \
+            GiB | vision attn GiB |"
+    );
     println!("|---|---|---|---|---|---|---|---|---|");
     if let Ok(cfg) = LlavaOnevision::load(&dir, &burn::tensor::Device::ndarray()).map(|m| m.cfg) {
         memory_table("this directory", &cfg);
     }
     memory_table("llava-onevision-qwen2-0.5b-ov-hf", &LlavaConfig::onevision_0_5b());
     memory_table("llava-onevision-qwen2-7b-ov-hf", &LlavaConfig::onevision_7b());
+    std::process::ExitCode::SUCCESS
 }

@@ -22,7 +22,10 @@ impl Act {
             "gelu" => Ok(Act::Gelu),
             "gelu_pytorch_tanh" | "gelu_new" | "gelu_fast" => Ok(Act::GeluTanh),
             "silu" | "swish" => Ok(Act::Silu),
-            other => Err(VlmError::config(file, format!("{key} = \"{other}\" is not supported (gelu, gelu_pytorch_tanh, silu)"))),
+            other => Err(VlmError::config(
+                file,
+                format!("{key} = \"{other}\" is not supported (gelu, gelu_pytorch_tanh, silu)"),
+            )),
         }
     }
 }
@@ -88,7 +91,8 @@ impl LlavaConfig {
     /// Number of vision layers that must run to produce the selected hidden state.
     pub fn vision_layers_needed(&self) -> usize {
         let n = self.vision.num_layers as i64;
-        let idx = if self.vision_feature_layer < 0 { n + 1 + self.vision_feature_layer } else { self.vision_feature_layer };
+        let idx =
+            if self.vision_feature_layer < 0 { n + 1 + self.vision_feature_layer } else { self.vision_feature_layer };
         idx as usize
     }
 
@@ -97,7 +101,8 @@ impl LlavaConfig {
         let v = &self.vision;
         let (d, f) = (v.hidden_size, v.intermediate_size);
         let vision_layer = 4 * (d * d + d) + 2 * (2 * d) + (d * f + f) + (f * d + d);
-        let vision = 3 * v.patch_size * v.patch_size * d + d + v.tokens() * d + self.vision_layers_needed() * vision_layer;
+        let vision =
+            3 * v.patch_size * v.patch_size * d + d + v.tokens() * d + self.vision_layers_needed() * vision_layer;
         let t = &self.text;
         let dm = t.hidden_size;
         let projector = d * dm + dm + dm * dm + dm + dm; // + image_newline
@@ -216,25 +221,33 @@ impl<'a> Obj<'a> {
     }
     fn usize(&self, key: &str, default: Option<usize>) -> Result<usize, VlmError> {
         match self.get(key) {
-            Some(v) => v.as_u64().map(|x| x as usize).ok_or_else(|| VlmError::config(self.file, format!("{} must be a non-negative integer, got {v}", self.name(key)))),
+            Some(v) => v.as_u64().map(|x| x as usize).ok_or_else(|| {
+                VlmError::config(self.file, format!("{} must be a non-negative integer, got {v}", self.name(key)))
+            }),
             None => default.ok_or_else(|| VlmError::config(self.file, format!("{} is missing", self.name(key)))),
         }
     }
     fn f64(&self, key: &str, default: Option<f64>) -> Result<f64, VlmError> {
         match self.get(key) {
-            Some(v) => v.as_f64().ok_or_else(|| VlmError::config(self.file, format!("{} must be a number, got {v}", self.name(key)))),
+            Some(v) => v
+                .as_f64()
+                .ok_or_else(|| VlmError::config(self.file, format!("{} must be a number, got {v}", self.name(key)))),
             None => default.ok_or_else(|| VlmError::config(self.file, format!("{} is missing", self.name(key)))),
         }
     }
     fn str(&self, key: &str, default: Option<&'a str>) -> Result<&'a str, VlmError> {
         match self.get(key) {
-            Some(v) => v.as_str().ok_or_else(|| VlmError::config(self.file, format!("{} must be a string, got {v}", self.name(key)))),
+            Some(v) => v
+                .as_str()
+                .ok_or_else(|| VlmError::config(self.file, format!("{} must be a string, got {v}", self.name(key)))),
             None => default.ok_or_else(|| VlmError::config(self.file, format!("{} is missing", self.name(key)))),
         }
     }
     fn bool(&self, key: &str, default: bool) -> Result<bool, VlmError> {
         match self.get(key) {
-            Some(v) => v.as_bool().ok_or_else(|| VlmError::config(self.file, format!("{} must be true or false, got {v}", self.name(key)))),
+            Some(v) => v.as_bool().ok_or_else(|| {
+                VlmError::config(self.file, format!("{} must be true or false, got {v}", self.name(key)))
+            }),
             None => Ok(default),
         }
     }
@@ -267,12 +280,19 @@ fn token_ids(v: Option<&Value>) -> Vec<u32> {
 /// Parses `config.json` of a LLaVA-OneVision model directory.
 pub fn parse_llava_config(file: &Path, root: &Value) -> Result<LlavaConfig, VlmError> {
     let top = Obj { v: root, file, prefix: "" };
-    let archs: Vec<&str> = root.get("architectures").and_then(|a| a.as_array()).map(|a| a.iter().filter_map(|x| x.as_str()).collect()).unwrap_or_default();
+    let archs: Vec<&str> = root
+        .get("architectures")
+        .and_then(|a| a.as_array())
+        .map(|a| a.iter().filter_map(|x| x.as_str()).collect())
+        .unwrap_or_default();
     let model_type = top.str("model_type", Some(""))?;
     if model_type != "llava_onevision" && !archs.contains(&"LlavaOnevisionForConditionalGeneration") {
         return Err(VlmError::config(
             file,
-            format!("unsupported architecture {archs:?} (model_type \"{model_type}\"); expected LlavaOnevisionForConditionalGeneration"),
+            format!(
+                "unsupported architecture {archs:?} (model_type \"{model_type}\"); expected \
+                    LlavaOnevisionForConditionalGeneration"
+            ),
         ));
     }
     let vision_v = top.get("vision_config").ok_or_else(|| VlmError::config(file, "vision_config is missing"))?;
@@ -280,7 +300,10 @@ pub fn parse_llava_config(file: &Path, root: &Value) -> Result<LlavaConfig, VlmE
     let vo = Obj { v: vision_v, file, prefix: "vision_config" };
     let vt = vo.str("model_type", Some("siglip_vision_model"))?;
     if vt != "siglip_vision_model" {
-        return Err(VlmError::config(file, format!("vision_config.model_type \"{vt}\" is not supported (siglip_vision_model)")));
+        return Err(VlmError::config(
+            file,
+            format!("vision_config.model_type \"{vt}\" is not supported (siglip_vision_model)"),
+        ));
     }
     if vo.bool("vision_use_head", false)? {
         // The pooling head is unused by LLaVA; its weights are simply ignored.
@@ -298,8 +321,15 @@ pub fn parse_llava_config(file: &Path, root: &Value) -> Result<LlavaConfig, VlmE
     if vo.usize("num_channels", Some(3))? != 3 {
         return Err(VlmError::config(file, "vision_config.num_channels must be 3"));
     }
-    if vision.patch_size == 0 || vision.patch_size > vision.image_size || vision.num_heads == 0 || vision.hidden_size % vision.num_heads != 0 {
-        return Err(VlmError::config(file, "vision_config: patch_size must be in 1..=image_size and hidden_size a multiple of num_attention_heads"));
+    if vision.patch_size == 0
+        || vision.patch_size > vision.image_size
+        || vision.num_heads == 0
+        || !vision.hidden_size.is_multiple_of(vision.num_heads)
+    {
+        return Err(VlmError::config(
+            file,
+            "vision_config: patch_size must be in 1..=image_size and hidden_size a multiple of num_attention_heads",
+        ));
     }
 
     let to = Obj { v: text_v, file, prefix: "text_config" };
@@ -331,7 +361,10 @@ pub fn parse_llava_config(file: &Path, root: &Value) -> Result<LlavaConfig, VlmE
     }
     let kv_heads = to.usize("num_key_value_heads", Some(heads))?;
     if kv_heads == 0 || heads % kv_heads != 0 {
-        return Err(VlmError::config(file, "text_config.num_attention_heads must be a multiple of num_key_value_heads"));
+        return Err(VlmError::config(
+            file,
+            "text_config.num_attention_heads must be a multiple of num_key_value_heads",
+        ));
     }
     let head_dim = to.usize("head_dim", Some(hidden / heads))?;
     if head_dim % 2 != 0 {
@@ -357,28 +390,36 @@ pub fn parse_llava_config(file: &Path, root: &Value) -> Result<LlavaConfig, VlmE
 
     let layer = match top.get("vision_feature_layer") {
         None => -1,
-        Some(v) => v.as_i64().ok_or_else(|| VlmError::config(file, format!("vision_feature_layer = {v}: only a single layer index is supported")))?,
+        Some(v) => v.as_i64().ok_or_else(|| {
+            VlmError::config(file, format!("vision_feature_layer = {v}: only a single layer index is supported"))
+        })?,
     };
     let n = vision.num_layers as i64;
     if layer > n || layer < -(n + 1) {
-        return Err(VlmError::config(file, format!("vision_feature_layer {layer} is outside the {n}-layer vision tower")));
+        return Err(VlmError::config(
+            file,
+            format!("vision_feature_layer {layer} is outside the {n}-layer vision tower"),
+        ));
     }
     let strategy = top.str("vision_feature_select_strategy", Some("full"))?;
     if strategy != "full" {
         // "default" drops a CLS token, which SigLIP does not have; LLaVA-OneVision uses "full".
-        return Err(VlmError::config(file, format!("vision_feature_select_strategy \"{strategy}\" is not supported (full)")));
+        return Err(VlmError::config(
+            file,
+            format!("vision_feature_select_strategy \"{strategy}\" is not supported (full)"),
+        ));
     }
     let aspect = top.str("vision_aspect_ratio", Some("anyres_max_9"))?;
-    let max_num_patches = aspect
-        .strip_prefix("anyres_max_")
-        .and_then(|n| n.parse::<usize>().ok())
-        .filter(|n| *n > 0)
-        .ok_or_else(|| VlmError::config(file, format!("vision_aspect_ratio \"{aspect}\" is not supported (anyres_max_N)")))?;
+    let max_num_patches =
+        aspect.strip_prefix("anyres_max_").and_then(|n| n.parse::<usize>().ok()).filter(|n| *n > 0).ok_or_else(
+            || VlmError::config(file, format!("vision_aspect_ratio \"{aspect}\" is not supported (anyres_max_N)")),
+        )?;
     let pinpoints = top.pinpoints("image_grid_pinpoints")?.unwrap_or_else(|| LlavaConfig::onevision_0_5b().pinpoints);
     Ok(LlavaConfig {
         vision,
         text,
-        image_token_id: top.usize("image_token_index", None).or_else(|_| top.usize("image_token_id", Some(151_646)))? as u32,
+        image_token_id: top.usize("image_token_index", None).or_else(|_| top.usize("image_token_id", Some(151_646)))?
+            as u32,
         vision_feature_layer: layer,
         projector_act: Act::parse(top.str("projector_hidden_act", Some("gelu"))?, file, "projector_hidden_act")?,
         projector_bias: top.bool("multimodal_projector_bias", true)?,
@@ -396,7 +437,8 @@ pub fn load_processor_config(dir: &Path, model: &LlavaConfig) -> Result<Processo
         (pre.clone(), read_json(&pre)?)
     } else if proc.exists() {
         let v = read_json(&proc)?;
-        let inner = v.get("image_processor").cloned().ok_or_else(|| VlmError::config(&proc, "has no image_processor entry"))?;
+        let inner =
+            v.get("image_processor").cloned().ok_or_else(|| VlmError::config(&proc, "has no image_processor entry"))?;
         (proc.clone(), inner)
     } else {
         return Err(VlmError::config(dir, "neither preprocessor_config.json nor processor_config.json is present"));
@@ -426,14 +468,17 @@ pub fn load_processor_config(dir: &Path, model: &LlavaConfig) -> Result<Processo
         None => (model.vision.image_size, model.vision.image_size),
     };
     if size != (model.vision.image_size, model.vision.image_size) {
-        return Err(VlmError::config(&file, format!("size {size:?} differs from the vision tower's {0}x{0}", model.vision.image_size)));
+        return Err(VlmError::config(
+            &file,
+            format!("size {size:?} differs from the vision tower's {0}x{0}", model.vision.image_size),
+        ));
     }
     let resample = o.usize("resample", Some(3))? as u32;
     if resample != 2 && resample != 3 {
         return Err(VlmError::config(&file, format!("resample = {resample} is not supported (2 bilinear, 3 bicubic)")));
     }
     let std = triple("image_std", 0.5)?;
-    if std.iter().any(|s| *s == 0.0) {
+    if std.contains(&0.0) {
         return Err(VlmError::config(&file, "image_std must not contain 0"));
     }
     Ok(ProcessorConfig {

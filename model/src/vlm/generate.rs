@@ -1,9 +1,9 @@
 //! Generation with the KV cache: greedy or temperature / top-p sampling, stop tokens, a token
 //! budget, and a callback that receives printable text as it is produced (streaming).
 
+use super::VlmError;
 use super::llava::LlavaOnevision;
 use super::qwen2::KvCache;
-use super::VlmError;
 use crate::rng::Rng;
 use burn::tensor::Tensor;
 
@@ -49,7 +49,8 @@ pub fn pick(logits: &[f32], opts: &GenerateOptions, rng: &mut Rng) -> u32 {
         return best as u32;
     }
     let max = logits.iter().cloned().fold(f32::NEG_INFINITY, f32::max);
-    let mut p: Vec<(usize, f64)> = logits.iter().enumerate().map(|(i, v)| (i, (((v - max) / opts.temperature) as f64).exp())).collect();
+    let mut p: Vec<(usize, f64)> =
+        logits.iter().enumerate().map(|(i, v)| (i, (((v - max) / opts.temperature) as f64).exp())).collect();
     let z: f64 = p.iter().map(|x| x.1).sum();
     p.sort_by(|a, b| b.1.total_cmp(&a.1));
     let mut kept = Vec::new();
@@ -78,7 +79,12 @@ fn last_row(t: Tensor<2>) -> Vec<f32> {
 
 impl LlavaOnevision {
     /// Generates after a prompt given as input embeddings `[T, D]`; `on_text` receives new text pieces.
-    pub fn generate(&self, prompt: Tensor<2>, opts: &GenerateOptions, mut on_text: impl FnMut(&str)) -> Result<Generation, VlmError> {
+    pub fn generate(
+        &self,
+        prompt: Tensor<2>,
+        opts: &GenerateOptions,
+        mut on_text: impl FnMut(&str),
+    ) -> Result<Generation, VlmError> {
         let prompt_tokens = prompt.dims()[0];
         let mut cache = KvCache::default();
         let mut rng = Rng::new(opts.seed);

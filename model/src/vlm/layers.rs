@@ -1,9 +1,9 @@
 //! Small building blocks on plain burn tensors (frozen weights, any backend).
 
+use super::VlmError;
 use super::config::Act;
 use super::weights::WeightStore;
-use super::VlmError;
-use burn::tensor::{activation, Tensor};
+use burn::tensor::{Tensor, activation};
 
 /// `y = x W + b` with `W` stored `[in, out]`.
 #[derive(Clone, Debug)]
@@ -46,7 +46,11 @@ pub struct LayerNorm {
 
 impl LayerNorm {
     pub fn load(w: &WeightStore, prefix: &str, d: usize, eps: f64) -> Result<Self, VlmError> {
-        Ok(Self { weight: w.tensor(&format!("{prefix}.weight"), [d])?, bias: w.tensor(&format!("{prefix}.bias"), [d])?, eps })
+        Ok(Self {
+            weight: w.tensor(&format!("{prefix}.weight"), [d])?,
+            bias: w.tensor(&format!("{prefix}.bias"), [d])?,
+            eps,
+        })
     }
 
     pub fn forward(&self, x: Tensor<3>) -> Tensor<3> {
@@ -54,7 +58,8 @@ impl LayerNorm {
         let centered = x - mean;
         let var = centered.clone().powf_scalar(2.0).mean_dim(2);
         let y = centered / (var + self.eps).sqrt();
-        y * self.weight.clone().unsqueeze_dim::<2>(0).unsqueeze_dim::<3>(0) + self.bias.clone().unsqueeze_dim::<2>(0).unsqueeze_dim::<3>(0)
+        y * self.weight.clone().unsqueeze_dim::<2>(0).unsqueeze_dim::<3>(0)
+            + self.bias.clone().unsqueeze_dim::<2>(0).unsqueeze_dim::<3>(0)
     }
 }
 

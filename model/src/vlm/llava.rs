@@ -1,14 +1,14 @@
 //! `LlavaOnevisionForConditionalGeneration`: vision tower -> projector -> anyres packing with the
 //! image-newline embedding -> spliced into the Qwen2 input embeddings at the `<image>` placeholders.
 
-use super::config::{load_processor_config, parse_llava_config, read_json, LlavaConfig, ProcessorConfig};
-use super::layers::{act, Linear};
-use super::preprocess::{anyres_views, base_view, num_image_tokens, AnyresGrid, ImagePatches, RgbImage};
+use super::VlmError;
+use super::config::{LlavaConfig, ProcessorConfig, load_processor_config, parse_llava_config, read_json};
+use super::layers::{Linear, act};
+use super::preprocess::{AnyresGrid, ImagePatches, RgbImage, anyres_views, base_view, num_image_tokens};
 use super::qwen2::{KvCache, Qwen2};
 use super::siglip::VisionTower;
-use super::tokenizer::ChatTokenizer;
+use super::tokenizer::{ChatTokenizer, Turn, chat_template};
 use super::weights::WeightStore;
-use super::VlmError;
 use burn::tensor::{Device, Tensor, TensorData};
 use std::path::{Path, PathBuf};
 
@@ -45,7 +45,10 @@ impl LlavaOnevision {
     /// Loads `config.json`, the image processor config, `tokenizer.json` and the safetensors weights of `dir`.
     pub fn load(dir: &Path, device: &Device) -> Result<Self, VlmError> {
         if !dir.is_dir() {
-            return Err(VlmError::config(dir, "is not a directory (expected a Hugging Face LLaVA-OneVision model directory)"));
+            return Err(VlmError::config(
+                dir,
+                "is not a directory (expected a Hugging Face LLaVA-OneVision model directory)",
+            ));
         }
         let cfg_path = dir.join("config.json");
         if !cfg_path.exists() {
@@ -80,7 +83,10 @@ impl LlavaOnevision {
     /// Pixels `[views, 3, S, S]` of preprocessed views on the device.
     pub fn pixels(&self, patches: &ImagePatches) -> Tensor<4> {
         let s = self.processor.size.0;
-        Tensor::from_data(TensorData::new(patches.pixel_values(&self.processor), [patches.views.len(), 3, s, s]), self.device())
+        Tensor::from_data(
+            TensorData::new(patches.pixel_values(&self.processor), [patches.views.len(), 3, s, s]),
+            self.device(),
+        )
     }
 
     /// The teacher features ChatSplat distils: the selected SigLIP hidden state `[B, tokens, vision D]`.
@@ -114,7 +120,11 @@ impl LlavaOnevision {
         let (ph, pw) = grid.patches;
         assert_eq!(v - 1, ph * pw, "pack: {} anyres views for a {ph}x{pw} grid", v - 1);
         // [ph, pw, g, g, D] -> [D, ph*g, pw*g]
-        let map = projected.narrow(0, 1, v - 1).reshape([ph, pw, g, g, d]).permute([4, 0, 2, 1, 3]).reshape([d, ph * g, pw * g]);
+        let map = projected.narrow(0, 1, v - 1).reshape([ph, pw, g, g, d]).permute([4, 0, 2, 1, 3]).reshape([
+            d,
+            ph * g,
+            pw * g,
+        ]);
         let (r0, c0, h, w) = grid.crop;
         let mut map = map.narrow(1, r0, h).narrow(2, c0, w);
         if let Some((nh, nw)) = grid.shrink {
@@ -142,6 +152,17 @@ impl LlavaOnevision {
         Tensor::cat(vec![p.reshape([t, dt]), self.image_newline.clone().unsqueeze_dim::<2>(0)], 0)
     }
 
+    /// Prompt input embeddings `[L, text D]` of one user turn asking `question` about images
+    /// given as packed prompt embeddings (`image_embeds` of a preprocessed image, or
+    /// `token_embeds` of a token grid): the chat template with one `<image>` per image, each
+    /// expanded to its number of rows. The one place prompts are assembled.
+    pub fn prompt_embeds(&self, question: &str, images: &[Tensor<2>]) -> Result<Tensor<2>, VlmError> {
+        let prompt = chat_template(&[Turn::user(images.len(), question.to_string())], true);
+        let counts: Vec<usize> = images.iter().map(|e| e.dims()[0]).collect();
+        let ids = self.expand_image_tokens(&self.tokenizer.encode(&prompt)?, &counts)?;
+        self.embed_prompt(&ids, images)
+    }
+
     /// Number of `<image>` placeholders one image expands to.
     pub fn num_image_tokens(&self, patches: &ImagePatches) -> usize {
         num_image_tokens(&self.cfg, patches)
@@ -161,10 +182,17 @@ impl LlavaOnevision {
             if is_img {
                 let mut run = j - i;
                 while run > 0 {
-                    let img = next_image.next().ok_or_else(|| VlmError::prompt(format!("the prompt has more image placeholders than the {} image(s) given", images.len())))?;
+                    let img = next_image.next().ok_or_else(|| {
+                        VlmError::prompt(format!(
+                            "the prompt has more image placeholders than the {} image(s) given",
+                            images.len()
+                        ))
+                    })?;
                     let n = img.dims()[0];
                     if n > run {
-                        return Err(VlmError::prompt(format!("an image needs {n} placeholder tokens but only {run} follow")));
+                        return Err(VlmError::prompt(format!(
+                            "an image needs {n} placeholder tokens but only {run} follow"
+                        )));
                     }
                     parts.push(img.clone());
                     run -= n;
@@ -186,14 +214,22 @@ impl LlavaOnevision {
         let mut c = counts.iter();
         for &id in ids {
             if id == self.cfg.image_token_id {
-                let n = *c.next().ok_or_else(|| VlmError::prompt(format!("the prompt has more <image> tags than the {} image(s) given", counts.len())))?;
+                let n = *c.next().ok_or_else(|| {
+                    VlmError::prompt(format!(
+                        "the prompt has more <image> tags than the {} image(s) given",
+                        counts.len()
+                    ))
+                })?;
                 out.extend(std::iter::repeat_n(id, n));
             } else {
                 out.push(id);
             }
         }
         if c.next().is_some() {
-            return Err(VlmError::prompt(format!("{} image(s) given but the prompt has fewer <image> tags", counts.len())));
+            return Err(VlmError::prompt(format!(
+                "{} image(s) given but the prompt has fewer <image> tags",
+                counts.len()
+            )));
         }
         Ok(out)
     }
@@ -208,7 +244,11 @@ impl LlavaOnevision {
 /// The base view of one image for teacher extraction: a plain resize to the tower's input (what
 /// the processor does to the base view of an anyres image).
 pub fn base_view_unpadded(img: &RgbImage, cfg: &ProcessorConfig) -> ImagePatches {
-    ImagePatches { views: vec![super::preprocess::resize(img, cfg.size.1, cfg.size.0, cfg.resample)], orig_hw: (img.height, img.width), anyres: false }
+    ImagePatches {
+        views: vec![super::preprocess::resize(img, cfg.size.1, cfg.size.0, cfg.resample)],
+        orig_hw: (img.height, img.width),
+        anyres: false,
+    }
 }
 
 /// torch `F.interpolate(x[None], size, mode="bilinear", align_corners=False)[0]` for `[C, H, W]`.

@@ -23,16 +23,54 @@ pub use config::{LlavaConfig, ProcessorConfig};
 pub use generate::{GenerateOptions, Generation};
 pub use llava::LlavaOnevision;
 pub use preprocess::RgbImage;
-pub use tokenizer::{chat_template, ChatTokenizer, Turn};
+pub use tokenizer::{ChatTokenizer, Turn, chat_template};
 
-use std::path::Path;
+use std::path::{Path, PathBuf};
+
+/// Directory name of the built-in model under `checkpoints/`.
+pub const DEFAULT_MODEL: &str = "tiny-llava-ov";
+/// Environment variable naming the LLaVA-OneVision directory to use when none is given.
+pub const MODEL_ENV: &str = "CHATSPLAT_VLM";
+
+/// The model used when none is given: `$CHATSPLAT_VLM`, else `checkpoints/tiny-llava-ov` beside
+/// the executable or up to three directories above it (a cargo `target/<profile>/` build), else
+/// in the working directory. The error lists every place it looked.
+pub fn default_model_dir() -> Result<PathBuf, VlmError> {
+    if let Some(dir) = std::env::var_os(MODEL_ENV).filter(|v| !v.is_empty()) {
+        let dir = PathBuf::from(dir);
+        return if dir.join("config.json").is_file() {
+            Ok(dir)
+        } else {
+            Err(VlmError::config(&dir, format!("(from {MODEL_ENV}) holds no config.json of a LLaVA-OneVision model")))
+        };
+    }
+    let mut looked = Vec::new();
+    let exe = std::env::current_exe().ok().and_then(|e| e.parent().map(Path::to_path_buf));
+    let mut bases: Vec<PathBuf> = exe.iter().flat_map(|d| d.ancestors().take(4).map(Path::to_path_buf)).collect();
+    bases.extend(std::env::current_dir().ok());
+    for base in bases {
+        let dir = base.join("checkpoints").join(DEFAULT_MODEL);
+        if dir.join("config.json").is_file() {
+            return Ok(dir);
+        }
+        looked.push(dir.display().to_string());
+    }
+    Err(VlmError::Config {
+        path: format!("the built-in model ({DEFAULT_MODEL})"),
+        message: format!("not found; looked in {}; give --vlm DIR or set {MODEL_ENV}", looked.join(", ")),
+    })
+}
 
 /// Loader and prompt errors; each names the file (or says it is about the prompt).
-#[derive(Debug)]
+#[derive(Debug, thiserror::Error)]
 pub enum VlmError {
+    #[error("{path}: {message}")]
     Io { path: String, message: String },
+    #[error("{path}: {message}")]
     Config { path: String, message: String },
+    #[error("{path}: {message}")]
     Weights { path: String, message: String },
+    #[error("prompt: {0}")]
     Prompt(String),
 }
 
@@ -50,16 +88,3 @@ impl VlmError {
         VlmError::Prompt(message.into())
     }
 }
-
-impl std::fmt::Display for VlmError {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        match self {
-            VlmError::Io { path, message } => write!(f, "{path}: {message}"),
-            VlmError::Config { path, message } => write!(f, "{path}: {message}"),
-            VlmError::Weights { path, message } => write!(f, "{path}: {message}"),
-            VlmError::Prompt(m) => write!(f, "prompt: {m}"),
-        }
-    }
-}
-
-impl std::error::Error for VlmError {}

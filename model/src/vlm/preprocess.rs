@@ -21,7 +21,7 @@ impl RgbImage {
     }
 
     /// Reads an 8-bit PNG; gray and alpha channels are converted like PIL's `convert("RGB")` (alpha dropped).
-    pub fn read_png(path: &std::path::Path) -> Result<Self, String> {
+    pub fn read_png(path: &std::path::Path) -> crate::Result<Self> {
         let (w, h, c, bytes) = crate::images::read_png8(path)?;
         let (w, h) = (w as usize, h as usize);
         let mut data = Vec::with_capacity(w * h * 3);
@@ -121,11 +121,8 @@ pub fn resize(img: &RgbImage, width: usize, height: usize, resample: u32) -> Rgb
     let vert = coefficients(img.height, height, filter, support);
     let half = 1i64 << (PRECISION_BITS - 1);
     // Horizontal pass over the rows the vertical pass needs.
-    let (y_first, y_last) = if img.height != height {
-        (vert[0].0, vert[height - 1].0 + vert[height - 1].1.len())
-    } else {
-        (0, img.height)
-    };
+    let (y_first, y_last) =
+        if img.height != height { (vert[0].0, vert[height - 1].0 + vert[height - 1].1.len()) } else { (0, img.height) };
     let tmp = if img.width != width {
         let horiz = coefficients(img.width, width, filter, support);
         let mut data = vec![0u8; width * (y_last - y_first) * 3];
@@ -190,7 +187,11 @@ fn patch_output_size(orig: (usize, usize), target: (usize, usize)) -> (usize, us
     let (th, tw) = target;
     let sw = tw as f64 / ow as f64;
     let sh = th as f64 / oh as f64;
-    if sw < sh { ((oh as f64 * sw).ceil().min(th as f64) as usize, tw) } else { (th, (ow as f64 * sh).ceil().min(tw as f64) as usize) }
+    if sw < sh {
+        ((oh as f64 * sw).ceil().min(th as f64) as usize, tw)
+    } else {
+        (th, (ow as f64 * sh).ceil().min(tw as f64) as usize)
+    }
 }
 
 /// The 8-bit views fed to the vision tower for one image, base view first.
@@ -240,7 +241,11 @@ pub fn base_view(img: &RgbImage, cfg: &ProcessorConfig) -> ImagePatches {
     let side = img.width.max(img.height);
     let fill = cfg.mean.map(|m| (m * 255.0) as u8);
     let square = if img.width == img.height { img.clone() } else { img.pad_centered(side, side, fill) };
-    ImagePatches { views: vec![resize(&square, cfg.size.1, cfg.size.0, cfg.resample)], orig_hw: (img.height, img.width), anyres: false }
+    ImagePatches {
+        views: vec![resize(&square, cfg.size.1, cfg.size.0, cfg.resample)],
+        orig_hw: (img.height, img.width),
+        anyres: false,
+    }
 }
 
 /// Where the anyres features of one image land: the patch grid, the unpadded crop of the feature
@@ -273,7 +278,8 @@ impl AnyresGrid {
         };
         let (h, w) = (crop.2, crop.3);
         let ratio = ((h * w) as f64 / (cfg.max_num_patches * g * g) as f64).sqrt();
-        let shrink = (ratio > 1.1).then(|| (((h as f64) / ratio).floor() as usize, ((w as f64) / ratio).floor() as usize));
+        let shrink =
+            (ratio > 1.1).then(|| (((h as f64) / ratio).floor() as usize, ((w as f64) / ratio).floor() as usize));
         Self { patches, crop, shrink }
     }
 

@@ -3,10 +3,10 @@
 //! config says so). It takes `inputs_embeds`, so image tokens from anywhere can be spliced in, and
 //! keeps a KV cache for generation.
 
-use super::config::TextConfig;
-use super::layers::{act, attention, Linear, RmsNorm};
-use super::weights::WeightStore;
 use super::VlmError;
+use super::config::TextConfig;
+use super::layers::{Linear, RmsNorm, act, attention};
+use super::weights::WeightStore;
 use burn::tensor::{Device, Int, Tensor, TensorData};
 
 #[derive(Clone, Debug)]
@@ -75,13 +75,23 @@ impl Qwen2 {
         let embed = w.tensor(&format!("{pre}.embed_tokens.weight"), [cfg.vocab_size, d])?;
         let lm_head = if cfg.tie_word_embeddings || !w.contains("language_model.lm_head.weight") {
             if !cfg.tie_word_embeddings {
-                return Err(VlmError::weights(std::path::Path::new("lm_head"), "language_model.lm_head.weight is missing and the config does not tie embeddings"));
+                return Err(VlmError::weights(
+                    std::path::Path::new("lm_head"),
+                    "language_model.lm_head.weight is missing and the config does not tie embeddings",
+                ));
             }
             embed.clone().transpose()
         } else {
             w.linear_weight("language_model.lm_head.weight", d, cfg.vocab_size)?
         };
-        Ok(Self { norm: RmsNorm::load(w, &format!("{pre}.norm"), d, cfg.rms_norm_eps)?, embed, layers, lm_head, device: w.device().clone(), cfg: cfg.clone() })
+        Ok(Self {
+            norm: RmsNorm::load(w, &format!("{pre}.norm"), d, cfg.rms_norm_eps)?,
+            embed,
+            layers,
+            lm_head,
+            device: w.device().clone(),
+            cfg: cfg.clone(),
+        })
     }
 
     /// Token embeddings `[T, D]` of `ids`.
@@ -106,7 +116,10 @@ impl Qwen2 {
                 sin.push(a.sin());
             }
         }
-        (Tensor::from_data(TensorData::new(cos, [t, half]), &self.device), Tensor::from_data(TensorData::new(sin, [t, half]), &self.device))
+        (
+            Tensor::from_data(TensorData::new(cos, [t, half]), &self.device),
+            Tensor::from_data(TensorData::new(sin, [t, half]), &self.device),
+        )
     }
 
     /// Runs `x` (`[T, D]` input embeddings) after the cached tokens; returns the final-norm hidden states `[T, D]`.
@@ -128,7 +141,9 @@ impl Qwen2 {
         };
         let total = start + t;
         let mask = (t > 1).then(|| {
-            let m: Vec<f32> = (0..t).flat_map(|i| (0..total).map(move |j| if j > start + i { f32::NEG_INFINITY } else { 0.0 })).collect();
+            let m: Vec<f32> = (0..t)
+                .flat_map(|i| (0..total).map(move |j| if j > start + i { f32::NEG_INFINITY } else { 0.0 }))
+                .collect();
             Tensor::<2>::from_data(TensorData::new(m, [t, total]), &self.device)
         });
         let mut x = x;

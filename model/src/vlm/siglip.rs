@@ -3,10 +3,10 @@
 //! layers; the output is the hidden state selected by `vision_feature_layer` (no post-layernorm,
 //! no pooling head).
 
-use super::config::{LlavaConfig, VisionConfig};
-use super::layers::{act, attention, LayerNorm, Linear};
-use super::weights::WeightStore;
 use super::VlmError;
+use super::config::{LlavaConfig, VisionConfig};
+use super::layers::{LayerNorm, Linear, act, attention};
+use super::weights::WeightStore;
 use burn::tensor::Tensor;
 
 #[derive(Clone, Debug)]
@@ -68,7 +68,12 @@ impl VisionTower {
         let [b, c, s, s2] = pixels.dims();
         let p = self.cfg.patch_size;
         let g = self.cfg.grid();
-        assert!(c == 3 && s == self.cfg.image_size && s2 == s, "vision tower expects [B, 3, {1}, {1}], got {0:?}", pixels.dims(), self.cfg.image_size);
+        assert!(
+            c == 3 && s == self.cfg.image_size && s2 == s,
+            "vision tower expects [B, 3, {1}, {1}], got {0:?}",
+            pixels.dims(),
+            self.cfg.image_size
+        );
         let d = self.cfg.hidden_size;
         let used = g * p; // 378 of 384: the conv never reaches the last 6 rows/columns
         let pixels = if used < s { pixels.narrow(2, 0, used).narrow(3, 0, used) } else { pixels };
@@ -81,7 +86,8 @@ impl VisionTower {
         let split = |y: Tensor<3>| y.reshape([b, t, heads, hd]).swap_dims(1, 2).reshape([b * heads, t, hd]);
         for l in &self.layers {
             let h = l.ln1.forward(x.clone());
-            let o = attention(split(l.q.forward(h.clone())), split(l.k.forward(h.clone())), split(l.v.forward(h)), None);
+            let o =
+                attention(split(l.q.forward(h.clone())), split(l.k.forward(h.clone())), split(l.v.forward(h)), None);
             let o = o.reshape([b, heads, t, hd]).swap_dims(1, 2).reshape([b, t, d]);
             x = x + l.out.forward(o);
             let h = l.ln2.forward(x.clone());

@@ -64,11 +64,15 @@ impl ChatTokenizer {
         if !path.exists() {
             return Err(VlmError::config(&path, "is missing"));
         }
-        let inner = tokenizers::Tokenizer::from_file(&path).map_err(|e| VlmError::config(&path, format!("cannot load tokenizer: {e}")))?;
+        let inner = tokenizers::Tokenizer::from_file(&path)
+            .map_err(|e| VlmError::config(&path, format!("cannot load tokenizer: {e}")))?;
         match inner.id_to_token(image_token_id) {
             Some(t) if t == "<image>" => {}
             other => {
-                return Err(VlmError::config(&path, format!("image_token_index {image_token_id} of config.json is {other:?} here, not \"<image>\"")));
+                return Err(VlmError::config(
+                    &path,
+                    format!("image_token_index {image_token_id} of config.json is {other:?} here, not \"<image>\""),
+                ));
             }
         }
         let stop_ids = ["<|im_end|>", "<|endoftext|>"].iter().filter_map(|t| inner.token_to_id(t)).collect();

@@ -48,7 +48,8 @@ impl WeightStore {
             // SAFETY: the file is opened read-only and only read through this map; a concurrent
             // writer could change what we read, as with any reader of the file.
             let map = unsafe { memmap2::Mmap::map(&file) }.map_err(|e| VlmError::io(&path, e))?;
-            let st = SafeTensors::deserialize(&map).map_err(|e| VlmError::weights(&path, format!("not a valid safetensors file: {e}")))?;
+            let st = SafeTensors::deserialize(&map)
+                .map_err(|e| VlmError::weights(&path, format!("not a valid safetensors file: {e}")))?;
             for name in st.names() {
                 names.insert(name.to_string(), shards.len());
             }
@@ -75,24 +76,39 @@ impl WeightStore {
     /// Reads `name` as f32 host data and checks its shape.
     pub fn host(&self, name: &str, shape: &[usize]) -> Result<Vec<f32>, VlmError> {
         let key = self.resolve(name).ok_or_else(|| {
-            let where_ = self.shards.first().map(|s| s.path.parent().unwrap_or(Path::new(".")).to_path_buf()).unwrap_or_default();
+            let where_ = self
+                .shards
+                .first()
+                .map(|s| s.path.parent().unwrap_or(Path::new(".")).to_path_buf())
+                .unwrap_or_default();
             VlmError::weights(&where_, format!("tensor {name} is missing"))
         })?;
         let shard = &self.shards[self.names[&key]];
         let st = SafeTensors::deserialize(&shard.map).map_err(|e| VlmError::weights(&shard.path, e.to_string()))?;
         let view = st.tensor(&key).map_err(|e| VlmError::weights(&shard.path, format!("{key}: {e}")))?;
         if view.shape() != shape {
-            return Err(VlmError::weights(&shard.path, format!("tensor {key} has shape {:?}, the config expects {shape:?}", view.shape())));
+            return Err(VlmError::weights(
+                &shard.path,
+                format!("tensor {key} has shape {:?}, the config expects {shape:?}", view.shape()),
+            ));
         }
         let bytes = view.data();
         let out: Vec<f32> = match view.dtype() {
             Dtype::F32 => bytes.chunks_exact(4).map(|b| f32::from_le_bytes([b[0], b[1], b[2], b[3]])).collect(),
             Dtype::BF16 => bytes.chunks_exact(2).map(|b| half::bf16::from_le_bytes([b[0], b[1]]).to_f32()).collect(),
             Dtype::F16 => bytes.chunks_exact(2).map(|b| half::f16::from_le_bytes([b[0], b[1]]).to_f32()).collect(),
-            other => return Err(VlmError::weights(&shard.path, format!("tensor {key} has dtype {other:?}; expected F32, BF16 or F16"))),
+            other => {
+                return Err(VlmError::weights(
+                    &shard.path,
+                    format!("tensor {key} has dtype {other:?}; expected F32, BF16 or F16"),
+                ));
+            }
         };
         if let Some(i) = out.iter().position(|x| !x.is_finite()) {
-            return Err(VlmError::weights(&shard.path, format!("tensor {key} has a non-finite value at flat index {i}")));
+            return Err(VlmError::weights(
+                &shard.path,
+                format!("tensor {key} has a non-finite value at flat index {i}"),
+            ));
         }
         Ok(out)
     }

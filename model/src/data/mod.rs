@@ -22,6 +22,7 @@ pub mod nerfstudio;
 pub mod replica;
 pub mod synth;
 
+use crate::error::{Error, Result};
 use splat_kernels::Camera;
 use std::path::{Path, PathBuf};
 
@@ -57,11 +58,7 @@ pub struct LoadOptions {
 
 impl Default for LoadOptions {
     fn default() -> Self {
-        Self {
-            downscale: 1,
-            background: Background::White,
-            holdout_every: 8,
-        }
+        Self { downscale: 1, background: Background::White, holdout_every: 8 }
     }
 }
 
@@ -99,12 +96,8 @@ pub(crate) fn split(views: Vec<View>, every: usize) -> Dataset {
 }
 
 /// Rejects a zero downscale factor.
-pub(crate) fn check_options(opts: &LoadOptions) -> Result<(), String> {
-    if opts.downscale == 0 {
-        Err("downscale must be at least 1".into())
-    } else {
-        Ok(())
-    }
+pub(crate) fn check_options(opts: &LoadOptions) -> Result<()> {
+    if opts.downscale == 0 { Err(Error::input("downscale must be at least 1")) } else { Ok(()) }
 }
 
 /// Loads a scene directory in whichever supported format it holds, checking for (in this order):
@@ -115,7 +108,7 @@ pub(crate) fn check_options(opts: &LoadOptions) -> Result<(), String> {
 /// 3. a `sparse/` directory: [`colmap`] (its sparse points are dropped; call
 ///    [`colmap::load`] to keep them);
 /// 4. `traj_w_c.txt`: [`replica`].
-pub fn load_any(dir: &Path, opts: &LoadOptions) -> Result<Dataset, String> {
+pub fn load_any(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
     if dir.join("transforms.json").is_file() || dir.join("transforms_train.json").is_file() {
         nerfstudio::load(dir, opts)
     } else if dir.join("poses_bounds.npy").is_file() {

@@ -46,7 +46,12 @@ fn bad_input_gives_a_clear_error_and_a_non_zero_exit() {
     assert!(!err.contains("panicked"), "{err}");
 
     let bad = tmp("bad.ply");
-    std::fs::write(&bad, b"ply\nformat binary_little_endian 1.0\nelement vertex 10\nproperty float x\nproperty float y\nproperty float z\nend_header\n\0\0\0\0").unwrap();
+    std::fs::write(
+        &bad,
+        b"ply\nformat binary_little_endian 1.0\nelement vertex 10\nproperty float x\n\
+        property float y\nproperty float z\nend_header\n\0\0\0\0",
+    )
+    .unwrap();
     let st = chatsplat().args(["render", "--ply"]).arg(&bad).output().unwrap();
     assert!(!st.status.success());
     let err = String::from_utf8_lossy(&st.stderr);
@@ -66,7 +71,9 @@ fn synth_writes_a_dataset_and_rejects_zero_views() {
         .output()
         .unwrap();
     assert!(st.status.success(), "{}", String::from_utf8_lossy(&st.stderr));
-    for rel in ["transforms.json", "scene.json", "images/frame_0001.png", "masks/frame_0001.png", "depth/frame_0001.png"] {
+    for rel in
+        ["transforms.json", "scene.json", "images/frame_0001.png", "masks/frame_0001.png", "depth/frame_0001.png"]
+    {
         assert!(dir.join(rel).is_file(), "{rel} missing");
     }
     let st = chatsplat().args(["synth", "--views", "0", "--out"]).arg(&dir).output().unwrap();
@@ -75,7 +82,7 @@ fn synth_writes_a_dataset_and_rejects_zero_views() {
 }
 
 fn fixture() -> std::path::PathBuf {
-    std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../checkpoints/tiny-llava-ov")
+    std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("checkpoints/tiny-llava-ov")
 }
 
 #[test]
@@ -108,20 +115,36 @@ fn ask_streams_an_answer_from_the_tiny_vlm_and_rejects_bad_paths() {
     let err = String::from_utf8_lossy(&st.stderr);
     let n: usize = err
         .lines()
-        .find_map(|l| l.split(" prompt tokens").next().filter(|_| l.contains(" prompt tokens")).and_then(|s| s.trim().parse().ok()))
+        .find_map(|l| {
+            l.split(" prompt tokens")
+                .next()
+                .filter(|_| l.contains(" prompt tokens"))
+                .and_then(|s| s.trim().parse().ok())
+        })
         .unwrap_or_else(|| panic!("no prompt token count in {err}"));
     assert!(n > 2 * 730 && n < 2 * 730 + 40, "two base views + newline = 1460 image tokens plus the text, got {n}");
 
-    let st = chatsplat().args(["ask", "--vlm", "/nonexistent/vlm", "--image"]).arg(fixture().join("image_a.png")).arg("q").output().unwrap();
+    let st = chatsplat()
+        .args(["ask", "--vlm", "/nonexistent/vlm", "--image"])
+        .arg(fixture().join("image_a.png"))
+        .arg("q")
+        .output()
+        .unwrap();
     assert!(!st.status.success());
     let err = String::from_utf8_lossy(&st.stderr);
     assert!(err.contains("/nonexistent/vlm") && !err.contains("panicked"), "{err}");
 
-    let st = chatsplat().args(["ask", "--vlm"]).arg(fixture()).args(["--image", "/nonexistent/x.png", "q"]).output().unwrap();
+    let st = chatsplat()
+        .args(["ask", "--vlm"])
+        .arg(fixture())
+        .args(["--image", "/nonexistent/x.png", "q"])
+        .output()
+        .unwrap();
     assert!(!st.status.success());
     assert!(String::from_utf8_lossy(&st.stderr).contains("/nonexistent/x.png"));
 
-    let st = chatsplat().args(["extract", "--vlm"]).arg(fixture()).args(["--data", "/nonexistent/scene"]).output().unwrap();
+    let st =
+        chatsplat().args(["extract", "--vlm"]).arg(fixture()).args(["--data", "/nonexistent/scene"]).output().unwrap();
     assert!(!st.status.success());
     let err = String::from_utf8_lossy(&st.stderr);
     assert!(err.contains("/nonexistent/scene") && !err.contains("panicked"), "{err}");
@@ -133,10 +156,25 @@ fn language_commands_reject_bad_input_by_name() {
     let teacher = tmp("no-such-teacher");
     let cases: Vec<(Vec<String>, String)> = vec![
         (
-            vec!["train-language".into(), "--run".into(), missing.display().to_string(), "--teacher".into(), teacher.display().to_string()],
+            vec![
+                "train-language".into(),
+                "--run".into(),
+                missing.display().to_string(),
+                "--teacher".into(),
+                teacher.display().to_string(),
+            ],
             teacher.join("teacher.json").display().to_string(),
         ),
-        (vec!["export-encoder".into(), "--run".into(), missing.display().to_string(), "--out".into(), tmp("e.safetensors").display().to_string()], "no-such-run".into()),
+        (
+            vec![
+                "export-encoder".into(),
+                "--run".into(),
+                missing.display().to_string(),
+                "--out".into(),
+                tmp("e.safetensors").display().to_string(),
+            ],
+            "no-such-run".into(),
+        ),
         (vec!["ask".into(), "--vlm".into(), missing.display().to_string(), "q".into()], "--run".into()),
     ];
     for (args, want) in cases {
@@ -149,7 +187,15 @@ fn language_commands_reject_bad_input_by_name() {
     // a malformed question file is named with the JSON position
     let q = tmp("questions.json");
     std::fs::write(&q, "{\"questions\": [ {\"id\": 1,,] }").unwrap();
-    let st = chatsplat().args(["vqa", "--run"]).arg(&missing).args(["--vlm"]).arg(&missing).arg("--questions").arg(&q).output().unwrap();
+    let st = chatsplat()
+        .args(["vqa", "--run"])
+        .arg(&missing)
+        .args(["--vlm"])
+        .arg(&missing)
+        .arg("--questions")
+        .arg(&q)
+        .output()
+        .unwrap();
     let err = String::from_utf8_lossy(&st.stderr);
     assert!(!st.status.success() && err.contains(&q.display().to_string()) && err.contains("line"), "{err}");
 }

@@ -31,6 +31,7 @@
 
 use super::image::{decode, err, read_ids8};
 use super::{Dataset, LoadOptions, View, check_options, split};
+use crate::error::Result;
 use glam::{DMat3, DMat4, DQuat, DVec3};
 use splat_kernels::Camera;
 use std::collections::{HashMap, HashSet};
@@ -96,7 +97,7 @@ struct ImageRec {
 
 /// Loads a COLMAP project (see the module docs): the views, split into train and test, and the
 /// sparse points.
-pub fn load(dir: &Path, opts: &LoadOptions) -> Result<(Dataset, SparsePoints), String> {
+pub fn load(dir: &Path, opts: &LoadOptions) -> Result<(Dataset, SparsePoints)> {
     check_options(opts)?;
     let sparse = find_sparse(dir)?;
     let cam_file = pick(&sparse, "cameras")?;
@@ -126,7 +127,10 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<(Dataset, SparsePoints), S
         let intr = cameras.get(&im.camera_id).ok_or_else(|| {
             err(
                 &img_file,
-                format!("image {} ({}) refers to camera {}, which {cam_name} does not define", im.id, im.name, im.camera_id),
+                format!(
+                    "image {} ({}) refers to camera {}, which {cam_name} does not define",
+                    im.id, im.name, im.camera_id
+                ),
             )
         })?;
         let path = images_dir.join(&im.name);
@@ -138,10 +142,7 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<(Dataset, SparsePoints), S
         if (w, h) != (intr.width, intr.height) {
             return Err(err(
                 &path,
-                format!(
-                    "image is {w}x{h} but camera {} in {cam_name} is {}x{}",
-                    im.camera_id, intr.width, intr.height
-                ),
+                format!("image is {w}x{h} but camera {} in {cam_name} is {}x{}", im.camera_id, intr.width, intr.height),
             ));
         }
         let world_to_cam = pose(&im.q, &im.t).ok_or_else(|| {
@@ -154,19 +155,13 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<(Dataset, SparsePoints), S
         camera.cy = (intr.cy / s) as f32;
         let mask = dir.join("masks").join(Path::new(&im.name).with_extension("png"));
         let instance_ids = if mask.is_file() { Some(read_ids8(&mask, w, h, k)?) } else { None };
-        views.push(View {
-            image_path: path,
-            camera,
-            rgb,
-            instance_ids,
-            depth: None,
-        });
+        views.push(View { image_path: path, camera, rgb, instance_ids, depth: None });
     }
     Ok((split(views, opts.holdout_every), points))
 }
 
 /// `dir/sparse/0` when it exists, else `dir/sparse` when it holds a cameras file.
-fn find_sparse(dir: &Path) -> Result<PathBuf, String> {
+fn find_sparse(dir: &Path) -> Result<PathBuf> {
     let zero = dir.join("sparse").join("0");
     if zero.is_dir() {
         return Ok(zero);
@@ -179,7 +174,7 @@ fn find_sparse(dir: &Path) -> Result<PathBuf, String> {
 }
 
 /// `<stem>.bin` if present, else `<stem>.txt`.
-fn pick(sparse: &Path, stem: &str) -> Result<PathBuf, String> {
+fn pick(sparse: &Path, stem: &str) -> Result<PathBuf> {
     let bin = sparse.join(format!("{stem}.bin"));
     let txt = sparse.join(format!("{stem}.txt"));
     if bin.is_file() {
@@ -213,7 +208,7 @@ fn pose(q: &[f64; 4], t: &[f64; 3]) -> Option<glam::Mat4> {
 }
 
 /// Checks a camera's model and parameters and returns its pinhole intrinsics.
-fn intrinsics(file: &Path, id: i32, m: &Model, width: u64, height: u64, p: &[f64]) -> Result<Intrinsics, String> {
+fn intrinsics(file: &Path, id: i32, m: &Model, width: u64, height: u64, p: &[f64]) -> Result<Intrinsics> {
     let at = |msg: String| err(file, format!("camera {id} ({}): {msg}", m.name));
     if m.fisheye {
         return Err(at(
@@ -234,7 +229,9 @@ fn intrinsics(file: &Path, id: i32, m: &Model, width: u64, height: u64, p: &[f64
     }
     let (fx, fy, cx, cy) = if m.single_focal { (p[0], p[0], p[1], p[2]) } else { (p[0], p[1], p[2], p[3]) };
     if !(fx.is_finite() && fx > 0.0 && fy.is_finite() && fy > 0.0 && cx.is_finite() && cy.is_finite()) {
-        return Err(at(format!("focal lengths ({fx}, {fy}) must be positive and the principal point ({cx}, {cy}) finite")));
+        return Err(at(format!(
+            "focal lengths ({fx}, {fy}) must be positive and the principal point ({cx}, {cy}) finite"
+        )));
     }
     let size = |v: u64| u32::try_from(v).ok().filter(|&v| v > 0);
     let (Some(width), Some(height)) = (size(width), size(height)) else {
@@ -243,7 +240,7 @@ fn intrinsics(file: &Path, id: i32, m: &Model, width: u64, height: u64, p: &[f64
     Ok(Intrinsics { width, height, fx, fy, cx, cy })
 }
 
-fn insert_camera(file: &Path, map: &mut HashMap<i32, Intrinsics>, id: i32, c: Intrinsics) -> Result<(), String> {
+fn insert_camera(file: &Path, map: &mut HashMap<i32, Intrinsics>, id: i32, c: Intrinsics) -> Result<()> {
     if map.insert(id, c).is_some() {
         return Err(err(file, format!("camera {id} is defined twice")));
     }
@@ -261,57 +258,58 @@ struct Bin<'a> {
 }
 
 impl<'a> Bin<'a> {
-    fn take(&mut self, n: usize, what: &str) -> Result<&'a [u8], String> {
+    fn take(&mut self, n: usize, what: &str) -> Result<&'a [u8]> {
         let left = self.data.len() - self.pos;
         if n > left {
-            return Err(err(
-                self.path,
-                format!("truncated at byte {}: {what} needs {n} bytes, {left} left", self.pos),
-            ));
+            return Err(err(self.path, format!("truncated at byte {}: {what} needs {n} bytes, {left} left", self.pos)));
         }
         let s = &self.data[self.pos..self.pos + n];
         self.pos += n;
         Ok(s)
     }
-    fn array<const N: usize>(&mut self, what: &str) -> Result<[u8; N], String> {
+    fn array<const N: usize>(&mut self, what: &str) -> Result<[u8; N]> {
         let mut a = [0u8; N];
         a.copy_from_slice(self.take(N, what)?);
         Ok(a)
     }
-    fn u8(&mut self, what: &str) -> Result<u8, String> {
+    fn u8(&mut self, what: &str) -> Result<u8> {
         Ok(self.array::<1>(what)?[0])
     }
-    fn i32(&mut self, what: &str) -> Result<i32, String> {
+    fn i32(&mut self, what: &str) -> Result<i32> {
         Ok(i32::from_le_bytes(self.array(what)?))
     }
-    fn u64(&mut self, what: &str) -> Result<u64, String> {
+    fn u64(&mut self, what: &str) -> Result<u64> {
         Ok(u64::from_le_bytes(self.array(what)?))
     }
-    fn f64(&mut self, what: &str) -> Result<f64, String> {
+    fn f64(&mut self, what: &str) -> Result<f64> {
         Ok(f64::from_le_bytes(self.array(what)?))
     }
     /// Skips `count` records of `size` bytes.
-    fn skip(&mut self, count: u64, size: usize, what: &str) -> Result<(), String> {
+    fn skip(&mut self, count: u64, size: usize, what: &str) -> Result<()> {
         let n = count.checked_mul(size as u64).and_then(|n| usize::try_from(n).ok()).unwrap_or(usize::MAX);
         self.take(n, what).map(|_| ())
     }
     /// A NUL-terminated UTF-8 string.
-    fn cstr(&mut self, what: &str) -> Result<String, String> {
+    fn cstr(&mut self, what: &str) -> Result<String> {
         let start = self.pos;
         let Some(len) = self.data[start..].iter().position(|&b| b == 0) else {
-            return Err(err(self.path, format!("truncated at byte {}: {what} has no terminating NUL", self.data.len())));
+            return Err(err(
+                self.path,
+                format!("truncated at byte {}: {what} has no terminating NUL", self.data.len()),
+            ));
         };
         let bytes = self.take(len + 1, what)?;
-        String::from_utf8(bytes[..len].to_vec()).map_err(|_| err(self.path, format!("{what} at byte {start} is not UTF-8")))
+        String::from_utf8(bytes[..len].to_vec())
+            .map_err(|_| err(self.path, format!("{what} at byte {start} is not UTF-8")))
     }
     /// The leading record count, and a capacity that the remaining bytes can justify.
-    fn count(&mut self, min_record: usize) -> Result<(u64, usize), String> {
+    fn count(&mut self, min_record: usize) -> Result<(u64, usize)> {
         let n = self.u64("the record count")?;
         let room = (self.data.len() - self.pos) / min_record.max(1);
         Ok((n, usize::try_from(n).unwrap_or(usize::MAX).min(room)))
     }
     /// Fails if bytes are left after the announced records.
-    fn finish(&self, n: u64, what: &str) -> Result<(), String> {
+    fn finish(&self, n: u64, what: &str) -> Result<()> {
         let left = self.data.len() - self.pos;
         if left > 0 {
             return Err(err(
@@ -323,11 +321,11 @@ impl<'a> Bin<'a> {
     }
 }
 
-fn read_bytes(path: &Path) -> Result<Vec<u8>, String> {
+fn read_bytes(path: &Path) -> Result<Vec<u8>> {
     std::fs::read(path).map_err(|e| err(path, format!("cannot read: {e}")))
 }
 
-fn cameras_bin(path: &Path) -> Result<HashMap<i32, Intrinsics>, String> {
+fn cameras_bin(path: &Path) -> Result<HashMap<i32, Intrinsics>> {
     let data = read_bytes(path)?;
     let mut r = Bin { path, data: &data, pos: 0 };
     let (n, cap) = r.count(24)?;
@@ -349,7 +347,7 @@ fn cameras_bin(path: &Path) -> Result<HashMap<i32, Intrinsics>, String> {
     Ok(map)
 }
 
-fn images_bin(path: &Path) -> Result<Vec<ImageRec>, String> {
+fn images_bin(path: &Path) -> Result<Vec<ImageRec>> {
     let data = read_bytes(path)?;
     let mut r = Bin { path, data: &data, pos: 0 };
     let (n, cap) = r.count(73)?;
@@ -378,7 +376,7 @@ fn images_bin(path: &Path) -> Result<Vec<ImageRec>, String> {
     Ok(out)
 }
 
-fn points_bin(path: &Path) -> Result<SparsePoints, String> {
+fn points_bin(path: &Path) -> Result<SparsePoints> {
     let data = read_bytes(path)?;
     let mut r = Bin { path, data: &data, pos: 0 };
     let (n, cap) = r.count(51)?;
@@ -398,7 +396,7 @@ fn points_bin(path: &Path) -> Result<SparsePoints, String> {
     Ok(pts)
 }
 
-fn point_xyz(path: &Path, id: u64, xyz: [f64; 3]) -> Result<[f32; 3], String> {
+fn point_xyz(path: &Path, id: u64, xyz: [f64; 3]) -> Result<[f32; 3]> {
     let p = xyz.map(|v| v as f32);
     if p.iter().all(|v| v.is_finite()) {
         Ok(p)
@@ -410,12 +408,12 @@ fn point_xyz(path: &Path, id: u64, xyz: [f64; 3]) -> Result<[f32; 3], String> {
 // ---------------------------------------------------------------------------------------------
 // Text files
 
-fn read_text(path: &Path) -> Result<String, String> {
+fn read_text(path: &Path) -> Result<String> {
     std::fs::read_to_string(path).map_err(|e| err(path, format!("cannot read: {e}")))
 }
 
 /// Parses one whitespace-separated field.
-fn field<T: std::str::FromStr>(path: &Path, line: usize, tok: Option<&str>, what: &str) -> Result<T, String> {
+fn field<T: std::str::FromStr>(path: &Path, line: usize, tok: Option<&str>, what: &str) -> Result<T> {
     let tok = tok.ok_or_else(|| err(path, format!("line {line}: {what} is missing")))?;
     tok.parse().map_err(|_| err(path, format!("line {line}: cannot parse {what} from `{tok}`")))
 }
@@ -430,7 +428,7 @@ fn header_count(text: &str, noun: &str) -> Option<usize> {
     })
 }
 
-fn check_header(path: &Path, text: &str, noun: &str, found: usize) -> Result<(), String> {
+fn check_header(path: &Path, text: &str, noun: &str, found: usize) -> Result<()> {
     match header_count(text, noun) {
         Some(n) if n != found => Err(err(path, format!("the header announces {n} {noun} but {found} are listed"))),
         _ => Ok(()),
@@ -439,13 +437,10 @@ fn check_header(path: &Path, text: &str, noun: &str, found: usize) -> Result<(),
 
 /// Non-empty, non-comment lines with their 1-based numbers.
 fn data_lines(text: &str) -> impl Iterator<Item = (usize, &str)> {
-    text.lines()
-        .enumerate()
-        .map(|(i, l)| (i + 1, l.trim()))
-        .filter(|(_, l)| !l.is_empty() && !l.starts_with('#'))
+    text.lines().enumerate().map(|(i, l)| (i + 1, l.trim())).filter(|(_, l)| !l.is_empty() && !l.starts_with('#'))
 }
 
-fn cameras_txt(path: &Path) -> Result<HashMap<i32, Intrinsics>, String> {
+fn cameras_txt(path: &Path) -> Result<HashMap<i32, Intrinsics>> {
     let text = read_text(path)?;
     let mut map = HashMap::new();
     for (ln, line) in data_lines(&text) {
@@ -465,7 +460,7 @@ fn cameras_txt(path: &Path) -> Result<HashMap<i32, Intrinsics>, String> {
     Ok(map)
 }
 
-fn images_txt(path: &Path) -> Result<Vec<ImageRec>, String> {
+fn images_txt(path: &Path) -> Result<Vec<ImageRec>> {
     let text = read_text(path)?;
     let lines: Vec<&str> = text.lines().collect();
     let mut out = Vec::new();
@@ -504,10 +499,14 @@ fn images_txt(path: &Path) -> Result<Vec<ImageRec>, String> {
         // The POINTS2D line (possibly empty, possibly absent at the end of the file).
         if let Some(points) = lines.get(i + 1).filter(|l| !l.trim_start().starts_with('#')) {
             let vals: Vec<&str> = points.split_whitespace().collect();
-            if vals.len() % 3 != 0 {
+            if !vals.len().is_multiple_of(3) {
                 return Err(err(
                     path,
-                    format!("line {}: image {id}: POINTS2D holds {} numbers, not (X, Y, POINT3D_ID) triples", ln + 1, vals.len()),
+                    format!(
+                        "line {}: image {id}: POINTS2D holds {} numbers, not (X, Y, POINT3D_ID) triples",
+                        ln + 1,
+                        vals.len()
+                    ),
                 ));
             }
             for v in vals {
@@ -523,7 +522,7 @@ fn images_txt(path: &Path) -> Result<Vec<ImageRec>, String> {
     Ok(out)
 }
 
-fn points_txt(path: &Path) -> Result<SparsePoints, String> {
+fn points_txt(path: &Path) -> Result<SparsePoints> {
     let text = read_text(path)?;
     let mut pts = SparsePoints::default();
     for (ln, line) in data_lines(&text) {
@@ -539,10 +538,13 @@ fn points_txt(path: &Path) -> Result<SparsePoints, String> {
         }
         field::<f64>(path, ln, tok.next(), "ERROR")?;
         let track: Vec<&str> = tok.collect();
-        if track.len() % 2 != 0 {
+        if !track.len().is_multiple_of(2) {
             return Err(err(
                 path,
-                format!("line {ln}: point {id}: TRACK holds {} numbers, not (IMAGE_ID, POINT2D_IDX) pairs", track.len()),
+                format!(
+                    "line {ln}: point {id}: TRACK holds {} numbers, not (IMAGE_ID, POINT2D_IDX) pairs",
+                    track.len()
+                ),
             ));
         }
         for v in track {

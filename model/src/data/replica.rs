@@ -24,6 +24,7 @@
 
 use super::image::{check_size, decode, err, read_depth16, read_labels, subsample};
 use super::{Dataset, LoadOptions, View, check_options, split};
+use crate::error::Result;
 use glam::{DMat4, DVec4};
 use serde_json::Value;
 use splat_kernels::Camera;
@@ -34,7 +35,7 @@ use std::path::Path;
 pub const HFOV_DEG: f64 = 90.0;
 
 /// Loads a Replica sequence (see the module docs).
-pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset, String> {
+pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
     check_options(opts)?;
     let traj = dir.join("traj_w_c.txt");
     let poses = read_trajectory(&traj)?;
@@ -49,7 +50,10 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset, String> {
     for (i, c2w) in poses.iter().enumerate() {
         let path = dir.join("rgb").join(format!("rgb_{i}.png"));
         if !path.is_file() {
-            return Err(err(&path, format!("image of frame {i} is missing ({} lists {} frames)", traj.display(), poses.len())));
+            return Err(err(
+                &path,
+                format!("image of frame {i} is missing ({} lists {} frames)", traj.display(), poses.len()),
+            ));
         }
         let img = decode(&path)?;
         let (w, h) = (img.width, img.height);
@@ -83,13 +87,7 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset, String> {
         } else {
             None
         };
-        views.push(View {
-            image_path: path,
-            camera,
-            rgb,
-            instance_ids,
-            depth,
-        });
+        views.push(View { image_path: path, camera, rgb, instance_ids, depth });
     }
     Ok(split(views, opts.holdout_every))
 }
@@ -102,7 +100,7 @@ struct Compactor {
 }
 
 impl Compactor {
-    fn map(&mut self, path: &Path, values: &[u16], sixteen: bool) -> Result<Vec<u8>, String> {
+    fn map(&mut self, path: &Path, values: &[u16], sixteen: bool) -> Result<Vec<u8>> {
         match self.sixteen {
             Some(s) if s != sixteen => {
                 let bits = |s: bool| if s { 16 } else { 8 };
@@ -137,7 +135,7 @@ impl Compactor {
 }
 
 /// Camera-to-world matrices, one per non-empty line.
-fn read_trajectory(path: &Path) -> Result<Vec<DMat4>, String> {
+fn read_trajectory(path: &Path) -> Result<Vec<DMat4>> {
     let text = std::fs::read_to_string(path).map_err(|e| err(path, format!("cannot read: {e}")))?;
     let mut poses = Vec::new();
     for (i, line) in text.lines().enumerate() {
@@ -151,9 +149,9 @@ fn read_trajectory(path: &Path) -> Result<Vec<DMat4>, String> {
             .filter(|t| !t.is_empty())
             .map(|t| t.parse::<f64>().map_err(|_| at(format!("cannot parse `{t}` as a number"))))
             .collect::<Result<Vec<_>, _>>()?;
-        let vals: [f64; 16] = vals
-            .try_into()
-            .map_err(|v: Vec<f64>| at(format!("{} numbers, expected 16 (a row-major 4x4 camera-to-world matrix)", v.len())))?;
+        let vals: [f64; 16] = vals.try_into().map_err(|v: Vec<f64>| {
+            at(format!("{} numbers, expected 16 (a row-major 4x4 camera-to-world matrix)", v.len()))
+        })?;
         let m = DMat4::from_cols_array(&vals).transpose();
         if !m.is_finite() || (m.row(3) - DVec4::W).abs().max_element() > 1e-6 || m.determinant().abs() < 1e-9 {
             return Err(at("not an invertible camera-to-world matrix with last row 0 0 0 1".into()));
@@ -167,7 +165,7 @@ fn read_trajectory(path: &Path) -> Result<Vec<DMat4>, String> {
 }
 
 /// `[fx, fy, cx, cy]` from `intrinsics.json`.
-fn read_intrinsics(path: &Path) -> Result<[f64; 4], String> {
+fn read_intrinsics(path: &Path) -> Result<[f64; 4]> {
     let text = std::fs::read_to_string(path).map_err(|e| err(path, format!("cannot read: {e}")))?;
     let v: Value = serde_json::from_str(&text).map_err(|e| err(path, format!("invalid JSON: {e}")))?;
     let mut out = [0.0; 4];

@@ -10,12 +10,13 @@
 //!   colours bilinearly (clamped to the edge), ids and depth by nearest sample (0 outside).
 
 use super::Background;
+use crate::error::{Error, Result};
 use std::io::{BufReader, Read};
 use std::path::Path;
 
 /// `"<path>: <msg>"`.
-pub(crate) fn err(path: &Path, msg: impl std::fmt::Display) -> String {
-    format!("{}: {msg}", path.display())
+pub(crate) fn err(path: &Path, msg: impl std::fmt::Display) -> Error {
+    Error::invalid(path, msg.to_string())
 }
 
 /// Whether the extension says JPEG (`jpg` / `jpeg`, any case).
@@ -44,24 +45,30 @@ pub(crate) struct Image8 {
 const MAX_JPEG_BYTES: usize = 16384 * 16384 * 3;
 
 /// Decodes a PNG or (by extension) JPEG colour image.
-pub(crate) fn decode(path: &Path) -> Result<Image8, String> {
+pub(crate) fn decode(path: &Path) -> Result<Image8> {
     let img = if is_jpeg(path) {
         decode_jpeg(path)?
     } else {
-        let (width, height, channels, bytes) = model::images::read_png8(path)?;
+        let (width, height, channels, bytes) = crate::images::read_png8(path)?;
         Image8 { width, height, channels, bytes }
     };
     let need = img.width as usize * img.height as usize * img.channels;
     if !(1..=4).contains(&img.channels) || img.bytes.len() != need || need == 0 {
         return Err(err(
             path,
-            format!("decoded {} bytes for a {}x{} image with {} channels", img.bytes.len(), img.width, img.height, img.channels),
+            format!(
+                "decoded {} bytes for a {}x{} image with {} channels",
+                img.bytes.len(),
+                img.width,
+                img.height,
+                img.channels
+            ),
         ));
     }
     Ok(img)
 }
 
-fn decode_jpeg(path: &Path) -> Result<Image8, String> {
+fn decode_jpeg(path: &Path) -> Result<Image8> {
     use jpeg_decoder::PixelFormat;
     let file = std::fs::File::open(path).map_err(|e| err(path, format!("cannot read JPEG: {e}")))?;
     let mut dec = jpeg_decoder::Decoder::new(BufReader::new(file));
@@ -77,16 +84,11 @@ fn decode_jpeg(path: &Path) -> Result<Image8, String> {
         }
     };
     let bytes = dec.decode().map_err(|e| err(path, format!("cannot decode JPEG: {e}")))?;
-    Ok(Image8 {
-        width: info.width as u32,
-        height: info.height as u32,
-        channels,
-        bytes,
-    })
+    Ok(Image8 { width: info.width as u32, height: info.height as u32, channels, bytes })
 }
 
 /// `(floor(w/k), floor(h/k))`, or an error if that is empty.
-pub(crate) fn downscaled_size(path: &Path, w: u32, h: u32, k: u32) -> Result<(u32, u32), String> {
+pub(crate) fn downscaled_size(path: &Path, w: u32, h: u32, k: u32) -> Result<(u32, u32)> {
     let (dw, dh) = (w / k.max(1), h / k.max(1));
     if dw == 0 || dh == 0 {
         return Err(err(path, format!("{w}x{h} is smaller than the downscale factor {k}")));
@@ -97,7 +99,7 @@ pub(crate) fn downscaled_size(path: &Path, w: u32, h: u32, k: u32) -> Result<(u3
 impl Image8 {
     /// `[H/k, W/k, 3]` floats in [0, 1]: alpha composited over `background` at full resolution,
     /// then averaged over `k x k` blocks. Returns `(width, height, rgb)`.
-    pub(crate) fn to_rgb(&self, path: &Path, k: u32, background: Background) -> Result<(u32, u32, Vec<f32>), String> {
+    pub(crate) fn to_rgb(&self, path: &Path, k: u32, background: Background) -> Result<(u32, u32, Vec<f32>)> {
         let (w, ch) = (self.width as usize, self.channels);
         let (dw, dh) = downscaled_size(path, self.width, self.height, k)?;
         let k = k as usize;
@@ -131,11 +133,14 @@ impl Image8 {
         k: u32,
         background: Background,
         remap: &Remap,
-    ) -> Result<(u32, u32, Vec<f32>), String> {
+    ) -> Result<(u32, u32, Vec<f32>)> {
         if (remap.width, remap.height) != (self.width, self.height) {
             return Err(err(
                 path,
-                format!("resampling map is {}x{} but the image is {}x{}", remap.width, remap.height, self.width, self.height),
+                format!(
+                    "resampling map is {}x{} but the image is {}x{}",
+                    remap.width, remap.height, self.width, self.height
+                ),
             ));
         }
         let w = self.width as usize;
@@ -230,46 +235,30 @@ impl Remap {
                 let (u, v) = map(i as f64 + 0.5, j as f64 + 0.5);
                 let (x0, wx) = axis(u - 0.5, w);
                 let (y0, wy) = axis(v - 0.5, h);
-                taps.push(Tap {
-                    index: (y0 * w + x0) as u32,
-                    wx,
-                    wy,
-                });
+                taps.push(Tap { index: (y0 * w + x0) as u32, wx, wy });
                 let inside = (0.0..w as f64).contains(&u) && (0.0..h as f64).contains(&v);
                 nearest.push(if inside { (v as usize * w + u as usize) as u32 } else { u32::MAX });
             }
         }
-        Self {
-            width,
-            height,
-            taps,
-            nearest,
-            step_x: usize::from(w > 1),
-            step_y: if h > 1 { w } else { 0 },
-        }
+        Self { width, height, taps, nearest, step_x: usize::from(w > 1), step_y: if h > 1 { w } else { 0 } }
     }
 
     /// A `[height, width]` id or depth map resampled by nearest sample; `T::default()` (0)
     /// where the source position lies outside the image.
     pub(crate) fn nearest<T: Copy + Default>(&self, src: &[T]) -> Vec<T> {
         assert_eq!(src.len(), self.nearest.len(), "remap of a map of another size");
-        self.nearest
-            .iter()
-            .map(|&s| if s == u32::MAX { T::default() } else { src[s as usize] })
-            .collect()
+        self.nearest.iter().map(|&s| if s == u32::MAX { T::default() } else { src[s as usize] }).collect()
     }
 }
 
 /// Nearest-sample downscale of a `[h, w]` map (row stride `w`) to `[dh, dw]` by factor `k`
 /// (the top-left sample of each block). The caller guarantees `full` covers `dh*k` rows.
 pub(crate) fn subsample<T: Copy>(full: &[T], w: u32, dw: u32, dh: u32, k: u32) -> Vec<T> {
-    (0..dh)
-        .flat_map(|y| (0..dw).map(move |x| full[((y * k) * w + x * k) as usize]))
-        .collect()
+    (0..dh).flat_map(|y| (0..dw).map(move |x| full[((y * k) * w + x * k) as usize])).collect()
 }
 
 /// `"<path>: is AxB but its image is CxD"` unless the sizes agree.
-pub(crate) fn check_size(path: &Path, got: (u32, u32), image: (u32, u32)) -> Result<(), String> {
+pub(crate) fn check_size(path: &Path, got: (u32, u32), image: (u32, u32)) -> Result<()> {
     if got == image {
         Ok(())
     } else {
@@ -279,13 +268,13 @@ pub(crate) fn check_size(path: &Path, got: (u32, u32), image: (u32, u32)) -> Res
 
 /// An 8-bit id mask (first channel of any 8-bit PNG) the size `(w, h)` of its image, downscaled
 /// by nearest sample to `[h/k, w/k]`.
-pub(crate) fn read_ids8(path: &Path, w: u32, h: u32, k: u32) -> Result<Vec<u8>, String> {
+pub(crate) fn read_ids8(path: &Path, w: u32, h: u32, k: u32) -> Result<Vec<u8>> {
     Ok(subsample(&read_ids8_full(path, w, h)?, w, w / k, h / k, k))
 }
 
 /// [`read_ids8`] at full resolution: `[h, w]` ids.
-pub(crate) fn read_ids8_full(path: &Path, w: u32, h: u32) -> Result<Vec<u8>, String> {
-    let (mw, mh, mc, bytes) = model::images::read_png8(path)?;
+pub(crate) fn read_ids8_full(path: &Path, w: u32, h: u32) -> Result<Vec<u8>> {
+    let (mw, mh, mc, bytes) = crate::images::read_png8(path)?;
     check_size(path, (mw, mh), (w, h))?;
     if mc == 0 || bytes.len() != mw as usize * mh as usize * mc {
         return Err(err(path, "mask has an unexpected pixel layout"));
@@ -295,13 +284,13 @@ pub(crate) fn read_ids8_full(path: &Path, w: u32, h: u32) -> Result<Vec<u8>, Str
 
 /// A 16-bit grayscale PNG the size `(w, h)` of its image, times `scale`, downscaled by nearest
 /// sample to `[h/k, w/k]`.
-pub(crate) fn read_depth16(path: &Path, w: u32, h: u32, k: u32, scale: f32) -> Result<Vec<f32>, String> {
+pub(crate) fn read_depth16(path: &Path, w: u32, h: u32, k: u32, scale: f32) -> Result<Vec<f32>> {
     Ok(subsample(&read_depth16_full(path, w, h, scale)?, w, w / k, h / k, k))
 }
 
 /// [`read_depth16`] at full resolution: `[h, w]` depths.
-pub(crate) fn read_depth16_full(path: &Path, w: u32, h: u32, scale: f32) -> Result<Vec<f32>, String> {
-    let (dw, dh, raw) = model::images::read_gray16(path)?;
+pub(crate) fn read_depth16_full(path: &Path, w: u32, h: u32, scale: f32) -> Result<Vec<f32>> {
+    let (dw, dh, raw) = crate::images::read_gray16(path)?;
     check_size(path, (dw, dh), (w, h))?;
     if raw.len() != w as usize * h as usize {
         return Err(err(path, "depth map has an unexpected pixel layout"));
@@ -311,12 +300,10 @@ pub(crate) fn read_depth16_full(path: &Path, w: u32, h: u32, scale: f32) -> Resu
 
 /// A label image: the first channel of an 8- or 16-bit PNG (lower bit depths are expanded to 8).
 /// Returns `(width, height, values, sixteen_bit)`.
-pub(crate) fn read_labels(path: &Path) -> Result<(u32, u32, Vec<u16>, bool), String> {
+pub(crate) fn read_labels(path: &Path) -> Result<(u32, u32, Vec<u16>, bool)> {
     let fail = |e: &dyn std::fmt::Display| err(path, format!("cannot read PNG: {e}"));
     let mut data = Vec::new();
-    std::fs::File::open(path)
-        .and_then(|mut f| f.read_to_end(&mut data))
-        .map_err(|e| fail(&e))?;
+    std::fs::File::open(path).and_then(|mut f| f.read_to_end(&mut data)).map_err(|e| fail(&e))?;
     let mut dec = png::Decoder::new(std::io::Cursor::new(data));
     dec.set_transformations(png::Transformations::EXPAND);
     let mut reader = dec.read_info().map_err(|e| fail(&e))?;
@@ -328,15 +315,13 @@ pub(crate) fn read_labels(path: &Path) -> Result<(u32, u32, Vec<u16>, bool), Str
     if step == 0 || buf.len() != info.width as usize * info.height as usize * step {
         return Err(err(path, "label image has an unexpected pixel layout"));
     }
-    let values = buf
-        .chunks_exact(step)
-        .map(|c| if sixteen { u16::from_be_bytes([c[0], c[1]]) } else { c[0] as u16 })
-        .collect();
+    let values =
+        buf.chunks_exact(step).map(|c| if sixteen { u16::from_be_bytes([c[0], c[1]]) } else { c[0] as u16 }).collect();
     Ok((info.width, info.height, values, sixteen))
 }
 
 /// The `png`/`jpg`/`jpeg` files directly in `dir`, sorted by file name.
-pub(crate) fn list_images(dir: &Path) -> Result<Vec<std::path::PathBuf>, String> {
+pub(crate) fn list_images(dir: &Path) -> Result<Vec<std::path::PathBuf>> {
     let entries = std::fs::read_dir(dir).map_err(|e| err(dir, format!("cannot list images: {e}")))?;
     let mut files = Vec::new();
     for e in entries {

@@ -19,6 +19,7 @@
 
 use super::image::{decode, err, list_images, read_ids8};
 use super::{Dataset, LoadOptions, View, check_options, split};
+use crate::error::Result;
 use glam::{DMat4, DVec3};
 use splat_kernels::Camera;
 use std::path::Path;
@@ -27,7 +28,7 @@ use std::path::Path;
 const COLS: usize = 17;
 
 /// Loads an LLFF scene (see the module docs).
-pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset, String> {
+pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
     check_options(opts)?;
     let npy = dir.join("poses_bounds.npy");
     let rows = read_npy(&npy)?;
@@ -46,10 +47,7 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset, String> {
     }
     let files = list_images(&images_dir)?;
     if files.len() != n {
-        return Err(err(
-            &images_dir,
-            format!("holds {} images but {} has {n} poses", files.len(), npy.display()),
-        ));
+        return Err(err(&images_dir, format!("holds {} images but {} has {n} poses", files.len(), npy.display())));
     }
     let mut views = Vec::with_capacity(n);
     for (i, (row, path)) in rows.iter().zip(files).enumerate() {
@@ -87,19 +85,13 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset, String> {
         mask_name.push(".png");
         let mask = masks.join(mask_name);
         let instance_ids = if mask.is_file() { Some(read_ids8(&mask, iw, ih, box_k)?) } else { None };
-        views.push(View {
-            image_path: path,
-            camera,
-            rgb,
-            instance_ids,
-            depth: None,
-        });
+        views.push(View { image_path: path, camera, rgb, instance_ids, depth: None });
     }
     Ok(split(views, opts.holdout_every))
 }
 
 /// Reads a `(N, 17)` little-endian float array from a NumPy `.npy` file (format versions 1-3).
-fn read_npy(path: &Path) -> Result<Vec<[f64; COLS]>, String> {
+fn read_npy(path: &Path) -> Result<Vec<[f64; COLS]>> {
     let data = std::fs::read(path).map_err(|e| err(path, format!("cannot read: {e}")))?;
     if data.len() < 10 || &data[..6] != b"\x93NUMPY" {
         return Err(err(path, "not a NumPy .npy file (bad magic)"));
@@ -118,7 +110,8 @@ fn read_npy(path: &Path) -> Result<Vec<[f64; COLS]>, String> {
             v[1..].split(q).next()
         })
         .ok_or_else(|| err(path, "the .npy header has no 'descr'"))?;
-    let fortran = dict_value(header, "fortran_order").ok_or_else(|| err(path, "the .npy header has no 'fortran_order'"))?;
+    let fortran =
+        dict_value(header, "fortran_order").ok_or_else(|| err(path, "the .npy header has no 'fortran_order'"))?;
     let shape_text = dict_value(header, "shape")
         .and_then(|v| v.strip_prefix('(')?.split(')').next())
         .ok_or_else(|| err(path, "the .npy header has no 'shape' tuple"))?;
@@ -140,7 +133,9 @@ fn read_npy(path: &Path) -> Result<Vec<[f64; COLS]>, String> {
     if shape.len() != 2 || shape[1] != COLS {
         return Err(err(
             path,
-            format!("shape ({shape_text}) is not (N, 17): each row must hold a 3x5 pose [R | t | (h, w, f)] and near, far"),
+            format!(
+                "shape ({shape_text}) is not (N, 17): each row must hold a 3x5 pose [R | t | (h, w, f)] and near, far"
+            ),
         ));
     }
     let n = shape[0];
@@ -152,7 +147,11 @@ fn read_npy(path: &Path) -> Result<Vec<[f64; COLS]>, String> {
     if need != Some(body.len()) {
         return Err(err(
             path,
-            format!("holds {} data bytes but shape ({n}, {COLS}) of {descr} needs {}", body.len(), n as u128 * (COLS * size) as u128),
+            format!(
+                "holds {} data bytes but shape ({n}, {COLS}) of {descr} needs {}",
+                body.len(),
+                n as u128 * (COLS * size) as u128
+            ),
         ));
     }
     let values: Vec<f64> = if size == 8 {

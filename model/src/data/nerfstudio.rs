@@ -36,6 +36,7 @@
 use super::image::{Remap, decode, err, read_depth16_full, read_ids8_full, subsample};
 pub use super::{Background, Dataset, LoadOptions, View};
 use super::{check_options, split};
+use crate::error::Result;
 use glam::{Mat4, Vec4};
 use serde_json::Value;
 use splat_kernels::Camera;
@@ -114,7 +115,7 @@ fn resample<T: Copy + Default>(full: Vec<T>, remap: Option<&Remap>, w: u32, h: u
 const UNDISTORT_FIRST: &str = "undistort the images first (e.g. COLMAP image_undistorter)";
 
 /// Loads `dir/transforms.json`, or the Blender split files `transforms_train.json` (+ `_test`).
-pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset, String> {
+pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
     check_options(opts)?;
     let single = dir.join("transforms.json");
     let train_file = dir.join("transforms_train.json");
@@ -126,10 +127,7 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset, String> {
     } else if train_file.is_file() {
         let train = load_file(&train_file, dir, opts, &mut maps)?;
         if test_file.is_file() {
-            Ok(Dataset {
-                train,
-                test: load_file(&test_file, dir, opts, &mut maps)?,
-            })
+            Ok(Dataset { train, test: load_file(&test_file, dir, opts, &mut maps)? })
         } else {
             Ok(split(train, opts.holdout_every))
         }
@@ -138,13 +136,10 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset, String> {
     }
 }
 
-fn load_file(file: &Path, dir: &Path, opts: &LoadOptions, maps: &mut Maps) -> Result<Vec<View>, String> {
+fn load_file(file: &Path, dir: &Path, opts: &LoadOptions, maps: &mut Maps) -> Result<Vec<View>> {
     let text = std::fs::read_to_string(file).map_err(|e| err(file, format!("cannot read: {e}")))?;
     let root: Value = serde_json::from_str(&text).map_err(|e| err(file, format!("invalid JSON: {e}")))?;
-    let frames = root
-        .get("frames")
-        .and_then(Value::as_array)
-        .ok_or_else(|| err(file, "no `frames` array"))?;
+    let frames = root.get("frames").and_then(Value::as_array).ok_or_else(|| err(file, "no `frames` array"))?;
     if frames.is_empty() {
         return Err(err(file, "`frames` is empty"));
     }
@@ -160,9 +155,7 @@ fn load_file(file: &Path, dir: &Path, opts: &LoadOptions, maps: &mut Maps) -> Re
         if let Some(model) = model {
             let upper = model.to_ascii_uppercase();
             if upper.contains("FISHEYE") {
-                return Err(at(&format!(
-                    "fisheye camera model `{model}` is not supported; {UNDISTORT_FIRST}"
-                )));
+                return Err(at(&format!("fisheye camera model `{model}` is not supported; {UNDISTORT_FIRST}")));
             }
             if upper.contains("EQUIRECTANGULAR") {
                 return Err(at(&format!("camera model `{model}` is not supported (pinhole cameras only)")));
@@ -170,17 +163,9 @@ fn load_file(file: &Path, dir: &Path, opts: &LoadOptions, maps: &mut Maps) -> Re
         }
         let k4 = coef("k4");
         if k4 != 0.0 {
-            return Err(at(&format!(
-                "fisheye lens distortion (k4 = {k4}) is not supported; {UNDISTORT_FIRST}"
-            )));
+            return Err(at(&format!("fisheye lens distortion (k4 = {k4}) is not supported; {UNDISTORT_FIRST}")));
         }
-        let distortion = Distortion {
-            k1: coef("k1"),
-            k2: coef("k2"),
-            k3: coef("k3"),
-            p1: coef("p1"),
-            p2: coef("p2"),
-        };
+        let distortion = Distortion { k1: coef("k1"), k2: coef("k2"), k3: coef("k3"), p1: coef("p1"), p2: coef("p2") };
         let rel = f.get("file_path").and_then(Value::as_str).ok_or_else(|| at("no `file_path`"))?;
         let mut path = dir.join(rel);
         if path.extension().is_none() {
@@ -192,10 +177,10 @@ fn load_file(file: &Path, dir: &Path, opts: &LoadOptions, maps: &mut Maps) -> Re
         let img = decode(&path)?;
         let (w, h) = (img.width, img.height);
         let get = |key: &str| num(f, key).or_else(|| num(&root, key));
-        if let (Some(ew), Some(eh)) = (get("w"), get("h")) {
-            if ew as u32 != w || eh as u32 != h {
-                return Err(err(&path, format!("image is {w}x{h} but the transforms say {ew}x{eh}")));
-            }
+        if let (Some(ew), Some(eh)) = (get("w"), get("h"))
+            && (ew as u32 != w || eh as u32 != h)
+        {
+            return Err(err(&path, format!("image is {w}x{h} but the transforms say {ew}x{eh}")));
         }
         let fx = match get("fl_x") {
             Some(v) => v,
@@ -215,7 +200,8 @@ fn load_file(file: &Path, dir: &Path, opts: &LoadOptions, maps: &mut Maps) -> Re
         let mut c2w = [[0.0f32; 4]; 4];
         c2w[3][3] = 1.0;
         for (r, row) in m.iter().take(4).enumerate() {
-            let row = row.as_array().filter(|r| r.len() == 4).ok_or_else(|| at("`transform_matrix` rows need 4 numbers"))?;
+            let row =
+                row.as_array().filter(|r| r.len() == 4).ok_or_else(|| at("`transform_matrix` rows need 4 numbers"))?;
             for (c, v) in row.iter().enumerate() {
                 c2w[r][c] = v.as_f64().ok_or_else(|| at("`transform_matrix` holds a non-number"))? as f32;
             }
@@ -227,11 +213,8 @@ fn load_file(file: &Path, dir: &Path, opts: &LoadOptions, maps: &mut Maps) -> Re
         }
         let k = opts.downscale;
         // Undistortion (module docs) at full resolution, before the downscale.
-        let remap = if distortion.is_zero() {
-            None
-        } else {
-            Some(maps.get(w, h, [fx, fy, cx, cy].map(f64::from), distortion))
-        };
+        let remap =
+            if distortion.is_zero() { None } else { Some(maps.get(w, h, [fx, fy, cx, cy].map(f64::from), distortion)) };
         let (dw, dh, rgb) = match remap {
             Some(r) => img.to_rgb_remapped(&path, k, opts.background, r)?,
             None => img.to_rgb(&path, k, opts.background)?,
@@ -248,13 +231,7 @@ fn load_file(file: &Path, dir: &Path, opts: &LoadOptions, maps: &mut Maps) -> Re
             Some(rel) => Some(resample(read_depth16_full(&dir.join(rel), w, h, depth_scale)?, remap, w, h, k)),
             None => None,
         };
-        views.push(View {
-            image_path: path,
-            camera,
-            rgb,
-            instance_ids,
-            depth,
-        });
+        views.push(View { image_path: path, camera, rgb, instance_ids, depth });
     }
     Ok(views)
 }

@@ -1,60 +1,15 @@
-//! A built-in, deterministic tabletop made of Gaussians: a wooden table top and a few coloured
-//! primitives (sphere, box, cylinder, cone) on it. World frame: y up, table top at y = 0.
-//! Surfaces are covered by flat Gaussians oriented along the surface normal.
+//! The tabletop made of Gaussians (deterministic from the seed): a wooden table top and the
+//! seed's objects, surfaces covered by flat Gaussians oriented along the surface normal. World
+//! frame: y up, table top at y = 0. It describes the same scene as the ray-cast dataset.
 
+use super::scene::{Primitive, table_color, tabletop_objects};
 use crate::GaussianCloud;
 use crate::cloud::SH_C0;
 use crate::rng::Rng;
 use glam::{Quat, Vec3};
 
-/// One object of the tabletop.
-#[derive(Clone, Debug, PartialEq)]
-pub struct Primitive {
-    pub name: &'static str,
-    pub shape: &'static str,
-    pub color: [f32; 3],
-    pub center: Vec3,
-    pub size: f32,
-}
-
 fn logit(p: f32) -> f32 {
     (p / (1.0 - p)).ln()
-}
-
-/// Half side of the square table top (the table spans [-TABLE_HALF, TABLE_HALF] in x and z).
-pub const TABLE_HALF: f32 = 2.0;
-
-/// Wood-like stripes of the table top at (x, z).
-pub fn table_color(x: f32, z: f32) -> [f32; 3] {
-    let stripe = 0.5 + 0.5 * (x * 9.0 + (z * 2.0).sin()).sin();
-    [0.55 + 0.12 * stripe, 0.38 + 0.08 * stripe, 0.22 + 0.05 * stripe]
-}
-
-/// The objects placed by `seed` (positions and sizes jitter with the seed).
-pub fn tabletop_objects(seed: u64) -> Vec<Primitive> {
-    let mut r = Rng::new(seed ^ 0x5EED);
-    let base = [
-        ("red ball", "sphere", [0.85, 0.12, 0.10]),
-        ("blue box", "box", [0.15, 0.30, 0.85]),
-        ("green cylinder", "cylinder", [0.15, 0.70, 0.25]),
-        ("yellow cone", "cone", [0.95, 0.80, 0.10]),
-        ("purple ball", "sphere", [0.55, 0.20, 0.70]),
-    ];
-    base.iter()
-        .enumerate()
-        .map(|(k, &(name, shape, color))| {
-            let ang = k as f32 / base.len() as f32 * std::f32::consts::TAU + r.range(-0.3, 0.3);
-            let rad = if k == 0 { 0.0 } else { r.range(0.9, 1.3) };
-            let size = r.range(0.28, 0.42);
-            Primitive {
-                name,
-                shape,
-                color,
-                center: Vec3::new(rad * ang.cos(), size, rad * ang.sin()),
-                size,
-            }
-        })
-        .collect()
 }
 
 struct Builder {
@@ -77,10 +32,7 @@ impl Builder {
 /// A tabletop of about `density^2 * 5` Gaussians (density 40 gives about 9,000).
 pub fn tabletop(seed: u64, density: usize) -> (GaussianCloud, Vec<Primitive>) {
     let objects = tabletop_objects(seed);
-    let mut b = Builder {
-        cloud: GaussianCloud::default(),
-        rng: Rng::new(seed),
-    };
+    let mut b = Builder { cloud: GaussianCloud::default(), rng: Rng::new(seed) };
     // Table top: a 4 x 4 square with a wood-like stripe pattern.
     let d = density.max(4);
     let step = 4.0 / d as f32;

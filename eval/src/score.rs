@@ -1,103 +1,9 @@
 //! Scoring answers to annotated questions about a scene (the paper's view / object / scene-level
-//! question answering), two ways: an offline string scorer that needs nothing, and an
-//! OpenAI-compatible LLM grader (the paper grades with GPT-4o on a 0-100 rubric).
-//!
-//! # Question files
-//!
-//! ```json
-//! {"scene": "room",
-//!  "questions": [
-//!   {"id": "q1", "level": "view", "view": 3,
-//!    "question": "What colour is the cube?", "answer": "red", "keywords": ["red"]},
-//!   {"id": "q2", "level": "object", "view": 0, "object": [120, 64],
-//!    "question": "What is this object?", "answer": "a wooden chair"},
-//!   {"id": "q3", "level": "scene", "question": "How many chairs are there?", "answer": "two"}
-//! ]}
-//! ```
-//!
-//! `scene` is optional. `level` is `view`, `object` or `scene`; `view` (an image index) is
-//! required for view-level questions; `object` (an `[x, y]` pixel, in the image of `view` when
-//! given) is required for object-level ones; `keywords` is optional. Ids must be unique and the
-//! question and answer texts non-empty. Unknown keys inside a question are rejected (typos).
+//! question answering; the question files are `model::vqa`), two ways: an offline string scorer
+//! that needs nothing, and an OpenAI-compatible LLM grader (the paper grades with GPT-4o on a
+//! 0-100 rubric).
 
-use serde::{Deserialize, Serialize};
-use std::collections::HashSet;
-use std::path::Path;
-
-/// The granularity a question asks about.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
-#[serde(rename_all = "lowercase")]
-pub enum Level {
-    View,
-    Object,
-    Scene,
-}
-
-impl std::fmt::Display for Level {
-    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
-        f.write_str(match self {
-            Level::View => "view",
-            Level::Object => "object",
-            Level::Scene => "scene",
-        })
-    }
-}
-
-/// One annotated question with its reference answer.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-#[serde(deny_unknown_fields)]
-pub struct Question {
-    pub id: String,
-    pub level: Level,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub view: Option<usize>,
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub object: Option<[f32; 2]>,
-    pub question: String,
-    pub answer: String,
-    #[serde(default, skip_serializing_if = "Vec::is_empty")]
-    pub keywords: Vec<String>,
-}
-
-/// A question file: see the [module documentation](self) for the format.
-#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct QuestionFile {
-    #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub scene: Option<String>,
-    pub questions: Vec<Question>,
-}
-
-/// Reads and validates a question file; errors name the file and the problem.
-pub fn load_questions(path: &Path) -> Result<QuestionFile, String> {
-    let p = path.display();
-    let text = std::fs::read_to_string(path).map_err(|e| format!("{p}: cannot read: {e}"))?;
-    let file: QuestionFile = serde_json::from_str(&text).map_err(|e| {
-        format!("{p}: invalid JSON at line {}, column {}: {e}", e.line(), e.column())
-    })?;
-    let mut seen = HashSet::new();
-    for (i, q) in file.questions.iter().enumerate() {
-        let fail = |what: &str| Err(format!("{p}: question {i} (id {:?}): {what}", q.id));
-        if q.id.trim().is_empty() {
-            return fail("empty id");
-        }
-        if !seen.insert(q.id.as_str()) {
-            return fail("duplicate id");
-        }
-        if q.question.trim().is_empty() {
-            return fail("empty question text");
-        }
-        if q.answer.trim().is_empty() {
-            return fail("empty reference answer");
-        }
-        if q.level == Level::View && q.view.is_none() {
-            return fail("view-level question without \"view\"");
-        }
-        if q.level == Level::Object && q.object.is_none() {
-            return fail("object-level question without \"object\" pixel");
-        }
-    }
-    Ok(file)
-}
+use model::vqa::Level;
 
 const NUMBERS: &str = "zero one two three four five six seven eight nine ten eleven twelve \
     thirteen fourteen fifteen sixteen seventeen eighteen nineteen twenty";
@@ -168,13 +74,9 @@ pub fn offline_score(answer: &str, reference: &str, keywords: &[String]) -> Offl
             keys = ref_w.iter().map(|w| w.to_string()).collect();
         }
     }
-    let hits = keys
-        .iter()
-        .filter(|k| contains_phrase(&ans_w, &k.split_whitespace().collect::<Vec<_>>()))
-        .count();
+    let hits = keys.iter().filter(|k| contains_phrase(&ans_w, &k.split_whitespace().collect::<Vec<_>>())).count();
     let keyword_recall = if keys.is_empty() { 0.0 } else { hits as f32 / keys.len() as f32 };
-    let score =
-        if exact || contains_phrase(&ans_w, &ref_w) { 100.0 } else { 100.0 * keyword_recall };
+    let score = if exact || contains_phrase(&ans_w, &ref_w) { 100.0 } else { 100.0 * keyword_recall };
     OfflineScore { exact, keyword_recall, score }
 }
 
@@ -227,6 +129,26 @@ const ENV_URL: &str = "CHATSPLAT_GRADER_URL";
 const ENV_MODEL: &str = "CHATSPLAT_GRADER_MODEL";
 const ENV_KEY: &str = "CHATSPLAT_GRADER_KEY";
 
+/// Why grading failed.
+#[derive(Clone, Debug, PartialEq, thiserror::Error)]
+pub enum GraderError {
+    /// The grader URL is set but not the model or the key.
+    #[error("{ENV_URL} is set but {0} is not")]
+    MissingEnv(&'static str),
+    #[error("the grader needs the `curl` binary, which is not on PATH")]
+    NoCurl,
+    #[error("cannot run curl: {0}")]
+    Curl(String),
+    #[error("grader request to {endpoint} failed ({status}): {stderr}; response: {response}")]
+    Request { endpoint: String, status: String, stderr: String, response: String },
+    #[error("grader returned a non-JSON response ({error}): {body}")]
+    NotJson { error: String, body: String },
+    #[error("grader response has no choices[0].message.content: {0}")]
+    NoContent(String),
+    #[error("no score 0-100 in grader reply: {0:?}")]
+    NoScore(String),
+}
+
 /// An OpenAI-compatible chat-completions grader, called through the system `curl` binary.
 #[derive(Clone, PartialEq)]
 pub struct Grader {
@@ -251,12 +173,11 @@ impl Grader {
     /// Reads `CHATSPLAT_GRADER_URL`, `CHATSPLAT_GRADER_MODEL` and `CHATSPLAT_GRADER_KEY`.
     /// `Ok(None)` when the URL is unset or empty; an error naming the variable when the URL is set
     /// but the model or key is missing.
-    pub fn from_env() -> Result<Option<Grader>, String> {
+    pub fn from_env() -> Result<Option<Grader>, GraderError> {
         let var = |n: &str| std::env::var(n).ok().map(|v| v.trim().to_string()).filter(|v| !v.is_empty());
         let Some(url) = var(ENV_URL) else { return Ok(None) };
-        let missing = |n: &str| format!("{ENV_URL} is set but {n} is not");
-        let model = var(ENV_MODEL).ok_or_else(|| missing(ENV_MODEL))?;
-        let key = var(ENV_KEY).ok_or_else(|| missing(ENV_KEY))?;
+        let model = var(ENV_MODEL).ok_or(GraderError::MissingEnv(ENV_MODEL))?;
+        let key = var(ENV_KEY).ok_or(GraderError::MissingEnv(ENV_KEY))?;
         Ok(Some(Grader { url: url.trim_end_matches('/').to_string(), model, key }))
     }
 
@@ -286,18 +207,18 @@ impl Grader {
     }
 
     /// Extracts the score from a chat-completions response body.
-    pub fn parse_response(body: &str) -> Result<f32, String> {
+    pub fn parse_response(body: &str) -> Result<f32, GraderError> {
         let v: serde_json::Value = serde_json::from_str(body)
-            .map_err(|e| format!("grader returned a non-JSON response ({e}): {}", truncate(body, 300)))?;
+            .map_err(|e| GraderError::NotJson { error: e.to_string(), body: truncate(body, 300) })?;
         let content = v["choices"][0]["message"]["content"]
             .as_str()
-            .ok_or_else(|| format!("grader response has no choices[0].message.content: {}", truncate(body, 300)))?;
-        parse_score(content).ok_or_else(|| format!("no score 0-100 in grader reply: {:?}", truncate(content, 300)))
+            .ok_or_else(|| GraderError::NoContent(truncate(body, 300)))?;
+        parse_score(content).ok_or_else(|| GraderError::NoScore(truncate(content, 300)))
     }
 
     /// Grades one answer with a POST to `{url}/chat/completions` through `curl` (the body goes on
     /// stdin). Note that the key is passed to curl as a command-line header.
-    pub fn grade(&self, question: &str, reference: &str, answer: &str) -> Result<f32, String> {
+    pub fn grade(&self, question: &str, reference: &str, answer: &str) -> Result<f32, GraderError> {
         use std::io::Write;
         use std::process::{Command, Stdio};
         let endpoint = format!("{}/chat/completions", self.url);
@@ -312,23 +233,22 @@ impl Grader {
             .stderr(Stdio::piped())
             .spawn()
             .map_err(|e| match e.kind() {
-                std::io::ErrorKind::NotFound => "the grader needs the `curl` binary, which is not on PATH".to_string(),
-                _ => format!("cannot run curl: {e}"),
+                std::io::ErrorKind::NotFound => GraderError::NoCurl,
+                _ => GraderError::Curl(e.to_string()),
             })?;
         let wrote = child.stdin.take().expect("piped stdin").write_all(body.as_bytes());
-        let out = child.wait_with_output().map_err(|e| format!("curl failed: {e}"))?;
-        let stdout = String::from_utf8_lossy(&out.stdout);
-        let redact = |s: String| if self.key.is_empty() { s } else { s.replace(&self.key, "***") };
+        let out = child.wait_with_output().map_err(|e| GraderError::Curl(e.to_string()))?;
+        let redact = |s: &str| if self.key.is_empty() { s.to_string() } else { s.replace(&self.key, "***") };
+        let stdout = redact(&String::from_utf8_lossy(&out.stdout));
         if !out.status.success() || wrote.is_err() {
-            let stderr = String::from_utf8_lossy(&out.stderr);
-            return Err(redact(format!(
-                "grader request to {endpoint} failed ({}): {}; response: {}",
-                out.status,
-                stderr.trim(),
-                truncate(&stdout, 300)
-            )));
+            return Err(GraderError::Request {
+                endpoint,
+                status: out.status.to_string(),
+                stderr: redact(String::from_utf8_lossy(&out.stderr).trim()),
+                response: truncate(&stdout, 300),
+            });
         }
-        Self::parse_response(&stdout).map_err(redact)
+        Self::parse_response(&stdout)
     }
 }
 
@@ -380,12 +300,6 @@ mod tests {
         k.iter().map(|s| s.to_string()).collect()
     }
 
-    fn tmp(name: &str, text: &str) -> std::path::PathBuf {
-        let p = std::env::temp_dir().join(format!("chatsplat-vqa-{}-{name}.json", std::process::id()));
-        std::fs::write(&p, text).unwrap();
-        p
-    }
-
     #[test]
     fn normalization() {
         assert_eq!(normalize("  The RED, cube!  "), "red cube");
@@ -432,47 +346,6 @@ mod tests {
     }
 
     #[test]
-    fn question_files() {
-        let good = r#"{"scene": "room", "questions": [
-            {"id": "q1", "level": "view", "view": 3, "question": "Colour?", "answer": "red", "keywords": ["red"]},
-            {"id": "q2", "level": "object", "object": [1.5, 2], "question": "What?", "answer": "chair"},
-            {"id": "q3", "level": "scene", "question": "How many?", "answer": "two"}]}"#;
-        let p = tmp("good", good);
-        let f = load_questions(&p).unwrap();
-        let _ = std::fs::remove_file(p);
-        assert_eq!(f.scene.as_deref(), Some("room"));
-        assert_eq!(f.questions.len(), 3);
-        assert_eq!((f.questions[0].level, f.questions[0].view), (Level::View, Some(3)));
-        assert_eq!(f.questions[1].object, Some([1.5, 2.0]));
-        assert!(f.questions[2].keywords.is_empty());
-
-        let err = |name: &str, text: &str| {
-            let p = tmp(name, text);
-            let e = load_questions(&p).unwrap_err();
-            let _ = std::fs::remove_file(&p);
-            assert!(e.contains(&p.display().to_string()), "{e}");
-            e
-        };
-        let q = |body: &str| format!(r#"{{"questions": [{body}]}}"#);
-        let e = err("json", "{\"questions\": [\n  {\"id\": }]}");
-        assert!(e.contains("line 2, column"), "{e}");
-        let e = err("obj", &q(r#"{"id": "a", "level": "object", "question": "Q?", "answer": "x"}"#));
-        assert!(e.contains("\"a\"") && e.contains("without \"object\""), "{e}");
-        let e = err("view", &q(r#"{"id": "b", "level": "view", "question": "Q?", "answer": "x"}"#));
-        assert!(e.contains("without \"view\""), "{e}");
-        let e = err("empty", &q(r#"{"id": "c", "level": "scene", "question": " ", "answer": "x"}"#));
-        assert!(e.contains("empty question"), "{e}");
-        let one = r#"{"id": "d", "level": "scene", "question": "Q?", "answer": "x"}"#;
-        let e = err("dup", &q(&format!("{one}, {one}")));
-        assert!(e.contains("question 1") && e.contains("duplicate id"), "{e}");
-        let e = err("level", &q(r#"{"id": "e", "level": "room", "question": "Q?", "answer": "x"}"#));
-        assert!(e.contains("invalid JSON") && e.contains("room"), "{e}");
-        let missing = std::env::temp_dir().join("chatsplat-vqa-no-such-file.json");
-        let e = load_questions(&missing).unwrap_err();
-        assert!(e.contains("no-such-file") && e.contains("cannot read"), "{e}");
-    }
-
-    #[test]
     fn request_body_and_response() {
         let g = Grader { url: "http://x/v1".into(), model: "gpt-4o".into(), key: "sk-secret".into() };
         let b = g.request_body("What colour?", "red", "blue");
@@ -489,10 +362,10 @@ mod tests {
         let ok = r#"{"choices": [{"message": {"role": "assistant", "content": "Score: 85"}}]}"#;
         assert_eq!(Grader::parse_response(ok), Ok(85.0));
         let none = r#"{"choices": [{"message": {"content": "cannot judge"}}]}"#;
-        assert!(Grader::parse_response(none).unwrap_err().contains("no score"));
-        let e = Grader::parse_response(&format!("<html>{}</html>", "x".repeat(1000))).unwrap_err();
+        assert!(Grader::parse_response(none).unwrap_err().to_string().contains("no score"));
+        let e = Grader::parse_response(&format!("<html>{}</html>", "x".repeat(1000))).unwrap_err().to_string();
         assert!(e.contains("non-JSON") && e.chars().count() < 450, "{e}");
-        assert!(Grader::parse_response(r#"{"error": "bad"}"#).unwrap_err().contains("choices[0]"));
+        assert!(Grader::parse_response(r#"{"error": "bad"}"#).unwrap_err().to_string().contains("choices[0]"));
     }
 
     /// The only test touching the process environment (tests run in parallel threads).
@@ -509,14 +382,17 @@ mod tests {
         assert_eq!(Grader::from_env(), Ok(None));
         set(ENV_URL, Some("https://api.example.com/v1/"));
         set(ENV_KEY, None);
-        let e = Grader::from_env().unwrap_err();
+        let e = Grader::from_env().unwrap_err().to_string();
         assert!(e.contains(ENV_KEY), "{e}");
         set(ENV_MODEL, None);
         set(ENV_KEY, Some("sk-secret"));
-        assert!(Grader::from_env().unwrap_err().contains(ENV_MODEL));
+        assert!(Grader::from_env().unwrap_err().to_string().contains(ENV_MODEL));
         set(ENV_MODEL, Some("gpt-4o"));
         let g = Grader::from_env().unwrap().unwrap();
-        assert_eq!((g.url.as_str(), g.model.as_str(), g.key.as_str()), ("https://api.example.com/v1", "gpt-4o", "sk-secret"));
+        assert_eq!(
+            (g.url.as_str(), g.model.as_str(), g.key.as_str()),
+            ("https://api.example.com/v1", "gpt-4o", "sk-secret")
+        );
         for k in [ENV_URL, ENV_MODEL, ENV_KEY] {
             set(k, None);
         }

@@ -1,0 +1,58 @@
+//! The compute backends and the one place where a panic inside a backend becomes an [`Error`].
+
+use crate::error::{Error, Result};
+use burn::tensor::{Device, DeviceKind};
+
+/// The compute backends chatsplat runs on.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum Backend {
+    /// burn-ndarray on the CPU (the CPU rasterizer, rayon over tiles).
+    #[default]
+    Ndarray,
+    /// burn-wgpu (CubeCL kernels): a GPU, or Mesa lavapipe on the CPU.
+    Wgpu,
+}
+
+impl Backend {
+    /// The burn device of this backend.
+    pub fn device(self) -> Device {
+        match self {
+            Backend::Ndarray => Device::ndarray(),
+            Backend::Wgpu => Device::wgpu(DeviceKind::DefaultDevice),
+        }
+    }
+}
+
+impl std::str::FromStr for Backend {
+    type Err = String;
+
+    fn from_str(s: &str) -> std::result::Result<Self, String> {
+        match s {
+            "ndarray" => Ok(Backend::Ndarray),
+            "wgpu" => Ok(Backend::Wgpu),
+            other => Err(format!("unknown backend `{other}` (expected ndarray or wgpu)")),
+        }
+    }
+}
+
+impl std::fmt::Display for Backend {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Backend::Ndarray => "ndarray",
+            Backend::Wgpu => "wgpu",
+        })
+    }
+}
+
+/// Runs `f`, turning a panic inside the backend (e.g. no wgpu adapter, a kernel that fails to
+/// compile) into [`Error::Backend`]. The panic message is still printed by the default hook.
+pub fn catch_backend<T>(what: &str, f: impl FnOnce() -> T) -> Result<T> {
+    std::panic::catch_unwind(std::panic::AssertUnwindSafe(f)).map_err(|e| {
+        let message = e
+            .downcast_ref::<String>()
+            .cloned()
+            .or_else(|| e.downcast_ref::<&str>().map(|s| s.to_string()))
+            .unwrap_or_else(|| "unknown panic".into());
+        Error::Backend { what: what.to_string(), message }
+    })
+}

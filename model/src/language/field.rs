@@ -1,0 +1,299 @@
+//! The trainable parts of ChatSplat as burn modules: the per-Gaussian language features and the
+//! encoder (lifting 1x1 convolutions, the non-overlapping patch convolution, the scaling
+//! adjustment).
+
+use super::LanguageConfig;
+use crate::error::{Error, Result};
+use crate::rng::Rng;
+use burn::module::{Module, Param};
+use burn::tensor::{Device, Tensor, TensorData, activation};
+
+/// The encoder: lifting network (1x1 convolutions, GELU between them), the non-overlapping
+/// patch convolution, and the scaling adjustment (shared by both levels, or one pair per level).
+#[derive(Module, Debug)]
+pub struct Encoder {
+    /// Lifting 1x1 convolutions as `[in, out]` matrices (empty without lifting).
+    pub lift_weights: Vec<Param<Tensor<2>>>,
+    /// `[1, out]` biases of the lifting convolutions.
+    pub lift_biases: Vec<Param<Tensor<2>>>,
+    /// `[patch * patch * D, D]`: row `(py * patch + px) * D + c` multiplies input channel `c` at
+    /// patch pixel `(px, py)`.
+    pub patch_weight: Param<Tensor<2>>,
+    /// `[1, D]`
+    pub patch_bias: Param<Tensor<2>>,
+    /// `[T, D]` scaling `a` (absent without the scaling adjustment).
+    pub scale: Option<Param<Tensor<2>>>,
+    /// `[T, D]` shift `b`.
+    pub shift: Option<Param<Tensor<2>>>,
+    /// `[T, D]` object-level `a` and `b` (with `scale_shift_per_level`).
+    pub object_scale: Option<Param<Tensor<2>>>,
+    pub object_shift: Option<Param<Tensor<2>>>,
+}
+
+fn uniform(rng: &mut Rng, rows: usize, cols: usize, fan_in: usize, device: &Device) -> Tensor<2> {
+    let k = 1.0 / (fan_in as f32).sqrt();
+    let v: Vec<f32> = (0..rows * cols).map(|_| rng.range(-k, k)).collect();
+    Tensor::from_data(TensorData::new(v, [rows, cols]), device)
+}
+
+impl Encoder {
+    /// A freshly initialised encoder (uniform ±1/sqrt(fan-in), a = 1, b = 0).
+    pub fn new(cfg: &LanguageConfig, seed: u64, device: &Device) -> Self {
+        let mut rng = Rng::new(seed ^ 0xe2c0_de5e);
+        let widths: Vec<usize> = if cfg.lifting { vec![cfg.view_channels, cfg.hidden, cfg.dim] } else { vec![] };
+        let mut lift_weights = Vec::new();
+        let mut lift_biases = Vec::new();
+        for w in widths.windows(2) {
+            lift_weights.push(Param::from_tensor(uniform(&mut rng, w[0], w[1], w[0], device)));
+            lift_biases.push(Param::from_tensor(uniform(&mut rng, 1, w[1], w[0], device)));
+        }
+        let fan = cfg.patch * cfg.patch * cfg.dim;
+        let t = cfg.tokens();
+        let pair = |on: bool| {
+            if on {
+                (
+                    Some(Param::from_tensor(Tensor::ones([t, cfg.dim], device))),
+                    Some(Param::from_tensor(Tensor::zeros([t, cfg.dim], device))),
+                )
+            } else {
+                (None, None)
+            }
+        };
+        let (scale, shift) = pair(cfg.scale_shift);
+        let (object_scale, object_shift) = pair(cfg.scale_shift && cfg.scale_shift_per_level);
+        Self {
+            lift_weights,
+            lift_biases,
+            patch_weight: Param::from_tensor(uniform(&mut rng, fan, cfg.dim, fan, device)),
+            patch_bias: Param::from_tensor(uniform(&mut rng, 1, cfg.dim, fan, device)),
+            scale,
+            shift,
+            object_scale,
+            object_shift,
+        }
+    }
+
+    /// Token width D.
+    pub fn dim(&self) -> usize {
+        self.patch_bias.val().dims()[1]
+    }
+
+    /// Patch side (the convolution kernel).
+    pub fn patch(&self) -> usize {
+        let rows = self.patch_weight.val().dims()[0];
+        ((rows / self.dim()) as f64).sqrt().round() as usize
+    }
+
+    /// Tokens before the scaling adjustment: `map` `[H, W, C]` (H = W = grid * patch) -> `[T, D]`.
+    pub fn tokens_raw(&self, map: Tensor<3>) -> Tensor<2> {
+        let [h, w, c] = map.dims();
+        let mut x = map.reshape([h * w, c]);
+        let layers = self.lift_weights.len();
+        for (i, (wt, b)) in self.lift_weights.iter().zip(&self.lift_biases).enumerate() {
+            x = x.matmul(wt.val()) + b.val();
+            if i + 1 < layers {
+                x = activation::gelu(x);
+            }
+        }
+        let d = x.dims()[1];
+        let p = self.patch();
+        let (gh, gw) = (h / p, w / p);
+        assert_eq!((gh * p, gw * p), (h, w), "Encoder: a {h}x{w} map is not a whole number of {p}x{p} patches");
+        let x = x.reshape([gh, p, gw, p, d]).swap_dims(1, 2).reshape([gh * gw, p * p * d]);
+        x.matmul(self.patch_weight.val()) + self.patch_bias.val()
+    }
+
+    /// Encodes a rendered view-level map `[H, W, C]` into tokens `[T, D]` (scaling adjustment applied).
+    pub fn forward(&self, map: Tensor<3>) -> Tensor<2> {
+        self.forward_level(map, false)
+    }
+
+    /// As [`forward`](Self::forward) for a view-level (`object = false`) or a masked
+    /// object-level map (the object pair `(a, b)` when the encoder has one).
+    pub fn forward_level(&self, map: Tensor<3>, object: bool) -> Tensor<2> {
+        let t = self.tokens_raw(map);
+        let pair = match (object, &self.object_scale, &self.object_shift) {
+            (true, Some(a), Some(b)) => Some((a, b)),
+            _ => self.scale.as_ref().zip(self.shift.as_ref()),
+        };
+        match pair {
+            Some((a, b)) => t * a.val() + b.val(),
+            None => t,
+        }
+    }
+
+    /// Every tensor with its name, in a fixed order (lift.{i}.weight/bias, patch.weight/bias,
+    /// scale, shift), in this module's matmul layout.
+    pub fn named(&self) -> Vec<(String, Tensor<2>)> {
+        let mut out = Vec::new();
+        for (i, (w, b)) in self.lift_weights.iter().zip(&self.lift_biases).enumerate() {
+            out.push((format!("lift.{i}.weight"), w.val()));
+            out.push((format!("lift.{i}.bias"), b.val()));
+        }
+        out.push(("patch.weight".into(), self.patch_weight.val()));
+        out.push(("patch.bias".into(), self.patch_bias.val()));
+        if let (Some(a), Some(b)) = (&self.scale, &self.shift) {
+            out.push(("scale".into(), a.val()));
+            out.push(("shift".into(), b.val()));
+        }
+        if let (Some(a), Some(b)) = (&self.object_scale, &self.object_shift) {
+            out.push(("object_scale".into(), a.val()));
+            out.push(("object_shift".into(), b.val()));
+        }
+        out
+    }
+
+    /// Rebuilds an encoder from [`named`](Self::named) tensors (same order).
+    pub fn from_named(tensors: Vec<(String, Tensor<2>)>) -> Result<Self> {
+        let mut lift_weights = Vec::new();
+        let mut lift_biases = Vec::new();
+        let (mut patch_weight, mut patch_bias, mut scale, mut shift, mut object_scale, mut object_shift) =
+            (None, None, None, None, None, None);
+        for (name, t) in tensors {
+            match name.as_str() {
+                "patch.weight" => patch_weight = Some(t),
+                "patch.bias" => patch_bias = Some(t),
+                "scale" => scale = Some(Param::from_tensor(t)),
+                "shift" => shift = Some(Param::from_tensor(t)),
+                "object_scale" => object_scale = Some(Param::from_tensor(t)),
+                "object_shift" => object_shift = Some(Param::from_tensor(t)),
+                n if n.starts_with("lift.") && n.ends_with(".weight") => lift_weights.push(Param::from_tensor(t)),
+                n if n.starts_with("lift.") && n.ends_with(".bias") => lift_biases.push(Param::from_tensor(t)),
+                n => return Err(Error::input(format!("unknown encoder tensor {n}"))),
+            }
+        }
+        let (Some(pw), Some(pb)) = (patch_weight, patch_bias) else {
+            return Err(Error::input("encoder: patch.weight or patch.bias missing"));
+        };
+        if lift_weights.len() != lift_biases.len()
+            || scale.is_some() != shift.is_some()
+            || object_scale.is_some() != object_shift.is_some()
+        {
+            return Err(Error::input("encoder: lifting weights/biases or scale/shift are incomplete"));
+        }
+        Ok(Self {
+            lift_weights,
+            lift_biases,
+            patch_weight: Param::from_tensor(pw),
+            patch_bias: Param::from_tensor(pb),
+            scale,
+            shift,
+            object_scale,
+            object_shift,
+        })
+    }
+}
+
+/// The two parameter groups of a language field (the paper trains both with lr 0.05; the
+/// trainer lets them differ).
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub enum ParamGroup {
+    /// The per-Gaussian `view_features` and `object_features`.
+    Features,
+    /// The encoder: lifting, patch convolution, scaling adjustment (`encoder.*`).
+    Encoder,
+}
+
+impl ParamGroup {
+    /// The group of a [`LanguageField::named`] tensor.
+    pub fn of(name: &str) -> Self {
+        if name.starts_with("encoder.") { ParamGroup::Encoder } else { ParamGroup::Features }
+    }
+}
+
+/// The trainable part of ChatSplat: per-Gaussian language features and the encoder.
+#[derive(Module, Debug)]
+pub struct LanguageField {
+    /// `[N, Cv]` view-level features.
+    pub view_features: Param<Tensor<2>>,
+    /// `[N, Co]` object-level features.
+    pub object_features: Param<Tensor<2>>,
+    pub encoder: Encoder,
+}
+
+impl LanguageField {
+    /// Features ~ N(0, 0.1²), a fresh encoder.
+    pub fn new(cfg: &LanguageConfig, gaussians: usize, seed: u64, device: &Device) -> Self {
+        let mut rng = Rng::new(seed ^ 0x1a46);
+        let c = cfg.feature_channels();
+        let mut feat = || {
+            Tensor::from_data(
+                TensorData::new((0..gaussians * c).map(|_| 0.1 * rng.normal()).collect::<Vec<f32>>(), [gaussians, c]),
+                device,
+            )
+        };
+        Self {
+            view_features: Param::from_tensor(feat()),
+            object_features: Param::from_tensor(feat()),
+            encoder: Encoder::new(cfg, seed, device),
+        }
+    }
+
+    /// The tensor names of a field of shapes `cfg`, in [`named`](Self::named) order.
+    pub fn names(cfg: &LanguageConfig) -> Vec<String> {
+        let mut out = vec!["view_features".to_string(), "object_features".to_string()];
+        let layers = if cfg.lifting { 2 } else { 0 };
+        for i in 0..layers {
+            out.push(format!("encoder.lift.{i}.weight"));
+            out.push(format!("encoder.lift.{i}.bias"));
+        }
+        out.push("encoder.patch.weight".into());
+        out.push("encoder.patch.bias".into());
+        if cfg.scale_shift {
+            out.push("encoder.scale".into());
+            out.push("encoder.shift".into());
+            if cfg.scale_shift_per_level {
+                out.push("encoder.object_scale".into());
+                out.push("encoder.object_shift".into());
+            }
+        }
+        out
+    }
+
+    /// Every tensor with its name (`view_features`, `object_features`, `encoder.*`).
+    pub fn named(&self) -> Vec<(String, Tensor<2>)> {
+        let mut out = vec![
+            ("view_features".to_string(), self.view_features.val()),
+            ("object_features".to_string(), self.object_features.val()),
+        ];
+        out.extend(self.encoder.named().into_iter().map(|(n, t)| (format!("encoder.{n}"), t)));
+        out
+    }
+
+    /// Rebuilds from [`named`](Self::named) tensors.
+    pub fn from_named(tensors: Vec<(String, Tensor<2>)>) -> Result<Self> {
+        let (mut v, mut o, mut enc) = (None, None, Vec::new());
+        for (n, t) in tensors {
+            match n.as_str() {
+                "view_features" => v = Some(t),
+                "object_features" => o = Some(t),
+                _ => match n.strip_prefix("encoder.") {
+                    Some(rest) => enc.push((rest.to_string(), t)),
+                    None => return Err(Error::input(format!("unknown language tensor {n}"))),
+                },
+            }
+        }
+        let (Some(v), Some(o)) = (v, o) else {
+            return Err(Error::input("language field: view_features or object_features missing"));
+        };
+        Ok(Self {
+            view_features: Param::from_tensor(v),
+            object_features: Param::from_tensor(o),
+            encoder: Encoder::from_named(enc)?,
+        })
+    }
+
+    /// Number of Gaussians.
+    pub fn len(&self) -> usize {
+        self.view_features.val().dims()[0]
+    }
+
+    pub fn is_empty(&self) -> bool {
+        self.len() == 0
+    }
+}
+
+/// MaskOut (paper Eq. 7): zeroes the map outside the mask. `map` `[H, W, C]`, `mask` `[H, W]` of 0/1.
+pub fn mask_out(map: Tensor<3>, mask: Tensor<2>) -> Tensor<3> {
+    map * mask.unsqueeze_dim::<3>(2)
+}

@@ -1,0 +1,201 @@
+//! A trained ChatSplat scene at inference: frozen Gaussians carrying language features, rendered
+//! into feature maps from the token cameras and encoded into tokens; objects picked from the
+//! rendered identity. Training (`train::language`) optimises the same [`LanguageScene`].
+
+use crate::error::{Error, Result};
+use crate::language::{LanguageConfig, LanguageField, ObjectCrop, mask_out};
+use crate::run::{GeometryRun, LanguageRun};
+use crate::splats::{SplatModel, ViewRender};
+use burn::tensor::{Device, Int, Tensor, TensorData};
+use splat_kernels::api::{SplatOptions, splat};
+use splat_kernels::{Camera, Gaussians};
+
+/// Frozen geometry + language field.
+pub struct LanguageScene {
+    /// Shapes of the field and the token cameras.
+    pub cfg: LanguageConfig,
+    /// The Gaussians (frozen).
+    pub splats: SplatModel,
+    /// SH degree and background of RGB renders.
+    pub sh_degree: usize,
+    pub background: [f32; 3],
+    pub field: LanguageField,
+    /// Object crop margin (the teacher's).
+    pub margin: f32,
+}
+
+impl LanguageScene {
+    /// Loads a geometry run and a language run trained on it.
+    pub fn load(run: &GeometryRun, language: &LanguageRun, device: &Device) -> Result<Self> {
+        let (splats, state) = run.load_model(device)?;
+        let (field, lstate) = language.load_field(device)?;
+        if field.len() != splats.len() {
+            return Err(Error::invalid(
+                language.checkpoint(),
+                format!("{} Gaussians, but the geometry run {} has {}", field.len(), run.dir.display(), splats.len()),
+            ));
+        }
+        Ok(Self {
+            cfg: lstate.field,
+            splats,
+            sh_degree: state.sh_degree,
+            background: state.background,
+            field,
+            margin: lstate.margin,
+        })
+    }
+
+    /// The frozen Gaussians carrying `features` (`[N, C]`, on `features`' device, autodiff when
+    /// `features` is).
+    pub fn gaussians(&self, features: Tensor<2>) -> Gaussians {
+        let ad = features.is_autodiff();
+        let m = &self.splats;
+        let n = m.len();
+        let on = |t: Tensor<2>| if ad { t.autodiff() } else { t };
+        Gaussians {
+            means: on(m.means.val()),
+            log_scales: on(m.log_scales.val()),
+            quats: on(m.quats.val()),
+            opacity_logits: on(m.opacity_logits.val()).reshape([n]),
+            features,
+        }
+    }
+
+    /// Renders `features` `[N, C]` from `cam` over a zero background: `[H, W, C]`.
+    pub fn render_map(&self, features: Tensor<2>, cam: &Camera) -> Result<Tensor<3>> {
+        let c = features.dims()[1];
+        let bg = Tensor::zeros([c], &features.device());
+        let opts = SplatOptions { validate: false, ..Default::default() };
+        Ok(splat(&self.gaussians(features), cam, bg, &opts)?.features)
+    }
+
+    /// RGB, identity and alpha of a view.
+    pub fn render(&self, cam: &Camera) -> Result<ViewRender> {
+        self.splats.render(cam, self.sh_degree, self.background)
+    }
+
+    /// View-level tokens `[T, D]` of a view camera, with `field` (the scene's own or a copy being
+    /// trained).
+    pub fn view_tokens(&self, field: &LanguageField, cam: &Camera) -> Result<Tensor<2>> {
+        let map = self.render_map(field.view_features.val(), &self.cfg.view_camera(cam))?;
+        Ok(field.encoder.forward(map))
+    }
+
+    /// The object crop camera and its `[r, r]` 0/1 mask of object `id`: the rendered identity,
+    /// restricted to the crop's box inside the view's frame (as the teacher's image was).
+    pub fn object_crop(&self, cam: &Camera, id: u8, bbox: [usize; 4]) -> Result<(Camera, Vec<f32>)> {
+        let crop = ObjectCrop::from_box(bbox);
+        let oc = self.cfg.object_camera(cam, bbox);
+        let r = self.render(&oc)?;
+        let size = oc.width as usize;
+        let mut mask = vec![0f32; size * size];
+        for y in 0..size {
+            for x in 0..size {
+                // pixel centre back in view pixels
+                let vx = (x as f32 + 0.5 - oc.cx) / oc.fx * cam.fx + cam.cx;
+                let vy = (y as f32 + 0.5 - oc.cy) / oc.fy * cam.fy + cam.cy;
+                if crop.contains(vx, vy) && r.ids[y * size + x] == id {
+                    mask[y * size + x] = 1.0;
+                }
+            }
+        }
+        Ok((oc, mask))
+    }
+
+    /// Object-level tokens `[T, D]` through an object's crop camera and mask, with `field`.
+    pub fn object_tokens_with(&self, field: &LanguageField, oc: &Camera, mask: &[f32]) -> Result<Tensor<2>> {
+        let feats = field.object_features.val();
+        let dev = feats.device();
+        let size = oc.width as usize;
+        let map = self.render_map(feats, oc)?;
+        let mask = Tensor::<2>::from_data(TensorData::new(mask.to_vec(), [size, size]), &dev);
+        Ok(field.encoder.forward_level(mask_out(map, mask), true))
+    }
+
+    /// The object under pixel `(x, y)` of `cam` and its crop box (from the rendered identity);
+    /// `None` for the background (id 0). A pixel outside the image is an error.
+    pub fn pick(&self, cam: &Camera, x: usize, y: usize) -> Result<Option<(u8, [usize; 4])>> {
+        let (w, h) = (cam.width as usize, cam.height as usize);
+        if x >= w || y >= h {
+            return Err(Error::input(format!("pixel ({x}, {y}) lies outside the {w}x{h} view")));
+        }
+        let ids = self.render(cam)?.ids;
+        let id = ids[y * w + x];
+        if id == 0 {
+            return Ok(None);
+        }
+        Ok(crate::language::object_box(&ids, w, h, id, self.margin).map(|b| (id, b)))
+    }
+
+    /// Object tokens for a click at `(x, y)`: `(id, tokens)`, `None` when the pixel shows no object.
+    pub fn object_tokens_at(&self, cam: &Camera, x: usize, y: usize) -> Result<Option<(u8, Tensor<2>)>> {
+        let Some((id, bbox)) = self.pick(cam, x, y)? else { return Ok(None) };
+        let (oc, mask) = self.object_crop(cam, id, bbox)?;
+        Ok(Some((id, self.object_tokens_with(&self.field, &oc, &mask)?)))
+    }
+
+    /// The scene restricted to Gaussians `keep` (row indices): "model only what a scene needs".
+    pub fn subset(&self, keep: &[usize]) -> LanguageScene {
+        let dev = self.splats.means.val().device();
+        let idx: Vec<i64> = keep.iter().map(|&i| i as i64).collect();
+        let idx = Tensor::<1, Int>::from_data(TensorData::new(idx, [keep.len()]), &dev);
+        let rows = |t: Tensor<2>| t.select(0, idx.clone());
+        let params = self
+            .splats
+            .tensors()
+            .map(|name, t| if crate::splats::SplatParams::<()>::is_row(name) { rows(t) } else { t });
+        let mut named = self.field.named();
+        for (n, t) in named.iter_mut() {
+            if n == "view_features" || n == "object_features" {
+                *t = rows(t.clone());
+            }
+        }
+        LanguageScene {
+            cfg: self.cfg.clone(),
+            splats: SplatModel::from_tensors(params),
+            sh_degree: self.sh_degree,
+            background: self.background,
+            field: LanguageField::from_named(named).expect("the same tensors"),
+            margin: self.margin,
+        }
+    }
+}
+
+/// Highlights object `id` in red over a rendered RGB view (the paper's picked-object display):
+/// `rgb` `[H, W, 3]`, `ids` `[H, W]`.
+pub fn highlight(rgb: &[f32], ids: &[u8], id: u8) -> Vec<f32> {
+    let mut out = rgb.to_vec();
+    for (p, &i) in ids.iter().enumerate() {
+        let c = &mut out[3 * p..3 * p + 3];
+        if i == id {
+            c[0] = 0.45 * c[0].clamp(0.0, 1.0) + 0.55;
+            c[1] *= 0.45;
+            c[2] *= 0.45;
+        } else {
+            for v in c.iter_mut() {
+                *v = 0.35 * v.clamp(0.0, 1.0) + 0.2;
+            }
+        }
+    }
+    out
+}
+
+/// `k` views spread around the scene (farthest-point sampling on camera centres, starting from
+/// view 0), for scene-level chat.
+pub fn spread_views(cams: &[Camera], k: usize) -> Vec<usize> {
+    let centres: Vec<glam::Vec3> = cams.iter().map(|c| c.world_to_cam.inverse().w_axis.truncate()).collect();
+    let mut chosen = Vec::new();
+    if centres.is_empty() {
+        return chosen;
+    }
+    chosen.push(0);
+    let mut dist: Vec<f32> = centres.iter().map(|c| c.distance(centres[0])).collect();
+    while chosen.len() < k.min(centres.len()) {
+        let (i, _) = dist.iter().enumerate().fold((0, -1.0), |b, (i, &d)| if d > b.1 { (i, d) } else { b });
+        chosen.push(i);
+        for (j, c) in centres.iter().enumerate() {
+            dist[j] = dist[j].min(c.distance(centres[i]));
+        }
+    }
+    chosen
+}

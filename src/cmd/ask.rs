@@ -1,0 +1,109 @@
+//! `chatsplat ask`: one question, to plain LLaVA-OneVision on images (the paper's baseline) or to
+//! a trained scene at view, object (click) or scene level.
+
+use super::{SamplingArgs, SceneArgs, print_piece};
+use anyhow::bail;
+use model::Backend;
+use model::chat::Target;
+use model::vlm::{LlavaOnevision, RgbImage};
+use std::path::PathBuf;
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// LLaVA-OneVision directory, e.g. llava-hf/llava-onevision-qwen2-{0.5b,7b}-ov-hf (default:
+    /// the built-in model).
+    #[arg(long)]
+    pub vlm: Option<PathBuf>,
+    /// PNG image to ask about; repeat for a multi-image prompt (one base view + newline per image,
+    /// LLaVA-OneVision's multi-image layout). Either images or `--run`.
+    #[arg(long)]
+    pub image: Vec<PathBuf>,
+    /// A trained ChatSplat scene (geometry run directory with a `language/` run): the question
+    /// goes to the scene's tokens instead of an image.
+    #[arg(long)]
+    pub run: Option<PathBuf>,
+    /// Language run directory (default: RUN/language).
+    #[arg(long)]
+    pub language: Option<PathBuf>,
+    /// View to ask about (training views first, then held-out views).
+    #[arg(long, default_value_t = 0)]
+    pub view: usize,
+    /// Object level: the object under pixel X Y of the view (its highlighted view is written as PNG).
+    #[arg(long, num_args = 2, value_names = ["X", "Y"])]
+    pub object: Option<Vec<usize>>,
+    /// Scene level: tokens of `--views` views spread around the scene.
+    #[arg(long)]
+    pub scene: bool,
+    /// Views for scene level.
+    #[arg(long, default_value_t = 4)]
+    pub views: usize,
+    /// The question.
+    pub question: String,
+    #[command(flatten)]
+    pub sampling: SamplingArgs,
+    #[arg(long, default_value_t = Backend::Ndarray)]
+    pub backend: Backend,
+}
+
+pub fn run(a: Args) -> anyhow::Result<()> {
+    match (&a.run, a.image.is_empty()) {
+        (Some(_), false) => bail!("--image and --run exclude each other: ask about images or about a trained scene"),
+        (Some(run), true) => ask_scene(&a, run.clone()),
+        (None, false) => ask_images(&a),
+        (None, true) => bail!("give --image PNG (plain LLaVA-OneVision) or --run DIR (a trained ChatSplat scene)"),
+    }
+}
+
+fn ask_images(a: &Args) -> anyhow::Result<()> {
+    let imgs = a.image.iter().map(|p| RgbImage::read_png(p)).collect::<Result<Vec<_>, _>>()?;
+    let opts = a.sampling.options()?;
+    let device = a.backend.device();
+    let vlm_dir = super::vlm_dir(a.vlm.as_ref())?;
+    let t0 = std::time::Instant::now();
+    let m = model::catch_backend("loading the model", || LlavaOnevision::load(&vlm_dir, &device))??;
+    eprintln!("loaded {} in {:.1} s", vlm_dir.display(), t0.elapsed().as_secs_f64());
+    let t1 = std::time::Instant::now();
+    let out = model::catch_backend("generation", || -> model::Result<_> {
+        let multi = imgs.len() > 1;
+        let embeds: Vec<_> = imgs.iter().map(|i| m.image_embeds(&m.preprocess(i, multi))).collect();
+        let prompt = m.prompt_embeds(&a.question, &embeds)?;
+        Ok(m.generate(prompt, &opts, print_piece)?)
+    })??;
+    println!();
+    eprintln!(
+        "{} prompt tokens, {} new tokens{} in {:.2} s on {}",
+        out.prompt_tokens,
+        out.ids.len(),
+        if out.stopped { " (stopped at <|im_end|>)" } else { "" },
+        t1.elapsed().as_secs_f64(),
+        a.backend
+    );
+    Ok(())
+}
+
+fn ask_scene(a: &Args, run: PathBuf) -> anyhow::Result<()> {
+    let opts = a.sampling.options()?;
+    let scene = SceneArgs { run, language: a.language.clone(), vlm: a.vlm.clone(), backend: a.backend };
+    let s = scene.open()?;
+    let target = match (&a.object, a.scene) {
+        (Some(_), true) => bail!("--object and --scene exclude each other"),
+        (Some(xy), false) => Target::Object { view: a.view, x: xy[0], y: xy[1] },
+        (None, true) => Target::Scene(s.scene_views(a.views)?),
+        (None, false) => Target::View(a.view),
+    };
+    let t1 = std::time::Instant::now();
+    let (out, picked) = model::catch_backend("generation", || s.ask(&target, &a.question, &opts, print_piece))??;
+    println!();
+    eprintln!(
+        "{} prompt tokens, {} new tokens in {:.2} s",
+        out.prompt_tokens,
+        out.ids.len(),
+        t1.elapsed().as_secs_f64()
+    );
+    if let Some(id) = picked {
+        let path = s.language.picked(a.view, id);
+        s.show(a.view, Some(id), &path)?;
+        eprintln!("picked object {id}; highlighted view -> {}", path.display());
+    }
+    Ok(())
+}

@@ -1,0 +1,31 @@
+//! `chatsplat export-encoder`: the encoder and scaling adjustment in PyTorch Conv2d layout.
+
+use model::run::{GeometryRun, LanguageRun};
+use std::path::PathBuf;
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// Geometry run directory.
+    #[arg(long)]
+    pub run: PathBuf,
+    /// Language run directory (default: RUN/language).
+    #[arg(long)]
+    pub language: Option<PathBuf>,
+    /// Output .safetensors file.
+    #[arg(long)]
+    pub out: PathBuf,
+}
+
+pub fn run(a: Args) -> anyhow::Result<()> {
+    let lang = a.language.as_ref().map(LanguageRun::new).unwrap_or_else(|| GeometryRun::new(&a.run).language());
+    let (field, state) = lang.load_field(&burn::tensor::Device::ndarray())?;
+    let enc = &field.encoder;
+    let n = model::language::export::write_encoder(&a.out, enc, &state.field, &state.teacher_model)?;
+    println!(
+        "encoder ({n} parameters, {} lifting layers, scale/shift {}) -> {}",
+        enc.lift_weights.len(),
+        enc.scale.is_some(),
+        a.out.display()
+    );
+    Ok(())
+}

@@ -1,0 +1,78 @@
+//! `chatsplat extract`: teacher tokens of every training view and masked object.
+
+use anyhow::bail;
+use eval::progress::Progress;
+use model::Backend;
+use model::data::LoadOptions;
+use model::run::TeacherDir;
+use std::path::PathBuf;
+use train::teacher::{ExtractOptions, extract};
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// Local Hugging Face LLaVA-OneVision directory, the teacher (default: the built-in model).
+    #[arg(long)]
+    pub vlm: Option<PathBuf>,
+    /// Scene dataset (any format `chatsplat train` reads, e.g. from `chatsplat synth`).
+    #[arg(long)]
+    pub data: PathBuf,
+    /// Output directory (default: DATA/teacher).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Integer image downscale before extraction.
+    #[arg(long, default_value_t = 1)]
+    pub downscale: u32,
+    /// Object crop margin as a fraction of the object's box, per side.
+    #[arg(long, default_value_t = 0.1)]
+    pub margin: f32,
+    #[arg(long, default_value_t = Backend::Ndarray)]
+    pub backend: Backend,
+}
+
+pub fn run(a: Args) -> anyhow::Result<()> {
+    if a.downscale == 0 || !(0.0..=2.0).contains(&a.margin) {
+        bail!("--downscale must be >= 1 and --margin in [0, 2]");
+    }
+    let out = TeacherDir::new(a.out.clone().unwrap_or_else(|| a.data.join("teacher")));
+    let device = a.backend.device();
+    let vlm_dir = super::vlm_dir(a.vlm.as_ref())?;
+    let m = model::catch_backend("loading the model", || model::vlm::LlavaOnevision::load(&vlm_dir, &device))??;
+    let opts = ExtractOptions {
+        margin: a.margin,
+        load: LoadOptions { downscale: a.downscale, ..Default::default() },
+        ..Default::default()
+    };
+    let bar = Progress::new("extract", "views");
+    let t0 = std::time::Instant::now();
+    let summary = model::catch_backend("extraction", || {
+        extract(
+            &m,
+            &a.data,
+            &out,
+            &opts,
+            |plan| {
+                let objects: usize = plan.views.iter().map(|v| v.objects.len()).sum();
+                eprintln!(
+                    "{} training views + {objects} object crops -> {} images of {}x{} tokens; about {:.1} MB \
+                        of f16 in {}",
+                    plan.views.len(),
+                    plan.views.len() + objects,
+                    plan.tokens_per_image,
+                    plan.dim,
+                    plan.bytes as f64 / 1e6,
+                    out.dir.display()
+                );
+            },
+            |done, total| bar.update(done, total),
+        )
+    })??;
+    println!(
+        "teacher tokens: {} view files written, {} already complete (skipped), {} images encoded in {:.1} s -> {}",
+        summary.written,
+        summary.skipped,
+        summary.images,
+        t0.elapsed().as_secs_f64(),
+        out.index().display()
+    );
+    Ok(())
+}

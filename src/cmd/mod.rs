@@ -1,0 +1,170 @@
+//! The subcommands, one file each, in the order of the pipeline, and the arguments they share.
+
+mod ask;
+mod chat;
+mod demo;
+mod export_encoder;
+mod export_ply;
+mod extract;
+mod render;
+mod synth;
+mod train;
+mod train_language;
+mod vqa;
+
+use anyhow::Context;
+use clap::{Parser, Subcommand};
+use model::Backend;
+use model::chat::ChatSession;
+use model::run::{GeometryRun, LanguageRun};
+use std::path::PathBuf;
+
+#[derive(Parser)]
+#[command(name = "chatsplat", version, about = "3D conversational Gaussian splatting in Rust on burn")]
+pub struct Cli {
+    #[command(subcommand)]
+    command: Command,
+}
+
+#[derive(Subcommand)]
+enum Command {
+    /// The whole pipeline on the built-in synthetic tabletop with the built-in LLaVA-OneVision
+    /// (no downloads): synth -> geometry -> teacher tokens -> language field -> chat at view,
+    /// object and scene level -> VQA scoring -> encoder export.
+    Demo(demo::Args),
+    /// Write the built-in synthetic tabletop as a dataset: ray-cast RGB views, instance masks,
+    /// depth, transforms.json, scene.json and questions.json.
+    Synth(synth::Args),
+    /// Render a Gaussian scene (an Inria-layout .ply, or the built-in synthetic tabletop) to PNG.
+    Render(render::Args),
+    /// Geometry stage: fit 3D Gaussians with a 16-channel identity field to a posed dataset.
+    Train(train::Args),
+    /// Export a run's Gaussians as an Inria-layout .ply (with identity features as extra properties).
+    ExportPly(export_ply::Args),
+    /// Teacher tokens for the language field: SigLIP patch features of every training view and of
+    /// every masked object, as f16 safetensors (resumable).
+    Extract(extract::Args),
+    /// Language stage: train the per-Gaussian language features, the encoder and the scaling
+    /// adjustment against the teacher tokens (geometry frozen).
+    TrainLanguage(train_language::Args),
+    /// Write the encoder and scaling adjustment as safetensors (PyTorch Conv2d layout) with a JSON header.
+    ExportEncoder(export_encoder::Args),
+    /// Ask one question: plain LLaVA-OneVision on images (the paper's baseline), or a trained
+    /// scene at view, object (click) or scene level.
+    Ask(ask::Args),
+    /// Interactive chat with a trained scene: view, object (click) and scene level.
+    Chat(chat::Args),
+    /// Answer an annotated question file about a trained scene and score the answers (offline
+    /// exact-match/keyword scorer; plus an OpenAI-compatible grader when CHATSPLAT_GRADER_URL is set).
+    Vqa(vqa::Args),
+}
+
+/// Runs one command.
+pub fn run(cli: Cli) -> anyhow::Result<()> {
+    match cli.command {
+        Command::Demo(a) => demo::run(a),
+        Command::Synth(a) => synth::run(a),
+        Command::Render(a) => render::run(a),
+        Command::Train(a) => train::run(a),
+        Command::ExportPly(a) => export_ply::run(a),
+        Command::Extract(a) => extract::run(a),
+        Command::TrainLanguage(a) => train_language::run(a),
+        Command::ExportEncoder(a) => export_encoder::run(a),
+        Command::Ask(a) => ask::run(a),
+        Command::Chat(a) => chat::run(a),
+        Command::Vqa(a) => vqa::run(a),
+    }
+}
+
+/// A trained scene: the geometry run, its language run and the LLaVA-OneVision to chat with.
+#[derive(clap::Args, Clone)]
+pub struct SceneArgs {
+    /// Geometry run directory (`chatsplat train --out`) with a trained language run.
+    #[arg(long)]
+    pub run: PathBuf,
+    /// Language run directory (default: RUN/language).
+    #[arg(long)]
+    pub language: Option<PathBuf>,
+    /// LLaVA-OneVision directory, the one the teacher tokens came from (default: the built-in
+    /// model, see `--vlm` of `chatsplat demo`).
+    #[arg(long)]
+    pub vlm: Option<PathBuf>,
+    /// Compute backend.
+    #[arg(long, default_value_t = Backend::Ndarray)]
+    pub backend: Backend,
+}
+
+impl SceneArgs {
+    pub fn geometry(&self) -> GeometryRun {
+        GeometryRun::new(&self.run)
+    }
+
+    pub fn language(&self) -> LanguageRun {
+        self.language.as_ref().map(LanguageRun::new).unwrap_or_else(|| self.geometry().language())
+    }
+
+    /// Loads the scene and the VLM, reporting the time taken.
+    pub fn open(&self) -> anyhow::Result<ChatSession> {
+        let vlm = vlm_dir(self.vlm.as_ref())?;
+        let t0 = std::time::Instant::now();
+        let device = self.backend.device();
+        let s = model::catch_backend("loading", || {
+            ChatSession::open(&self.geometry(), self.language.as_deref(), &vlm, &device)
+        })??;
+        eprintln!(
+            "loaded {} ({} Gaussians, {} views) and {} in {:.1} s",
+            self.run.display(),
+            s.scene.field.len(),
+            s.cameras.len(),
+            vlm.display(),
+            t0.elapsed().as_secs_f64()
+        );
+        Ok(s)
+    }
+}
+
+/// The VLM directory: the one given, or the built-in model.
+pub fn vlm_dir(given: Option<&PathBuf>) -> anyhow::Result<PathBuf> {
+    match given {
+        Some(p) => Ok(p.clone()),
+        None => model::vlm::default_model_dir().context("no --vlm given"),
+    }
+}
+
+/// How to pick tokens: `--max-new-tokens`, `--temperature`, `--top-p`, `--seed`.
+#[derive(clap::Args, Clone)]
+pub struct SamplingArgs {
+    #[arg(long, default_value_t = 256)]
+    pub max_new_tokens: usize,
+    /// 0 = greedy.
+    #[arg(long, default_value_t = 0.0)]
+    pub temperature: f32,
+    #[arg(long, default_value_t = 1.0)]
+    pub top_p: f32,
+    #[arg(long, default_value_t = 0)]
+    pub seed: u64,
+}
+
+impl SamplingArgs {
+    pub fn options(&self) -> anyhow::Result<model::vlm::GenerateOptions> {
+        let top_p_ok = self.top_p > 0.0 && self.top_p <= 1.0;
+        let temperature_ok = self.temperature >= 0.0 && self.temperature.is_finite();
+        if !(top_p_ok && temperature_ok) {
+            anyhow::bail!("--top-p must be in (0, 1] and --temperature >= 0");
+        }
+        Ok(model::vlm::GenerateOptions {
+            max_new_tokens: self.max_new_tokens,
+            temperature: self.temperature,
+            top_p: self.top_p,
+            seed: self.seed,
+            ignore_stop: false,
+        })
+    }
+}
+
+/// Streams a generation to stdout.
+pub fn print_piece(piece: &str) {
+    use std::io::Write;
+    print!("{piece}");
+    let _ = std::io::stdout().flush();
+}

@@ -1,0 +1,99 @@
+//! `chatsplat train`: the geometry stage.
+
+use anyhow::bail;
+use eval::progress::Progress;
+use model::Backend;
+use model::data::{Background, LoadOptions, colmap, load_any};
+use model::run::GeometryRun;
+use std::path::PathBuf;
+use train::geometry::{GeometryConfig, run as train_geometry};
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// Dataset directory: nerfstudio transforms.json / Blender, COLMAP (sparse/0), LLFF
+    /// (poses_bounds.npy) or Replica (traj_w_c.txt); `chatsplat synth` writes one.
+    #[arg(long)]
+    pub data: PathBuf,
+    /// Run directory (checkpoints, config.json, renders/, point_cloud.ply, metrics.json).
+    #[arg(long, default_value = "out/run")]
+    pub out: PathBuf,
+    #[arg(long)]
+    pub iters: Option<usize>,
+    #[arg(long, default_value_t = Backend::Ndarray)]
+    pub backend: Backend,
+    /// Integer image downscale.
+    #[arg(long, default_value_t = 1)]
+    pub downscale: u32,
+    /// Continue from the run directory's last checkpoint.
+    #[arg(long)]
+    pub resume: bool,
+    /// A config.json with any GeometryConfig fields (others keep their defaults).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+    /// Background of transparent (RGBA) images: white or black.
+    #[arg(long, default_value = "white")]
+    pub background: String,
+}
+
+pub fn run(a: Args) -> anyhow::Result<()> {
+    let (bg, bgc) = match a.background.as_str() {
+        "white" => (Background::White, [1.0; 3]),
+        "black" => (Background::Black, [0.0; 3]),
+        other => bail!("--background {other}: expected white or black"),
+    };
+    if a.downscale == 0 {
+        bail!("--downscale must be >= 1");
+    }
+    let mut cfg = match &a.config {
+        Some(p) => model::io::read_json::<GeometryConfig>(p)?,
+        None => GeometryConfig { background: bgc, ..Default::default() },
+    };
+    if let Some(n) = a.iters {
+        cfg.iters = n;
+    }
+    cfg.validate()?;
+    let load = LoadOptions { downscale: a.downscale, background: bg, ..Default::default() };
+    // COLMAP projects initialise from their sparse points.
+    let (ds, points) = if a.data.join("sparse").is_dir() && !a.data.join("poses_bounds.npy").is_file() {
+        let (ds, p) = colmap::load(&a.data, &load)?;
+        (ds, Some(p))
+    } else {
+        (load_any(&a.data, &load)?, None)
+    };
+    let cam = &ds.train[0].camera;
+    eprintln!(
+        "{}: {} training / {} held-out views of {}x{}",
+        a.data.display(),
+        ds.train.len(),
+        ds.test.len(),
+        cam.width,
+        cam.height
+    );
+    let device = a.backend.device();
+    let out = GeometryRun::new(&a.out);
+    let bar = Progress::new("train", "it");
+    let mut last = std::time::Instant::now();
+    let s = model::catch_backend("training", || {
+        train_geometry(&ds, points.as_ref(), &a.data, &load, &out, cfg, &device, a.resume, |p| {
+            if last.elapsed().as_millis() > 250 || p.iter == p.iters {
+                bar.update_with(p.iter, p.iters, &format!("loss {:.4} psnr {:.2} N {}", p.loss, p.psnr, p.gaussians));
+                last = std::time::Instant::now();
+            }
+        })
+    })??;
+    if let Some(at) = s.resumed_from {
+        println!("resumed from iteration {at}");
+    }
+    println!(
+        "{} Gaussians; {} views: PSNR {:.2} dB, SSIM {:.4}{}; {:.3} s/iter on {} -> {}",
+        s.gaussians,
+        s.eval.views,
+        s.eval.psnr,
+        s.eval.ssim,
+        s.eval.miou.map(|m| format!(", identity mIoU {m:.3}")).unwrap_or_default(),
+        s.seconds_per_iter,
+        a.backend,
+        a.out.display()
+    );
+    Ok(())
+}

@@ -1,0 +1,80 @@
+//! `chatsplat train-language`: the language stage.
+
+use anyhow::bail;
+use eval::progress::Progress;
+use model::Backend;
+use model::run::{GeometryRun, LanguageRun};
+use std::path::PathBuf;
+use train::language::{LanguageTrainConfig, run as train_field};
+
+#[derive(clap::Args)]
+pub struct Args {
+    /// Geometry run directory (`chatsplat train --out`).
+    #[arg(long)]
+    pub run: PathBuf,
+    /// Teacher directory (`chatsplat extract --out`).
+    #[arg(long)]
+    pub teacher: PathBuf,
+    /// Language run directory (default: RUN/language).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    #[arg(long)]
+    pub iters: Option<usize>,
+    /// Language feature channels per level (paper: 32).
+    #[arg(long)]
+    pub channels: Option<usize>,
+    #[arg(long, default_value_t = Backend::Ndarray)]
+    pub backend: Backend,
+    /// Continue from the language run's last checkpoint.
+    #[arg(long)]
+    pub resume: bool,
+    /// A config.json with any LanguageTrainConfig fields (others keep their defaults).
+    #[arg(long)]
+    pub config: Option<PathBuf>,
+}
+
+pub fn run(a: Args) -> anyhow::Result<()> {
+    let mut cfg = match &a.config {
+        Some(p) => model::io::read_json::<LanguageTrainConfig>(p)?,
+        None => LanguageTrainConfig::default(),
+    };
+    if let Some(n) = a.iters {
+        cfg.iters = n;
+    }
+    if let Some(c) = a.channels {
+        if c == 0 {
+            bail!("--channels must be >= 1");
+        }
+        cfg.field.view_channels = c;
+        cfg.field.object_channels = c;
+    }
+    let geometry = GeometryRun::new(&a.run);
+    let out = a.out.as_ref().map(LanguageRun::new).unwrap_or_else(|| geometry.language());
+    let device = a.backend.device();
+    let bar = Progress::new("language", "it");
+    let s = model::catch_backend("language training", || {
+        train_field(&geometry, &a.teacher, &out, cfg, &device, a.resume, |p| {
+            if p.iter % 5 == 0 || p.iter == p.iters {
+                let s = p.step;
+                let msg = format!("loss {:.4} view {:.4} obj {:.4} ({})", s.loss, s.view_l1, s.object_l1, s.objects);
+                bar.update_with(p.iter, p.iters, &msg);
+            }
+        })
+    })??;
+    if let Some(at) = s.resumed_from {
+        eprintln!("resumed from iteration {at}");
+    }
+    println!(
+        "token L1 on training views: view {:.4} -> {:.4}, object {:.4} -> {:.4}; {:.3} s/iter; {} of {} \
+            Gaussians reached a language map -> {}",
+        s.before.0,
+        s.after.0,
+        s.before.1,
+        s.after.1,
+        s.seconds_per_iter,
+        s.gaussians_used,
+        s.gaussians,
+        out.dir.display()
+    );
+    Ok(())
+}

@@ -1,0 +1,135 @@
+//! `chatsplat vqa`: answer a question file about a trained scene and score the answers.
+
+use super::SceneArgs;
+use eval::progress::Progress;
+use eval::score::{Grader, Summary, offline_score, summarize};
+use model::vqa::{Level, answer_all, load_questions};
+use serde::Serialize;
+use std::path::PathBuf;
+
+#[derive(clap::Args)]
+pub struct Args {
+    #[command(flatten)]
+    pub scene: SceneArgs,
+    /// Question file (`chatsplat synth` writes DATA/questions.json).
+    #[arg(long)]
+    pub questions: PathBuf,
+    /// Answers and scores as JSON (default: LANGUAGE/vqa.json).
+    #[arg(long)]
+    pub out: Option<PathBuf>,
+    /// Scene-level questions without their own views use this many views spread around the scene.
+    #[arg(long, default_value_t = 4)]
+    pub views: usize,
+    #[arg(long, default_value_t = 64)]
+    pub max_new_tokens: usize,
+    /// Print every question with its answer and the reference.
+    #[arg(long)]
+    pub show: bool,
+    /// Score the rest when a question cannot be asked (a view that does not exist, a click on no
+    /// object) instead of failing.
+    #[arg(long)]
+    pub keep_going: bool,
+}
+
+/// One row of `vqa.json`.
+#[derive(Serialize)]
+struct Row {
+    id: String,
+    level: Level,
+    question: String,
+    reference: String,
+    answer: String,
+    /// Why the question could not be asked.
+    error: Option<String>,
+    offline: f32,
+    exact: bool,
+    grader: Option<f32>,
+}
+
+/// Answers and scores; returns the offline summary (exact match or keyword, 0-100 per level).
+pub fn run_scored(a: &Args) -> anyhow::Result<Summary> {
+    let qf = load_questions(&a.questions)?;
+    let grader = Grader::from_env()?;
+    let s = a.scene.open()?;
+    let opts = model::vlm::GenerateOptions { max_new_tokens: a.max_new_tokens, ..Default::default() };
+    let bar = Progress::new("vqa", "questions");
+    let total = qf.questions.len();
+    let answers =
+        model::catch_backend("answering", || answer_all(&s, &qf, &opts, a.views, |i, _, _| bar.update(i + 1, total)))??;
+    let (mut offline, mut graded, mut rows, mut invalid) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    for (q, ans) in qf.questions.iter().zip(&answers) {
+        let (text, error) = match &ans.text {
+            Ok(t) => (t.clone(), None),
+            Err(e) => (String::new(), Some(e.clone())),
+        };
+        if let Some(e) = &error {
+            invalid.push(format!("{}: {e}", q.id));
+        }
+        let off = offline_score(&text, &q.answer, &q.keywords);
+        offline.push((q.level, off.score));
+        let grade = match (&grader, &error) {
+            (Some(g), None) => match g.grade(&q.question, &q.answer, &text) {
+                Ok(v) => {
+                    graded.push((q.level, v));
+                    Some(v)
+                }
+                Err(e) => {
+                    eprintln!("{}: grader: {e}", q.id);
+                    None
+                }
+            },
+            _ => None,
+        };
+        if a.show {
+            let mark = if off.exact || off.score == 100.0 { "right" } else { "wrong" };
+            println!("[{} {}] {} -> {:?} (reference {:?}) {mark}", q.level, q.id, q.question, text.trim(), q.answer);
+        }
+        rows.push(Row {
+            id: q.id.clone(),
+            level: q.level,
+            question: q.question.clone(),
+            reference: q.answer.clone(),
+            answer: text,
+            error,
+            offline: off.score,
+            exact: off.exact,
+            grader: grade,
+        });
+    }
+    let out = a.out.clone().unwrap_or_else(|| a.scene.language().vqa());
+    let so = summarize(&offline);
+    println!("| scorer | view | object | scene | overall | questions |\n|---|---|---|---|---|---|");
+    println!("{}", table_row("offline (exact / keyword, 0-100)", &so));
+    if !graded.is_empty() {
+        let name = grader.as_ref().map(|g| g.model.as_str()).unwrap_or("");
+        println!("{}", table_row(&format!("grader {name} (0-100)"), &summarize(&graded)));
+    } else if grader.is_none() {
+        eprintln!(
+            "(no grader: set CHATSPLAT_GRADER_URL, CHATSPLAT_GRADER_MODEL and CHATSPLAT_GRADER_KEY for \
+                GPT-4o-style 0-100 grades)"
+        );
+    }
+    let json = serde_json::json!({"questions": a.questions.display().to_string(), "answers": rows});
+    model::io::write_json(&out, &json)?;
+    println!("answers -> {}", out.display());
+    if !invalid.is_empty() && !a.keep_going {
+        anyhow::bail!(
+            "{}: {} question(s) could not be asked (scored 0; --keep-going accepts this): {}",
+            a.questions.display(),
+            invalid.len(),
+            invalid.join("; ")
+        );
+    }
+    Ok(so)
+}
+
+/// `| name | view | object | scene | overall | questions |` of a summary.
+fn table_row(name: &str, s: &Summary) -> String {
+    let fmt = |x: Option<f32>| x.map(|v| format!("{v:.1}")).unwrap_or_else(|| "-".into());
+    let means = [s.view.mean, s.object.mean, s.scene.mean, s.overall.mean].map(fmt);
+    format!("| {name} | {} | {} |", means.join(" | "), s.overall.count)
+}
+
+pub fn run(a: Args) -> anyhow::Result<()> {
+    run_scored(&a).map(|_| ())
+}

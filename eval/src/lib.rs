@@ -3,6 +3,7 @@
 //! the `chatsplat` app and the benchmark binaries (`splat-bench`, `vlm-bench`, `lang-bench`).
 #![allow(deprecated)] // burn-ndarray is deprecated in burn 0.22 in favour of burn-flex.
 
+pub mod compare;
 pub mod plot;
 pub mod progress;
 pub mod score;

@@ -60,6 +60,8 @@ pub struct ChatSession {
     pub language: LanguageRun,
     /// Cameras of the training views, then the held-out views.
     pub cameras: Vec<Camera>,
+    /// The image file name of each view.
+    pub images: Vec<String>,
     pub train_views: usize,
 }
 
@@ -80,7 +82,8 @@ impl ChatSession {
                 ),
             ));
         }
-        Ok(Self { vlm, scene, language, cameras: cams.all(), train_views: cams.train.len() })
+        let images = cams.train.iter().chain(&cams.test).map(|c| c.image.clone()).collect();
+        Ok(Self { vlm, scene, language, cameras: cams.all(), images, train_views: cams.train.len() })
     }
 
     /// The camera of view `view`, or an error naming the views there are.

@@ -84,7 +84,7 @@ impl LanguageScene {
     /// The object crop camera and its `[r, r]` 0/1 mask of object `id`: the rendered identity,
     /// restricted to the crop's box inside the view's frame (as the teacher's image was).
     pub fn object_crop(&self, cam: &Camera, id: u8, bbox: [usize; 4]) -> Result<(Camera, Vec<f32>)> {
-        let crop = ObjectCrop::from_box(bbox);
+        let crop = ObjectCrop::from_box(bbox, cam.width as usize, cam.height as usize);
         let oc = self.cfg.object_camera(cam, bbox);
         let r = self.render(&oc)?;
         let size = oc.width as usize;

@@ -28,7 +28,7 @@ use std::collections::HashSet;
 use std::path::Path;
 
 /// The granularity a question asks about.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]
 pub enum Level {
     View,
@@ -52,6 +52,9 @@ impl std::fmt::Display for Level {
 pub struct Question {
     pub id: String,
     pub level: Level,
+    /// The question type (free text, e.g. `count`; scores are also reported per kind).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub kind: Option<String>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub view: Option<usize>,
     #[serde(default, skip_serializing_if = "Option::is_none")]
@@ -71,6 +74,11 @@ pub struct Question {
 pub struct QuestionFile {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub scene: Option<String>,
+    /// The dataset's images in frame order (transforms.json): `view` indexes this list and the
+    /// images are found among the trained scene's views by file name. Without it, `view` indexes
+    /// the scene's views directly (training views, then held-out views).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub views: Option<Vec<String>>,
     pub questions: Vec<Question>,
 }
 
@@ -111,6 +119,12 @@ pub fn load_questions(path: &Path) -> Result<QuestionFile> {
         if q.views.as_ref().is_some_and(|v| v.is_empty()) {
             return fail("\"views\" is empty");
         }
+        if let Some(frames) = &file.views {
+            let n = frames.len();
+            if q.view.is_some_and(|v| v >= n) || q.views.iter().flatten().any(|&v| v >= n) {
+                return fail(&format!("a view index is not below the {n} listed views"));
+            }
+        }
     }
     Ok(file)
 }
@@ -124,17 +138,31 @@ pub struct Answer {
     pub picked: Option<u8>,
 }
 
+/// The scene view a question's view index means: through the file's frame list (by image file
+/// name) when it has one, else the index itself.
+pub fn scene_view(file: &QuestionFile, session: &ChatSession, view: usize) -> Result<usize> {
+    let Some(frames) = &file.views else { return Ok(view) };
+    let frame = frames.get(view).ok_or_else(|| Error::input(format!("view {view} is not in the file's views")))?;
+    let name = Path::new(frame).file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    session
+        .images
+        .iter()
+        .position(|i| *i == name)
+        .ok_or_else(|| Error::input(format!("frame {view} ({frame}) is not one of the trained scene's views")))
+}
+
 /// What a question asks about; `scene_views` spread views for scene questions without `views`.
-pub fn target_of(q: &Question, session: &ChatSession, scene_views: usize) -> Result<Target> {
+pub fn target_of(file: &QuestionFile, q: &Question, session: &ChatSession, scene_views: usize) -> Result<Target> {
+    let view = |v: Option<usize>| scene_view(file, session, v.unwrap_or(0));
     Ok(match q.level {
-        Level::View => Target::View(q.view.unwrap_or(0)),
+        Level::View => Target::View(view(q.view)?),
         Level::Scene => Target::Scene(match &q.views {
-            Some(v) => v.clone(),
+            Some(v) => v.iter().map(|&i| scene_view(file, session, i)).collect::<Result<_>>()?,
             None => session.scene_views(scene_views)?,
         }),
         Level::Object => {
             let [x, y] = q.object.unwrap_or([0.0, 0.0]);
-            Target::Object { view: q.view.unwrap_or(0), x: x as usize, y: y as usize }
+            Target::Object { view: view(q.view)?, x: x as usize, y: y as usize }
         }
     })
 }
@@ -151,7 +179,7 @@ pub fn answer_all(
 ) -> Result<Vec<Answer>> {
     let mut out = Vec::with_capacity(file.questions.len());
     for (i, q) in file.questions.iter().enumerate() {
-        let asked = target_of(q, session, scene_views).and_then(|t| session.ask(&t, &q.question, opts, |_| {}));
+        let asked = target_of(file, q, session, scene_views).and_then(|t| session.ask(&t, &q.question, opts, |_| {}));
         let a = match asked {
             Ok((g, picked)) => Answer { text: Ok(g.text), picked },
             Err(e @ (Error::Backend { .. } | Error::Io { .. })) => return Err(e),

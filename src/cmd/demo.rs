@@ -39,7 +39,13 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     let lang = run.language();
     model::io::create_dir(&a.out)?;
     step(1, "synthetic tabletop (32 views, 96x96)");
-    super::synth::run(super::synth::Args { seed: 7, out: data.clone(), views: 32, width: 96, height: 96 })?;
+    super::synth::run(super::synth::Args {
+        seed: model::data::synth::DEFAULT_SEED,
+        out: data.clone(),
+        views: 32,
+        width: 96,
+        height: 96,
+    })?;
 
     step(2, "geometry stage: 3DGS + identity field");
     let d = a.iters;

@@ -10,6 +10,7 @@ mod render;
 mod synth;
 mod train;
 mod train_language;
+mod train_vlm;
 mod vqa;
 
 use anyhow::Context;
@@ -49,6 +50,8 @@ enum Command {
     TrainLanguage(train_language::Args),
     /// Write the encoder and scaling adjustment as safetensors (PyTorch Conv2d layout) with a JSON header.
     ExportEncoder(export_encoder::Args),
+    /// Train the tabletop LLaVA-OneVision from scratch on synthetic scenes (the built-in model).
+    TrainVlm(train_vlm::Args),
     /// Ask one question: plain LLaVA-OneVision on images (the paper's baseline), or a trained
     /// scene at view, object (click) or scene level.
     Ask(ask::Args),
@@ -70,6 +73,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Extract(a) => extract::run(a),
         Command::TrainLanguage(a) => train_language::run(a),
         Command::ExportEncoder(a) => export_encoder::run(a),
+        Command::TrainVlm(a) => train_vlm::run(a),
         Command::Ask(a) => ask::run(a),
         Command::Chat(a) => chat::run(a),
         Command::Vqa(a) => vqa::run(a),

@@ -15,7 +15,7 @@ pub struct Args {
     #[arg(long)]
     ply: Option<PathBuf>,
     /// Seed of the built-in tabletop.
-    #[arg(long, default_value_t = 7)]
+    #[arg(long, default_value_t = model::data::synth::DEFAULT_SEED)]
     seed: u64,
     /// Surface sampling density of the built-in tabletop (Gaussians ~ 5 x density^2).
     #[arg(long, default_value_t = 60)]
@@ -79,8 +79,8 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     let (cloud, source): (GaussianCloud, String) = match &a.ply {
         Some(path) => (model::ply::read(path)?, path.display().to_string()),
         None => {
-            let (cloud, objects) = model::data::synth::gaussians::tabletop(a.seed, a.density);
-            let names: Vec<&str> = objects.iter().map(|o| o.name).collect();
+            let (cloud, scene) = model::data::synth::gaussians::tabletop(a.seed, a.density);
+            let names: Vec<String> = scene.objects.iter().map(|o| o.name()).collect();
             (cloud, format!("built-in tabletop (seed {}: {})", a.seed, names.join(", ")))
         }
     };
@@ -90,12 +90,12 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     let (lo, hi) = cloud.bounds().expect("non-empty");
     let centre = match &a.target {
         Some(t) => parse_vec3("target", t)?,
-        None if a.ply.is_none() => Vec3::new(0.0, 0.3, 0.0),
+        None if a.ply.is_none() => model::data::synth::LOOK_AT,
         None => (lo + hi) * 0.5,
     };
     let eye = match &a.eye {
         Some(e) => parse_vec3("eye", e)?,
-        None if a.ply.is_none() => Vec3::new(2.6, 2.2, 3.0),
+        None if a.ply.is_none() => Vec3::new(2.0, 1.7, 2.3),
         None => centre + (hi - lo).length().max(1e-3) * Vec3::new(0.6, 0.45, 0.6),
     };
     let up = parse_vec3("up", &a.up)?;

@@ -6,8 +6,8 @@ use std::path::PathBuf;
 
 #[derive(clap::Args)]
 pub struct Args {
-    /// Scene seed (object placement and sizes).
-    #[arg(long, default_value_t = 7)]
+    /// Scene seed (what is on the table, the table, the background, the light).
+    #[arg(long, default_value_t = model::data::synth::DEFAULT_SEED)]
     pub seed: u64,
     /// Output directory.
     #[arg(long, default_value = "out/synth")]
@@ -15,9 +15,9 @@ pub struct Args {
     /// Number of views around the table.
     #[arg(long, default_value_t = 48)]
     pub views: usize,
-    #[arg(long, default_value_t = 200)]
+    #[arg(long, default_value_t = 96)]
     pub width: u32,
-    #[arg(long, default_value_t = 200)]
+    #[arg(long, default_value_t = 96)]
     pub height: u32,
 }
 

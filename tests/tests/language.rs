@@ -122,14 +122,15 @@ fn token_cameras_frame_what_the_teacher_saw() {
             "({u},{v}) -> ({u2},{v2})"
         );
     }
-    // object crop: a 40x20 box is padded to a 40x40 square centred on it, scaled to 384
+    // object crop: a 40x20 box is padded to a square centred on it of at least half the view's
+    // shorter side (60 of 120), scaled to 384
     let bbox = [50, 30, 90, 50];
     let oc = cfg.object_camera(&cam, bbox);
     let p = Vec3::new(0.1, 0.2, 0.0);
     let (u, v) = project(&cam, p);
     let (u2, v2) = project(&oc, p);
-    let s = 384.0 / 40.0;
-    assert!((u2 - (u - 50.0) * s).abs() < 1e-2 && (v2 - (v - 20.0) * s).abs() < 1e-2, "({u},{v}) -> ({u2},{v2})");
+    let s = 384.0 / 60.0;
+    assert!((u2 - (u - 40.0) * s).abs() < 1e-2 && (v2 - (v - 10.0) * s).abs() < 1e-2, "({u},{v}) -> ({u2},{v2})");
     // and the box helper matches the teacher's crop rule
     let mut ids = vec![0u8; 20 * 10];
     for y in 2..6 {

@@ -21,14 +21,14 @@ fn synthetic_dataset_round_trips_through_the_loader() {
     let (dir, o) = synth_dir("rt");
     let ds = load(&dir, &LoadOptions { holdout_every: 3, ..Default::default() }).unwrap();
     assert_eq!((ds.train.len(), ds.test.len()), (4, 2));
-    let objects = model::data::synth::scene::tabletop_objects(o.seed);
+    let scene = model::data::synth::scene::Scene::from_seed(o.seed);
     // Views 2 and 5 are held out.
     for (view, i) in ds.train.iter().zip([0usize, 1, 3, 4]).chain(ds.test.iter().zip([2, 5])) {
         let want = synth::view_camera(i, &o);
         let d = (view.camera.world_to_cam - want.world_to_cam).abs().to_cols_array().into_iter().fold(0.0f32, f32::max);
         assert!(d < 1e-4, "view {i}: pose differs by {d}");
         assert!((view.camera.fx - want.fx).abs() < 1e-3 && (view.camera.cx - want.cx).abs() < 1e-4);
-        let r = synth::raycast::render_view(&want, &objects);
+        let r = synth::raycast::render_view(&want, &scene);
         let e = view.rgb.iter().zip(&r.rgb).map(|(a, b)| (a - b).abs()).fold(0.0f32, f32::max);
         assert!(e <= 0.5 / 255.0 + 1e-6, "view {i}: image differs by {e}");
         assert_eq!(view.instance_ids.as_ref().unwrap(), &r.ids);

@@ -1,30 +1,223 @@
-//! The built-in synthetic dataset (`chatsplat synth`): deterministic, every object visible, depth
-//! consistent with the geometry, poses consistent with transforms.json, and the same scene as the
-//! Gaussian tabletop.
+//! The built-in synthetic scenes and their questions (`chatsplat synth`): deterministic, varied
+//! within the rules (1-6 objects, 6 shapes x 8 colours x 2 sizes, no overlap, unique (colour,
+//! shape)), depth consistent with the geometry, poses consistent with transforms.json, the same
+//! scene as the Gaussian version, and every reference answer true when recomputed from the
+//! rendered mask alone.
 
 #![allow(deprecated)]
 
 use burn::tensor::{Device, Tensor};
 use chatsplat_tests::temp_dir;
-use glam::{Mat4, Vec3, Vec4};
-use model::data::synth::{self, SynthOptions};
+use glam::{Mat4, Quat, Vec3, Vec4};
+use model::data::synth::questions::{Kind, ViewFacts, object_questions, scene_questions, view_questions};
+use model::data::synth::raycast::render_view;
+use model::data::synth::scene::{
+    CUBE_HALF, CYLINDER_HALF_HEIGHT, CYLINDER_RADIUS, Color, Scene, Shape, Size, TORUS_MAJOR, TORUS_MINOR,
+};
+use model::data::synth::{self, FIRST_OBJECT_ID, SynthOptions};
 use model::images::{read_gray16, read_png8};
+use model::rng::Rng;
+use model::vqa::{Level, load_questions};
 use splat_kernels::api::{SplatOptions, splat};
+use std::collections::{BTreeMap, BTreeSet};
 
-fn opts() -> SynthOptions {
-    SynthOptions { seed: 11, views: 6, width: 64, height: 56, ..Default::default() }
+/// Signed distance of a world point to the surface of object `o` (for the shapes with a simple
+/// closed form; `None` for cones and pyramids).
+fn surface_distance(o: &model::data::synth::scene::Object, p: Vec3) -> Option<f32> {
+    let base = o.center - Vec3::new(0.0, o.shape.centre_height(o.scale), 0.0);
+    let q = Quat::from_rotation_y(-o.yaw) * (p - base);
+    let s = o.scale;
+    Some(match o.shape {
+        Shape::Sphere => (q - Vec3::Y * s).length() - s,
+        Shape::Cube => {
+            let h = CUBE_HALF * s;
+            let d = (q - Vec3::Y * h).abs() - Vec3::splat(h);
+            d.max(Vec3::ZERO).length() + d.max_element().min(0.0)
+        }
+        Shape::Cylinder => {
+            let (r, hh) = (CYLINDER_RADIUS * s, CYLINDER_HALF_HEIGHT * s);
+            let d = glam::Vec2::new(q.x.hypot(q.z) - r, (q.y - hh).abs() - hh);
+            d.max(glam::Vec2::ZERO).length() + d.max_element().min(0.0)
+        }
+        Shape::Torus => (q.x.hypot(q.z) - TORUS_MAJOR * s).hypot(q.y - TORUS_MINOR * s) - TORUS_MINOR * s,
+        Shape::Cone | Shape::Pyramid => return None,
+    })
+}
+
+#[test]
+fn scenes_vary_within_the_rules_and_are_deterministic() {
+    let (mut counts, mut shapes, mut colors, mut sizes) =
+        (BTreeSet::new(), BTreeSet::new(), BTreeSet::new(), BTreeSet::new());
+    let (mut tables, mut backgrounds) = (BTreeSet::new(), BTreeSet::new());
+    for seed in 0..400 {
+        let s = Scene::from_seed(seed);
+        assert_eq!(s, Scene::from_seed(seed), "seed {seed} is not deterministic");
+        assert!((1..=6).contains(&s.objects.len()), "seed {seed}: {} objects", s.objects.len());
+        counts.insert(s.objects.len());
+        tables.insert((s.table.pattern, (s.table.color_a[0] * 100.0) as i32));
+        backgrounds.insert(s.background.map(|c| (c * 100.0) as i32));
+        let mut pairs = BTreeSet::new();
+        for (k, o) in s.objects.iter().enumerate() {
+            assert_eq!(o.id, FIRST_OBJECT_ID + k as u8);
+            assert!(pairs.insert((o.color, o.shape)), "seed {seed}: two {}s", o.name());
+            shapes.insert(o.shape);
+            colors.insert(o.color);
+            sizes.insert(o.size);
+            let fp = o.shape.footprint(o.scale);
+            assert!(o.center.x.hypot(o.center.z) + fp <= s.table.half, "seed {seed}: {} off the table", o.name());
+            assert!((o.scale / o.size.scale() - 1.0).abs() <= 0.051);
+            for p in &s.objects[k + 1..] {
+                let d = (o.center.x - p.center.x).hypot(o.center.z - p.center.z);
+                assert!(d >= fp + p.shape.footprint(p.scale), "seed {seed}: {} and {} overlap", o.name(), p.name());
+            }
+        }
+    }
+    assert_eq!(counts.len(), 6, "object counts {counts:?}");
+    assert_eq!(shapes.len(), Shape::ALL.len());
+    assert_eq!(colors.len(), Color::ALL.len());
+    assert_eq!(sizes.len(), Size::ALL.len());
+    assert!(tables.len() >= 6 && backgrounds.len() >= 3, "tables {tables:?}, backgrounds {backgrounds:?}");
+}
+
+/// The answer to a view question recomputed from the rendered ids and depth alone.
+fn recompute(scene: &Scene, ids: &[u8], depth: &[f32], w: usize, qa: &model::data::synth::questions::Qa) -> String {
+    let area = ids.len() as f32;
+    let mut px: BTreeMap<u8, Vec<usize>> = BTreeMap::new();
+    for (p, &i) in ids.iter().enumerate() {
+        if i >= FIRST_OBJECT_ID {
+            px.entry(i).or_default().push(p);
+        }
+    }
+    let visible: Vec<&model::data::synth::scene::Object> = px
+        .iter()
+        .filter(|(_, v)| v.len() as f32 >= model::data::synth::questions::VISIBLE_FRACTION * area)
+        .map(|(id, _)| scene.object(*id).unwrap())
+        .collect();
+    let words = |mut v: Vec<&'static str>, order: &dyn Fn(&str) -> usize| {
+        v.sort_by_key(|w| order(w));
+        v.dedup();
+        if v.is_empty() { "none".to_string() } else { v.join(" ") }
+    };
+    let color_rank = |w: &str| Color::ALL.iter().position(|c| c.word() == w).unwrap();
+    let shape_rank = |w: &str| Shape::ALL.iter().position(|s| s.word() == w).unwrap();
+    let q = qa.question.trim_end_matches('?');
+    let centroid_x = |o: &model::data::synth::scene::Object| {
+        let v = &px[&o.id];
+        v.iter().map(|p| (p % w) as f32 + 0.5).sum::<f32>() / v.len() as f32
+    };
+    let by_name = |name: &str| visible.iter().find(|o| o.name() == name).copied();
+    match qa.kind {
+        Kind::Count => visible.len().to_string(),
+        Kind::Colors => words(visible.iter().map(|o| o.color.word()).collect(), &color_rank),
+        Kind::Shapes => words(visible.iter().map(|o| o.shape.word()).collect(), &shape_rank),
+        Kind::ColorOf => {
+            let shape = q.trim_start_matches("What color is the ");
+            let with: Vec<_> = visible.iter().filter(|o| o.shape.word() == shape).collect();
+            assert_eq!(with.len(), 1, "{q}: the {shape} must be unique in view");
+            with[0].color.word().to_string()
+        }
+        Kind::ShapeOf => {
+            let color = q.trim_start_matches("What shape is the ").trim_end_matches(" object");
+            let with: Vec<_> = visible.iter().filter(|o| o.color.word() == color).collect();
+            assert_eq!(with.len(), 1, "{q}: the {color} object must be unique in view");
+            with[0].shape.word().to_string()
+        }
+        Kind::Exists => {
+            let name = q.trim_start_matches("Is there a ");
+            if by_name(name).is_some() { "yes" } else { "no" }.to_string()
+        }
+        Kind::LeftOf => {
+            let rest = q.trim_start_matches("Is the ");
+            let (a, b) = rest.split_once(" left of the ").unwrap();
+            let (a, b) = (by_name(a).unwrap(), by_name(b).unwrap());
+            if centroid_x(a) < centroid_x(b) { "yes" } else { "no" }.to_string()
+        }
+        Kind::Nearest => {
+            // the object whose own pixels come closest to the camera
+            let near =
+                |o: &model::data::synth::scene::Object| px[&o.id].iter().map(|&p| depth[p]).fold(f32::MAX, f32::min);
+            visible.iter().min_by(|a, b| near(a).total_cmp(&near(b))).unwrap().name()
+        }
+        other => panic!("{other:?} is not a view question"),
+    }
+}
+
+#[test]
+fn view_answers_are_true_by_construction() {
+    let mut per_kind: BTreeMap<&str, usize> = BTreeMap::new();
+    let mut rng = Rng::new(1);
+    let mut ambiguous = 0;
+    for seed in 100..160 {
+        let scene = Scene::from_seed(seed);
+        for _ in 0..3 {
+            let cam = synth::random_camera(&mut rng, 50.0, 96, 96);
+            let v = render_view(&cam, &scene);
+            let facts = ViewFacts::of(&scene, &v.ids, &v.depth, 96, 96);
+            let qas = view_questions(&scene, &facts, &mut rng);
+            if facts.ambiguous {
+                assert!(qas.is_empty(), "no question about a view with a sliver of an object");
+                ambiguous += 1;
+                continue;
+            }
+            for qa in &qas {
+                assert_eq!(qa.kind.level(), Level::View);
+                let want = recompute(&scene, &v.ids, &v.depth, 96, qa);
+                assert_eq!(qa.answer, want, "seed {seed}: {}", qa.question);
+                *per_kind.entry(qa.kind.as_str()).or_default() += 1;
+            }
+            let count = qas.iter().find(|q| q.kind == Kind::Count).unwrap();
+            let distinct: BTreeSet<u8> = v.ids.iter().copied().filter(|&i| i >= FIRST_OBJECT_ID).collect();
+            assert_eq!(count.answer, distinct.len().to_string(), "seed {seed}: the count is the objects in the mask");
+        }
+    }
+    eprintln!("checked {per_kind:?}; {ambiguous} ambiguous views skipped");
+    for k in ["count", "colors", "shapes", "color_of", "shape_of", "exists", "left_of", "nearest"] {
+        assert!(per_kind.get(k).copied().unwrap_or(0) >= 10, "too few {k} questions: {per_kind:?}");
+    }
+    let yes_no: Vec<usize> = ["exists"].iter().map(|k| per_kind[k]).collect();
+    assert!(yes_no[0] > 40);
+}
+
+#[test]
+fn object_and_scene_answers_describe_the_scene() {
+    let scene = Scene::from_seed(3);
+    for o in &scene.objects {
+        let qs = object_questions(o);
+        let get = |k: Kind| qs.iter().find(|q| q.kind == k).unwrap().answer.clone();
+        assert_eq!(get(Kind::Name), format!("{} {}", o.color.word(), o.shape.word()));
+        assert_eq!(
+            (get(Kind::Color), get(Kind::Shape), get(Kind::Size)),
+            (o.color.word().into(), o.shape.word().into(), o.size.word().into())
+        );
+    }
+    let qs = scene_questions(&scene);
+    let total = qs.iter().find(|q| q.kind == Kind::Total).unwrap();
+    assert_eq!(total.answer, scene.objects.len().to_string());
+    let by_color: usize =
+        qs.iter().filter(|q| q.kind == Kind::CountColor).map(|q| q.answer.parse::<usize>().unwrap()).sum();
+    let by_shape: usize =
+        qs.iter().filter(|q| q.kind == Kind::CountShape).map(|q| q.answer.parse::<usize>().unwrap()).sum();
+    assert_eq!((by_color, by_shape), (scene.objects.len(), scene.objects.len()));
+    let list = &qs.iter().find(|q| q.kind == Kind::List).unwrap().answer;
+    assert_eq!(list.split(' ').count(), 2 * scene.objects.len());
 }
 
 #[test]
 fn dataset_is_deterministic_complete_and_geometrically_consistent() {
+    let opts = SynthOptions { seed: 11, views: 16, width: 64, height: 56, ..Default::default() };
     let (a, b) = (temp_dir("a"), temp_dir("b"));
     let mut calls = 0;
-    synth::write_dataset(&a, &opts(), |_, _| calls += 1).unwrap();
-    synth::write_dataset(&b, &opts(), |_, _| {}).unwrap();
-    assert_eq!(calls, 6, "progress reported once per view");
-    for rel in
-        ["transforms.json", "scene.json", "images/frame_0003.png", "masks/frame_0003.png", "depth/frame_0003.png"]
-    {
+    synth::write_dataset(&a, &opts, |_, _| calls += 1).unwrap();
+    synth::write_dataset(&b, &opts, |_, _| {}).unwrap();
+    assert_eq!(calls, 16, "progress reported once per view");
+    for rel in [
+        "transforms.json",
+        "scene.json",
+        "questions.json",
+        "images/frame_0003.png",
+        "masks/frame_0003.png",
+        "depth/frame_0003.png",
+    ] {
         assert_eq!(
             std::fs::read(a.join(rel)).unwrap(),
             std::fs::read(b.join(rel)).unwrap(),
@@ -32,9 +225,8 @@ fn dataset_is_deterministic_complete_and_geometrically_consistent() {
         );
     }
     let tf: serde_json::Value = serde_json::from_slice(&std::fs::read(a.join("transforms.json")).unwrap()).unwrap();
-    let scene: serde_json::Value = serde_json::from_slice(&std::fs::read(a.join("scene.json")).unwrap()).unwrap();
-    let objects = scene["objects"].as_array().unwrap();
-    assert_eq!(objects.len(), 5);
+    let scene: Scene = serde_json::from_slice(&std::fs::read(a.join("scene.json")).unwrap()).unwrap();
+    assert_eq!(scene, Scene::from_seed(11));
     let (fx, fy, cx, cy) = (
         tf["fl_x"].as_f64().unwrap() as f32,
         tf["fl_y"].as_f64().unwrap() as f32,
@@ -42,7 +234,7 @@ fn dataset_is_deterministic_complete_and_geometrically_consistent() {
         tf["cy"].as_f64().unwrap() as f32,
     );
     let (w, h) = (64usize, 56usize);
-    let mut seen = [0usize; 7];
+    let mut seen = [0usize; 8];
     let mut checked = 0;
     for f in tf["frames"].as_array().unwrap() {
         let m: Vec<Vec<f32>> = f["transform_matrix"]
@@ -65,32 +257,48 @@ fn dataset_is_deterministic_complete_and_geometrically_consistent() {
         for o in 0..w * h {
             seen[ids[o] as usize] += 1;
             assert_eq!(ids[o] == 0, depth[o] == 0, "depth present exactly where a surface is");
-            let id = ids[o] as usize;
-            if id >= 2 && objects[id - 2]["shape"] == "sphere" {
-                // Back-project and check the point lies on the sphere.
-                let (x, y) = ((o % w) as f32 + 0.5, (o / w) as f32 + 0.5);
-                let z = depth[o] as f32 * synth::DEPTH_SCALE;
-                let pc = Vec3::new((x - cx) / fx * z, (y - cy) / fy * z, z);
-                let pw = c2w.transform_point3(pc);
-                let pos: Vec<f32> = objects[id - 2]["position"]
-                    .as_array()
-                    .unwrap()
-                    .iter()
-                    .map(|v| v.as_f64().unwrap() as f32)
-                    .collect();
-                let r = objects[id - 2]["size"].as_f64().unwrap() as f32;
-                let dist = (pw - Vec3::from_slice(&pos)).length();
-                // 1 mm depth quantisation along a ray at up to ~60 degrees incidence.
-                assert!((dist - r).abs() < 4e-3 * (pw - eye).length().max(1.0), "point off the sphere by {}", dist - r);
+            let Some(obj) = scene.object(ids[o]) else { continue };
+            // Back-project and check the point lies on the object's surface.
+            let (x, y) = ((o % w) as f32 + 0.5, (o / w) as f32 + 0.5);
+            let z = depth[o] as f32 * synth::DEPTH_SCALE;
+            let pw = c2w.transform_point3(Vec3::new((x - cx) / fx * z, (y - cy) / fy * z, z));
+            if let Some(d) = surface_distance(obj, pw) {
+                // 1 mm depth quantisation along a ray at up to ~70 degrees incidence.
+                assert!(d.abs() < 6e-3 * (pw - eye).length().max(1.0), "{} pixel off the surface by {d}", obj.name());
                 checked += 1;
             }
         }
     }
-    assert!(checked > 50, "too few sphere pixels checked ({checked})");
+    assert!(checked > 50, "too few object pixels checked ({checked})");
     assert!(seen[0] > 0 && seen[1] > 0, "background and table visible");
-    for (id, &n) in seen.iter().enumerate().skip(2) {
-        assert!(n >= 10, "object {id} covers only {n} pixels over all views");
+    for o in &scene.objects {
+        assert!(seen[o.id as usize] >= 10, "{} covers only {} pixels over all views", o.name(), seen[o.id as usize]);
     }
+    // questions.json: view and object questions on held-out frames, clicks on the object
+    let qf = load_questions(&a.join("questions.json")).unwrap();
+    let frames = qf.views.clone().unwrap();
+    assert_eq!(frames.len(), 16);
+    let mut levels = BTreeSet::new();
+    for q in &qf.questions {
+        levels.insert(q.level);
+        match q.level {
+            Level::View | Level::Object => {
+                assert!(synth::held_out(q.view.unwrap()), "{} is not on a held-out view", q.id)
+            }
+            Level::Scene => {
+                let vs = q.views.as_ref().unwrap();
+                assert!(vs.iter().all(|&v| !synth::held_out(v)), "scene views are training views");
+            }
+        }
+        if q.level == Level::Object {
+            let [x, y] = q.object.unwrap();
+            let (_, _, _, ids) = read_png8(&a.join(frames[q.view.unwrap()].replace("images/", "masks/"))).unwrap();
+            let id = ids[y as usize * w + x as usize];
+            let o = scene.object(id).expect("the click lands on an object");
+            assert!(object_questions(o).iter().any(|qa| qa.question == q.question && qa.answer == q.answer));
+        }
+    }
+    assert_eq!(levels.len(), 3, "view, object and scene questions: {levels:?}");
     std::fs::remove_dir_all(&a).ok();
     std::fs::remove_dir_all(&b).ok();
 }
@@ -98,15 +306,14 @@ fn dataset_is_deterministic_complete_and_geometrically_consistent() {
 #[test]
 fn gaussian_tabletop_covers_the_same_pixels_as_the_analytic_scene() {
     let o = SynthOptions { seed: 7, views: 4, width: 80, height: 80, ..Default::default() };
-    let objects = model::data::synth::scene::tabletop_objects(o.seed);
-    let (cloud, _) = model::data::synth::gaussians::tabletop(o.seed, 60);
+    let (cloud, scene) = model::data::synth::gaussians::tabletop(o.seed, 60);
     let device = Device::ndarray();
     let g = cloud.to_gaussians(&device);
     let mut agree = 0usize;
     let mut total = 0usize;
     for i in 0..o.views {
         let cam = synth::view_camera(i, &o);
-        let v = synth::raycast::render_view(&cam, &objects);
+        let v = render_view(&cam, &scene);
         let out = splat(&g, &cam, Tensor::zeros([3], &device), &SplatOptions::default()).unwrap();
         let alpha = out.alpha.into_data().to_vec::<f32>().unwrap();
         for (a, id) in alpha.iter().zip(&v.ids) {

@@ -10,3 +10,4 @@ pub mod ckpt;
 pub mod geometry;
 pub mod language;
 pub mod teacher;
+pub mod vlm;

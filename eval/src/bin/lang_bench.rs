@@ -107,7 +107,7 @@ fn tokens_host(vlm: &LlavaOnevision, img: &RgbImage) -> Vec<f32> {
 
 fn next_token_probs(vlm: &LlavaOnevision, tokens: &[f32], q: &str) -> Result<Vec<f64>> {
     let d = vlm.cfg.vision.hidden_size;
-    let t = Tensor::<2>::from_data(TensorData::new(tokens.to_vec(), [tokens.len() / d, d]), vlm.device());
+    let t = Tensor::<2>::from_data(TensorData::new(tokens.to_vec(), [tokens.len() / d, d]), &vlm.device());
     let embeds = vlm.prompt_embeds(q, &[vlm.token_embeds(t)])?;
     let logits = vlm.logits(embeds);
     let [n, v] = logits.dims();

@@ -115,10 +115,10 @@ impl LanguageConfig {
     }
 
     /// Camera that renders the map of the square crop the teacher saw for one object: `bbox` =
-    /// `[x0, y0, x1, y1)` in view pixels (box plus margin), padded to a square around its centre
-    /// ([`ObjectCrop`], the one crop rule).
+    /// `[x0, y0, x1, y1)` in view pixels (box plus margin), padded to a square around its centre,
+    /// at least half the view's shorter side ([`ObjectCrop`], the one crop rule).
     pub fn object_camera(&self, cam: &Camera, bbox: [usize; 4]) -> Camera {
-        let crop = ObjectCrop::from_box(bbox);
+        let crop = ObjectCrop::from_box(bbox, cam.width as usize, cam.height as usize);
         let (x0, y0) = crop.origin();
         let s = self.teacher_image as f32 / crop.side as f32;
         self.scaled(cam, s, s, x0, y0)

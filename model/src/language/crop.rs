@@ -4,10 +4,15 @@
 //!
 //! Rule: the object's mask bounding box grown by `margin` of its size on every side and clipped
 //! to the image (`bbox`), padded to a square centred on it (`side`, the box's corner landing at
-//! `offset` inside the square). The teacher's image keeps the object's pixels, blanks everything
-//! else to black, and is resized from the square to the tower's input size.
+//! `offset` inside the square) of at least [`MIN_CROP_FRACTION`] of the view's shorter side, so
+//! that an object keeps its apparent size (a small object stays small in its crop; only objects
+//! larger than that are zoomed out to fit). The teacher's image keeps the object's pixels, blanks
+//! everything else to black, and is resized from the square to the tower's input size.
 
 use crate::vlm::RgbImage;
+
+/// The crop square is at least this fraction of the view's shorter side.
+pub const MIN_CROP_FRACTION: f32 = 0.5;
 
 /// Where an object's crop lies in its view.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
@@ -23,13 +28,14 @@ pub struct ObjectCrop {
 impl ObjectCrop {
     /// The crop of object `id` in an `[height, width]` id map, or `None` when it is absent.
     pub fn of(ids: &[u8], width: usize, height: usize, id: u8, margin: f32) -> Option<Self> {
-        object_box(ids, width, height, id, margin).map(Self::from_box)
+        object_box(ids, width, height, id, margin).map(|b| Self::from_box(b, width, height))
     }
 
-    /// The crop of a stored box.
-    pub fn from_box(bbox: [usize; 4]) -> Self {
+    /// The crop of a stored box in a `width` x `height` view.
+    pub fn from_box(bbox: [usize; 4], width: usize, height: usize) -> Self {
         let (cw, ch) = (bbox[2].saturating_sub(bbox[0]).max(1), bbox[3].saturating_sub(bbox[1]).max(1));
-        let side = cw.max(ch);
+        let min_side = (MIN_CROP_FRACTION * width.min(height) as f32).round() as usize;
+        let side = cw.max(ch).max(min_side);
         Self { bbox, side, offset: [(side - cw) / 2, (side - ch) / 2] }
     }
 

@@ -490,3 +490,98 @@ pub fn load_processor_config(dir: &Path, model: &LlavaConfig) -> Result<Processo
         pinpoints: o.pinpoints("image_grid_pinpoints")?.unwrap_or_else(|| model.pinpoints.clone()),
     })
 }
+
+fn act_name(a: Act) -> &'static str {
+    match a {
+        Act::Gelu => "gelu",
+        Act::GeluTanh => "gelu_pytorch_tanh",
+        Act::Silu => "silu",
+    }
+}
+
+impl LlavaConfig {
+    /// `config.json` of this configuration in the llava-hf layout: what [`parse_llava_config`]
+    /// (and transformers' `LlavaOnevisionConfig`) reads.
+    pub fn to_hf_json(&self) -> Value {
+        let (v, t) = (&self.vision, &self.text);
+        let pinpoints: Vec<[usize; 2]> = self.pinpoints.iter().map(|&(h, w)| [h, w]).collect();
+        serde_json::json!({
+            "architectures": ["LlavaOnevisionForConditionalGeneration"],
+            "model_type": "llava_onevision",
+            "image_token_index": self.image_token_id,
+            "video_token_index": self.image_token_id + 1,
+            "vision_feature_layer": self.vision_feature_layer,
+            "vision_feature_select_strategy": "full",
+            "vision_aspect_ratio": format!("anyres_max_{}", self.max_num_patches),
+            "image_grid_pinpoints": pinpoints,
+            "projector_hidden_act": act_name(self.projector_act),
+            "multimodal_projector_bias": self.projector_bias,
+            "tie_word_embeddings": t.tie_word_embeddings,
+            "dtype": "bfloat16",
+            "vision_config": {
+                "model_type": "siglip_vision_model",
+                "hidden_size": v.hidden_size,
+                "intermediate_size": v.intermediate_size,
+                "num_hidden_layers": v.num_layers,
+                "num_attention_heads": v.num_heads,
+                "image_size": v.image_size,
+                "patch_size": v.patch_size,
+                "num_channels": 3,
+                "layer_norm_eps": v.layer_norm_eps,
+                "hidden_act": act_name(v.act),
+                "attention_dropout": 0.0,
+                "vision_use_head": false,
+            },
+            "text_config": {
+                "model_type": "qwen2",
+                "vocab_size": t.vocab_size,
+                "hidden_size": t.hidden_size,
+                "intermediate_size": t.intermediate_size,
+                "num_hidden_layers": t.num_layers,
+                "num_attention_heads": t.num_heads,
+                "num_key_value_heads": t.num_kv_heads,
+                "head_dim": t.head_dim,
+                "rms_norm_eps": t.rms_norm_eps,
+                "rope_parameters": {"rope_type": "default", "rope_theta": t.rope_theta},
+                "max_position_embeddings": 4096,
+                "hidden_act": act_name(t.act),
+                "tie_word_embeddings": t.tie_word_embeddings,
+                "use_sliding_window": false,
+                "sliding_window": null,
+                "attention_dropout": 0.0,
+                "eos_token_id": t.eos_token_ids,
+                "layer_types": vec!["full_attention"; t.num_layers],
+            },
+        })
+    }
+}
+
+impl ProcessorConfig {
+    /// `processor_config.json` in the transformers-5 layout (the image processor entry holds
+    /// these settings).
+    pub fn to_hf_json(&self, model: &LlavaConfig) -> Value {
+        let pinpoints: Vec<[usize; 2]> = self.pinpoints.iter().map(|&(h, w)| [h, w]).collect();
+        serde_json::json!({
+            "image_processor": {
+                "image_processor_type": "LlavaOnevisionImageProcessor",
+                "do_convert_rgb": true,
+                "do_normalize": true,
+                "do_pad": true,
+                "do_rescale": true,
+                "do_resize": true,
+                "image_grid_pinpoints": pinpoints,
+                "image_mean": self.mean,
+                "image_std": self.std,
+                "resample": self.resample,
+                "rescale_factor": self.rescale_factor,
+                "size": {"height": self.size.0, "width": self.size.1},
+            },
+            "image_token": "<image>",
+            "num_image_tokens": model.vision.tokens(),
+            "processor_class": "LlavaOnevisionProcessor",
+            "video_token": "<video>",
+            "vision_aspect_ratio": format!("anyres_max_{}", model.max_num_patches),
+            "vision_feature_select_strategy": "full",
+        })
+    }
+}

@@ -1,85 +1,59 @@
-//! Small building blocks on plain burn tensors (frozen weights, any backend).
+//! The building blocks of the port: `burn::nn` layers loaded from (or initialised for) a
+//! checkpoint, the activations the configs name, and softmax attention.
 
 use super::VlmError;
 use super::config::Act;
 use super::weights::WeightStore;
-use burn::tensor::{Tensor, activation};
+use crate::rng::Rng;
+use burn::module::Param;
+use burn::nn::{LayerNorm, LayerNormConfig, Linear, RmsNorm};
+use burn::tensor::{Device, Tensor, TensorData, activation};
 
-/// `y = x W + b` with `W` stored `[in, out]`.
-#[derive(Clone, Debug)]
-pub struct Linear {
-    pub weight: Tensor<2>,
-    pub bias: Option<Tensor<1>>,
+/// A `torch.nn.Linear` of the checkpoint (`prefix.weight` `[out, in]`, `prefix.bias`), as a
+/// `burn::nn::Linear` (`weight` `[in, out]`).
+pub fn load_linear(w: &WeightStore, prefix: &str, d_in: usize, d_out: usize, bias: bool) -> Result<Linear, VlmError> {
+    Ok(Linear {
+        weight: Param::from_tensor(w.linear_weight(&format!("{prefix}.weight"), d_in, d_out)?),
+        bias: if bias { Some(Param::from_tensor(w.tensor(&format!("{prefix}.bias"), [d_out])?)) } else { None },
+    })
 }
 
-impl Linear {
-    pub fn load(w: &WeightStore, prefix: &str, d_in: usize, d_out: usize, bias: bool) -> Result<Self, VlmError> {
-        Ok(Self {
-            weight: w.linear_weight(&format!("{prefix}.weight"), d_in, d_out)?,
-            bias: if bias { Some(w.tensor(&format!("{prefix}.bias"), [d_out])?) } else { None },
-        })
-    }
-
-    /// `x`: `[..., in]` -> `[..., out]`.
-    pub fn forward<const D: usize>(&self, x: Tensor<D>) -> Tensor<D> {
-        let dims = x.dims();
-        let d_in = dims[D - 1];
-        let rows: usize = dims[..D - 1].iter().product();
-        let y = x.reshape([rows, d_in]).matmul(self.weight.clone());
-        let y = match &self.bias {
-            Some(b) => y + b.clone().unsqueeze_dim::<2>(0),
-            None => y,
-        };
-        let mut out = dims;
-        out[D - 1] = self.weight.dims()[1];
-        y.reshape(out)
-    }
+/// A `LayerNorm` of the checkpoint (`prefix.weight`, `prefix.bias`).
+pub fn load_layer_norm(w: &WeightStore, prefix: &str, d: usize, eps: f64) -> Result<LayerNorm, VlmError> {
+    let mut ln = LayerNormConfig::new(d).with_epsilon(eps).init(w.device());
+    ln.gamma = Param::from_tensor(w.tensor(&format!("{prefix}.weight"), [d])?);
+    ln.beta = Some(Param::from_tensor(w.tensor(&format!("{prefix}.bias"), [d])?));
+    Ok(ln)
 }
 
-/// LayerNorm over the last dimension (biased variance, as torch).
-#[derive(Clone, Debug)]
-pub struct LayerNorm {
-    pub weight: Tensor<1>,
-    pub bias: Tensor<1>,
-    pub eps: f64,
+/// An `RMSNorm` of the checkpoint (`prefix.weight`).
+pub fn load_rms_norm(w: &WeightStore, prefix: &str, d: usize, eps: f64) -> Result<RmsNorm, VlmError> {
+    Ok(RmsNorm { gamma: Param::from_tensor(w.tensor(&format!("{prefix}.weight"), [d])?), epsilon: eps })
 }
 
-impl LayerNorm {
-    pub fn load(w: &WeightStore, prefix: &str, d: usize, eps: f64) -> Result<Self, VlmError> {
-        Ok(Self {
-            weight: w.tensor(&format!("{prefix}.weight"), [d])?,
-            bias: w.tensor(&format!("{prefix}.bias"), [d])?,
-            eps,
-        })
-    }
+/// Values ~ N(0, std²) from `rng`, as a tensor of `shape`.
+pub fn normal<const D: usize>(rng: &mut Rng, shape: [usize; D], std: f32, device: &Device) -> Tensor<D> {
+    let n: usize = shape.iter().product();
+    Tensor::from_data(TensorData::new((0..n).map(|_| std * rng.normal()).collect::<Vec<f32>>(), shape), device)
+}
 
-    pub fn forward(&self, x: Tensor<3>) -> Tensor<3> {
-        let mean = x.clone().mean_dim(2);
-        let centered = x - mean;
-        let var = centered.clone().powf_scalar(2.0).mean_dim(2);
-        let y = centered / (var + self.eps).sqrt();
-        y * self.weight.clone().unsqueeze_dim::<2>(0).unsqueeze_dim::<3>(0)
-            + self.bias.clone().unsqueeze_dim::<2>(0).unsqueeze_dim::<3>(0)
+/// A freshly initialised linear layer (weights ~ N(0, std²), zero bias), reproducible from `rng`
+/// on every backend.
+pub fn init_linear(rng: &mut Rng, d_in: usize, d_out: usize, bias: bool, std: f32, device: &Device) -> Linear {
+    Linear {
+        weight: Param::from_tensor(normal(rng, [d_in, d_out], std, device)),
+        bias: bias.then(|| Param::from_tensor(Tensor::zeros([d_out], device))),
     }
 }
 
-/// RMSNorm over the last dimension (Qwen2: computed in f32, weight applied after).
-#[derive(Clone, Debug)]
-pub struct RmsNorm {
-    pub weight: Tensor<1>,
-    pub eps: f64,
+/// A LayerNorm starting at the identity (gamma 1, beta 0).
+pub fn init_layer_norm(d: usize, eps: f64, device: &Device) -> LayerNorm {
+    LayerNormConfig::new(d).with_epsilon(eps).init(device)
 }
 
-impl RmsNorm {
-    pub fn load(w: &WeightStore, prefix: &str, d: usize, eps: f64) -> Result<Self, VlmError> {
-        Ok(Self { weight: w.tensor(&format!("{prefix}.weight"), [d])?, eps })
-    }
-
-    /// `x`: `[T, D]`.
-    pub fn forward(&self, x: Tensor<2>) -> Tensor<2> {
-        let ms = x.clone().powf_scalar(2.0).mean_dim(1);
-        x * (ms + self.eps).sqrt().recip() * self.weight.clone().unsqueeze_dim::<2>(0)
-    }
+/// An RMSNorm starting at the identity (gamma 1).
+pub fn init_rms_norm(d: usize, eps: f64, device: &Device) -> RmsNorm {
+    RmsNorm { gamma: Param::from_tensor(Tensor::ones([d], device)), epsilon: eps }
 }
 
 /// Applies an activation.

@@ -3,21 +3,25 @@
 
 use super::VlmError;
 use super::config::{LlavaConfig, ProcessorConfig, load_processor_config, parse_llava_config, read_json};
-use super::layers::{Linear, act};
+use super::layers::{act, init_linear, load_linear, normal};
 use super::preprocess::{AnyresGrid, ImagePatches, RgbImage, anyres_views, base_view, num_image_tokens};
 use super::qwen2::{KvCache, Qwen2};
 use super::siglip::VisionTower;
 use super::tokenizer::{ChatTokenizer, Turn, chat_template};
-use super::weights::WeightStore;
+use super::weights::{HfTensors, WeightStore};
+use crate::rng::Rng;
+use burn::module::{Module, Param};
+use burn::nn::Linear;
 use burn::tensor::{Device, Tensor, TensorData};
 use std::path::{Path, PathBuf};
 
 /// The projector: linear, activation, linear.
-#[derive(Clone, Debug)]
+#[derive(Module, Debug)]
 pub struct Projector {
-    l1: Linear,
-    l2: Linear,
-    act: super::config::Act,
+    pub l1: Linear,
+    pub l2: Linear,
+    #[module(skip)]
+    pub act: super::config::Act,
 }
 
 impl Projector {
@@ -27,17 +31,22 @@ impl Projector {
     }
 }
 
-/// A loaded LLaVA-OneVision model directory.
-#[derive(Clone, Debug)]
+/// A LLaVA-OneVision model: the modules (a burn `Module`, trainable) with its config, image
+/// processor settings and tokenizer.
+#[derive(Module, Debug)]
 pub struct LlavaOnevision {
+    #[module(skip)]
     pub dir: PathBuf,
+    #[module(skip)]
     pub cfg: LlavaConfig,
+    #[module(skip)]
     pub processor: ProcessorConfig,
     pub vision: VisionTower,
     pub projector: Projector,
     /// `[text D]`
-    pub image_newline: Tensor<1>,
+    pub image_newline: Param<Tensor<1>>,
     pub llm: Qwen2,
+    #[module(skip)]
     pub tokenizer: ChatTokenizer,
 }
 
@@ -60,14 +69,14 @@ impl LlavaOnevision {
         let w = WeightStore::open(dir, device)?;
         let (dv, dt) = (cfg.vision.hidden_size, cfg.text.hidden_size);
         let projector = Projector {
-            l1: Linear::load(&w, "multi_modal_projector.linear_1", dv, dt, cfg.projector_bias)?,
-            l2: Linear::load(&w, "multi_modal_projector.linear_2", dt, dt, cfg.projector_bias)?,
+            l1: load_linear(&w, "multi_modal_projector.linear_1", dv, dt, cfg.projector_bias)?,
+            l2: load_linear(&w, "multi_modal_projector.linear_2", dt, dt, cfg.projector_bias)?,
             act: cfg.projector_act,
         };
         Ok(Self {
             vision: VisionTower::load(&w, &cfg)?,
             projector,
-            image_newline: w.tensor("image_newline", [dt])?,
+            image_newline: Param::from_tensor(w.tensor("image_newline", [dt])?),
             llm: Qwen2::load(&w, &cfg.text)?,
             tokenizer,
             processor,
@@ -76,8 +85,47 @@ impl LlavaOnevision {
         })
     }
 
-    pub fn device(&self) -> &Device {
-        self.llm.device()
+    /// A freshly initialised model of `cfg` (for training from scratch), reproducible from `seed`
+    /// on every backend.
+    pub fn init(
+        cfg: LlavaConfig,
+        processor: ProcessorConfig,
+        tokenizer: ChatTokenizer,
+        seed: u64,
+        device: &Device,
+    ) -> Self {
+        let mut rng = Rng::new(seed ^ 0x11A7_A0E1);
+        let (dv, dt) = (cfg.vision.hidden_size, cfg.text.hidden_size);
+        let projector = Projector {
+            l1: init_linear(&mut rng, dv, dt, cfg.projector_bias, 1.0 / (dv as f32).sqrt(), device),
+            l2: init_linear(&mut rng, dt, dt, cfg.projector_bias, 1.0 / (dt as f32).sqrt(), device),
+            act: cfg.projector_act,
+        };
+        Self {
+            vision: VisionTower::init(&cfg, &mut rng, device),
+            projector,
+            image_newline: Param::from_tensor(normal(&mut rng, [dt], 0.02, device)),
+            llm: Qwen2::init(&cfg.text, &mut rng, device),
+            tokenizer,
+            processor,
+            cfg,
+            dir: PathBuf::new(),
+        }
+    }
+
+    /// Every tensor under the llava-hf checkpoint names and layouts (what the loader reads).
+    pub fn export(&self) -> HfTensors {
+        let mut out = HfTensors::default();
+        self.vision.export(&mut out);
+        out.linear("multi_modal_projector.linear_1", &self.projector.l1);
+        out.linear("multi_modal_projector.linear_2", &self.projector.l2);
+        out.vector("image_newline", self.image_newline.val());
+        self.llm.export(&mut out);
+        out
+    }
+
+    pub fn device(&self) -> Device {
+        self.image_newline.val().device()
     }
 
     /// Pixels `[views, 3, S, S]` of preprocessed views on the device.
@@ -85,7 +133,7 @@ impl LlavaOnevision {
         let s = self.processor.size.0;
         Tensor::from_data(
             TensorData::new(patches.pixel_values(&self.processor), [patches.views.len(), 3, s, s]),
-            self.device(),
+            &self.device(),
         )
     }
 
@@ -102,16 +150,19 @@ impl LlavaOnevision {
         f.reshape([t, d])
     }
 
-    /// Preprocesses one image for a single-image (anyres) or multi-image (base view) prompt.
+    /// Preprocesses one image for a single-image (anyres) or multi-image (base view) prompt. A
+    /// model whose only anyres resolution is its base size (`image_grid_pinpoints` = one square
+    /// of `image_size`) gets the base view for single images too: anyres would only repeat it.
     pub fn preprocess(&self, img: &RgbImage, multi_image: bool) -> ImagePatches {
-        if multi_image { base_view(img, &self.processor) } else { anyres_views(img, &self.processor) }
+        let base_only = self.processor.pinpoints == [self.processor.size];
+        if multi_image || base_only { base_view(img, &self.processor) } else { anyres_views(img, &self.processor) }
     }
 
     /// Packs projected features `[views, tokens, D]` of one image into its prompt embeddings `[N, D]`.
     pub fn pack(&self, projected: Tensor<3>, patches: &ImagePatches) -> Tensor<2> {
         let [v, t, d] = projected.dims();
         let base = projected.clone().narrow(0, 0, 1).reshape([t, d]);
-        let newline = self.image_newline.clone().unsqueeze_dim::<2>(0);
+        let newline = self.image_newline.val().unsqueeze_dim::<2>(0);
         if !patches.anyres || v == 1 {
             return Tensor::cat(vec![base, newline], 0);
         }
@@ -131,7 +182,7 @@ impl LlavaOnevision {
             map = bilinear_resize(map, nh, nw);
         }
         let [_, h, w] = map.dims();
-        let nl = self.image_newline.clone().reshape([d, 1, 1]).expand([d, h, 1]);
+        let nl = self.image_newline.val().reshape([d, 1, 1]).expand([d, h, 1]);
         let map = Tensor::cat(vec![map, nl], 2).reshape([d, h * (w + 1)]).transpose();
         Tensor::cat(vec![base, map], 0)
     }
@@ -149,7 +200,7 @@ impl LlavaOnevision {
         let [t, d] = tokens.dims();
         let p = self.projector.forward(tokens.reshape([1, t, d]));
         let dt = p.dims()[2];
-        Tensor::cat(vec![p.reshape([t, dt]), self.image_newline.clone().unsqueeze_dim::<2>(0)], 0)
+        Tensor::cat(vec![p.reshape([t, dt]), self.image_newline.val().unsqueeze_dim::<2>(0)], 0)
     }
 
     /// Prompt input embeddings `[L, text D]` of one user turn asking `question` about images

@@ -1,31 +1,36 @@
-//! The Qwen2 decoder: token embeddings, pre-RMSNorm layers with rotary grouped-query attention
-//! (q/k/v bias, no o bias) and a SwiGLU MLP, final norm, lm_head (tied to the embeddings when the
-//! config says so). It takes `inputs_embeds`, so image tokens from anywhere can be spliced in, and
-//! keeps a KV cache for generation.
+//! The Qwen2 decoder as a burn `Module`: token embeddings, pre-RMSNorm layers with rotary
+//! grouped-query attention (q/k/v bias, no o bias) and a SwiGLU MLP, final norm, lm_head (tied to
+//! the embeddings when the config says so). It takes input embeddings, so image tokens from
+//! anywhere can be spliced in; inference keeps a KV cache, training runs whole batches with an
+//! explicit attention mask and positions (several questions sharing one image prefix).
 
 use super::VlmError;
 use super::config::TextConfig;
-use super::layers::{Linear, RmsNorm, act, attention};
-use super::weights::WeightStore;
+use super::layers::{act, attention, init_linear, init_rms_norm, load_linear, load_rms_norm, normal};
+use super::weights::{HfTensors, WeightStore};
+use crate::rng::Rng;
+use burn::module::{Module, Param};
+use burn::nn::{Embedding, Linear, RmsNorm};
 use burn::tensor::{Device, Int, Tensor, TensorData};
 
-#[derive(Clone, Debug)]
-struct DecoderLayer {
-    ln1: RmsNorm,
-    q: Linear,
-    k: Linear,
-    v: Linear,
-    o: Linear,
-    ln2: RmsNorm,
-    gate: Linear,
-    up: Linear,
-    down: Linear,
+/// One decoder layer.
+#[derive(Module, Debug)]
+pub struct DecoderLayer {
+    pub ln1: RmsNorm,
+    pub q: Linear,
+    pub k: Linear,
+    pub v: Linear,
+    pub o: Linear,
+    pub ln2: RmsNorm,
+    pub gate: Linear,
+    pub up: Linear,
+    pub down: Linear,
 }
 
-/// Keys and values of every layer so far, `[kv_heads, T, head_dim]` each.
+/// Keys and values of every layer so far, `[1, kv_heads, T, head_dim]` each.
 #[derive(Clone, Debug, Default)]
 pub struct KvCache {
-    layers: Vec<(Tensor<3>, Tensor<3>)>,
+    layers: Vec<(Tensor<4>, Tensor<4>)>,
     len: usize,
 }
 
@@ -39,40 +44,44 @@ impl KvCache {
     }
 }
 
-/// Qwen2 causal LM (frozen).
-#[derive(Clone, Debug)]
+/// Qwen2 causal LM.
+#[derive(Module, Debug)]
 pub struct Qwen2 {
+    #[module(skip)]
     pub cfg: TextConfig,
     /// `[vocab, D]`
-    embed: Tensor<2>,
-    layers: Vec<DecoderLayer>,
-    norm: RmsNorm,
-    /// `[D, vocab]`
-    lm_head: Tensor<2>,
-    device: Device,
+    pub embed: Embedding,
+    pub layers: Vec<DecoderLayer>,
+    pub norm: RmsNorm,
+    /// `None`: tied to the embeddings.
+    pub lm_head: Option<Linear>,
 }
+
+const PRE: &str = "language_model.model";
 
 impl Qwen2 {
     pub fn load(w: &WeightStore, cfg: &TextConfig) -> Result<Self, VlmError> {
         let (d, f) = (cfg.hidden_size, cfg.intermediate_size);
         let (q, kv) = (cfg.num_heads * cfg.head_dim, cfg.num_kv_heads * cfg.head_dim);
-        let pre = "language_model.model";
+        let eps = cfg.rms_norm_eps;
         let mut layers = Vec::new();
         for i in 0..cfg.num_layers {
-            let l = format!("{pre}.layers.{i}");
+            let l = format!("{PRE}.layers.{i}");
             layers.push(DecoderLayer {
-                ln1: RmsNorm::load(w, &format!("{l}.input_layernorm"), d, cfg.rms_norm_eps)?,
-                q: Linear::load(w, &format!("{l}.self_attn.q_proj"), d, q, true)?,
-                k: Linear::load(w, &format!("{l}.self_attn.k_proj"), d, kv, true)?,
-                v: Linear::load(w, &format!("{l}.self_attn.v_proj"), d, kv, true)?,
-                o: Linear::load(w, &format!("{l}.self_attn.o_proj"), q, d, false)?,
-                ln2: RmsNorm::load(w, &format!("{l}.post_attention_layernorm"), d, cfg.rms_norm_eps)?,
-                gate: Linear::load(w, &format!("{l}.mlp.gate_proj"), d, f, false)?,
-                up: Linear::load(w, &format!("{l}.mlp.up_proj"), d, f, false)?,
-                down: Linear::load(w, &format!("{l}.mlp.down_proj"), f, d, false)?,
+                ln1: load_rms_norm(w, &format!("{l}.input_layernorm"), d, eps)?,
+                q: load_linear(w, &format!("{l}.self_attn.q_proj"), d, q, true)?,
+                k: load_linear(w, &format!("{l}.self_attn.k_proj"), d, kv, true)?,
+                v: load_linear(w, &format!("{l}.self_attn.v_proj"), d, kv, true)?,
+                o: load_linear(w, &format!("{l}.self_attn.o_proj"), q, d, false)?,
+                ln2: load_rms_norm(w, &format!("{l}.post_attention_layernorm"), d, eps)?,
+                gate: load_linear(w, &format!("{l}.mlp.gate_proj"), d, f, false)?,
+                up: load_linear(w, &format!("{l}.mlp.up_proj"), d, f, false)?,
+                down: load_linear(w, &format!("{l}.mlp.down_proj"), f, d, false)?,
             });
         }
-        let embed = w.tensor(&format!("{pre}.embed_tokens.weight"), [cfg.vocab_size, d])?;
+        let embed = Embedding {
+            weight: Param::from_tensor(w.tensor(&format!("{PRE}.embed_tokens.weight"), [cfg.vocab_size, d])?),
+        };
         let lm_head = if cfg.tie_word_embeddings || !w.contains("language_model.lm_head.weight") {
             if !cfg.tie_word_embeddings {
                 return Err(VlmError::weights(
@@ -80,107 +89,185 @@ impl Qwen2 {
                     "language_model.lm_head.weight is missing and the config does not tie embeddings",
                 ));
             }
-            embed.clone().transpose()
+            None
         } else {
-            w.linear_weight("language_model.lm_head.weight", d, cfg.vocab_size)?
+            Some(load_linear(w, "language_model.lm_head", d, cfg.vocab_size, false)?)
         };
-        Ok(Self {
-            norm: RmsNorm::load(w, &format!("{pre}.norm"), d, cfg.rms_norm_eps)?,
-            embed,
-            layers,
-            lm_head,
-            device: w.device().clone(),
-            cfg: cfg.clone(),
-        })
+        Ok(Self { norm: load_rms_norm(w, &format!("{PRE}.norm"), d, eps)?, embed, layers, lm_head, cfg: cfg.clone() })
+    }
+
+    /// A freshly initialised decoder (weights ~ N(0, 0.02²), output projections scaled down by
+    /// the depth, tied embeddings when the config says so), reproducible from `rng`.
+    pub fn init(cfg: &TextConfig, rng: &mut Rng, device: &Device) -> Self {
+        let (d, f) = (cfg.hidden_size, cfg.intermediate_size);
+        let (q, kv) = (cfg.num_heads * cfg.head_dim, cfg.num_kv_heads * cfg.head_dim);
+        let (std, deep) = (0.02, 0.02 / (2.0 * cfg.num_layers.max(1) as f32).sqrt());
+        let eps = cfg.rms_norm_eps;
+        let layers = (0..cfg.num_layers)
+            .map(|_| DecoderLayer {
+                ln1: init_rms_norm(d, eps, device),
+                q: init_linear(rng, d, q, true, std, device),
+                k: init_linear(rng, d, kv, true, std, device),
+                v: init_linear(rng, d, kv, true, std, device),
+                o: init_linear(rng, q, d, false, deep, device),
+                ln2: init_rms_norm(d, eps, device),
+                gate: init_linear(rng, d, f, false, std, device),
+                up: init_linear(rng, d, f, false, std, device),
+                down: init_linear(rng, f, d, false, deep, device),
+            })
+            .collect();
+        let embed = Embedding { weight: Param::from_tensor(normal(rng, [cfg.vocab_size, d], std, device)) };
+        let lm_head = (!cfg.tie_word_embeddings).then(|| init_linear(rng, d, cfg.vocab_size, false, std, device));
+        Self { embed, layers, norm: init_rms_norm(d, eps, device), lm_head, cfg: cfg.clone() }
+    }
+
+    /// The decoder's tensors under the llava-hf checkpoint names and layouts.
+    pub fn export(&self, out: &mut HfTensors) {
+        out.tensor(&format!("{PRE}.embed_tokens.weight"), self.embed.weight.val());
+        for (i, l) in self.layers.iter().enumerate() {
+            let pre = format!("{PRE}.layers.{i}");
+            out.rms_norm(&format!("{pre}.input_layernorm"), &l.ln1);
+            out.linear(&format!("{pre}.self_attn.q_proj"), &l.q);
+            out.linear(&format!("{pre}.self_attn.k_proj"), &l.k);
+            out.linear(&format!("{pre}.self_attn.v_proj"), &l.v);
+            out.linear(&format!("{pre}.self_attn.o_proj"), &l.o);
+            out.rms_norm(&format!("{pre}.post_attention_layernorm"), &l.ln2);
+            out.linear(&format!("{pre}.mlp.gate_proj"), &l.gate);
+            out.linear(&format!("{pre}.mlp.up_proj"), &l.up);
+            out.linear(&format!("{pre}.mlp.down_proj"), &l.down);
+        }
+        out.rms_norm(&format!("{PRE}.norm"), &self.norm);
+        if let Some(h) = &self.lm_head {
+            out.linear("language_model.lm_head", h);
+        }
+    }
+
+    fn device(&self) -> Device {
+        self.embed.weight.val().device()
     }
 
     /// Token embeddings `[T, D]` of `ids`.
     pub fn embed(&self, ids: &[u32]) -> Tensor<2> {
         let idx: Vec<i64> = ids.iter().map(|&i| i as i64).collect();
-        let idx = Tensor::<1, Int>::from_data(TensorData::new(idx, [ids.len()]), &self.device);
-        self.embed.clone().select(0, idx)
+        let idx = Tensor::<1, Int>::from_data(TensorData::new(idx, [ids.len()]), &self.device());
+        self.embed.weight.val().select(0, idx)
     }
 
-    /// cos and sin `[T, head_dim/2]` for positions `start..start+t`, computed in f32 as transformers does.
-    fn rope(&self, start: usize, t: usize) -> (Tensor<2>, Tensor<2>) {
+    /// cos and sin `[T, head_dim/2]` at `positions`, computed in f32 as transformers does.
+    fn rope(&self, positions: &[usize]) -> (Tensor<2>, Tensor<2>) {
         let hd = self.cfg.head_dim;
         let half = hd / 2;
         let base = self.cfg.rope_theta as f32;
         let inv: Vec<f32> = (0..half).map(|i| 1.0 / base.powf((2 * i) as f32 / hd as f32)).collect();
+        let t = positions.len();
         let mut cos = Vec::with_capacity(t * half);
         let mut sin = Vec::with_capacity(t * half);
-        for p in start..start + t {
+        for &p in positions {
             for f in &inv {
                 let a = p as f32 * f;
                 cos.push(a.cos());
                 sin.push(a.sin());
             }
         }
+        let dev = self.device();
         (
-            Tensor::from_data(TensorData::new(cos, [t, half]), &self.device),
-            Tensor::from_data(TensorData::new(sin, [t, half]), &self.device),
+            Tensor::from_data(TensorData::new(cos, [t, half]), &dev),
+            Tensor::from_data(TensorData::new(sin, [t, half]), &dev),
         )
     }
 
-    /// Runs `x` (`[T, D]` input embeddings) after the cached tokens; returns the final-norm hidden states `[T, D]`.
-    pub fn forward(&self, x: Tensor<2>, cache: &mut KvCache) -> Tensor<2> {
-        let [t, _] = x.dims();
+    /// All layers over `x` `[B, T, D]` at `positions`, attending to the cached keys/values (when
+    /// given) and then causally or through `mask` `[T, past + T]`; returns the final-norm hidden
+    /// states `[B, T, D]`.
+    fn run(
+        &self,
+        x: Tensor<3>,
+        positions: &[usize],
+        mask: Option<Tensor<2>>,
+        mut cache: Option<&mut KvCache>,
+    ) -> Tensor<3> {
+        let [b, t, _] = x.dims();
         let (h, kvh, hd) = (self.cfg.num_heads, self.cfg.num_kv_heads, self.cfg.head_dim);
-        let start = cache.len;
-        let (cos, sin) = self.rope(start, t);
-        let (cos, sin) = (cos.unsqueeze_dim::<3>(0), sin.unsqueeze_dim::<3>(0));
+        let (cos, sin) = self.rope(positions);
+        let (cos, sin) =
+            (cos.unsqueeze_dim::<3>(0).unsqueeze_dim::<4>(0), sin.unsqueeze_dim::<3>(0).unsqueeze_dim::<4>(0));
         let half = hd / 2;
-        let rotate = |y: Tensor<3>| {
-            // y: [heads, T, hd] -> y*cos + rotate_half(y)*sin, with cos/sin repeated over both halves.
-            let heads = y.dims()[0];
-            let a = y.clone().narrow(2, 0, half);
-            let b = y.narrow(2, half, half);
-            let ra = a.clone() * cos.clone() - b.clone() * sin.clone();
-            let rb = b * cos.clone() + a * sin.clone();
-            Tensor::cat(vec![ra, rb], 2).reshape([heads, t, hd])
+        let rotate = |y: Tensor<4>| {
+            // y: [B, heads, T, hd] -> y*cos + rotate_half(y)*sin, cos/sin repeated over both halves.
+            let a = y.clone().narrow(3, 0, half);
+            let bb = y.narrow(3, half, half);
+            let ra = a.clone() * cos.clone() - bb.clone() * sin.clone();
+            let rb = bb * cos.clone() + a * sin.clone();
+            Tensor::cat(vec![ra, rb], 3)
         };
+        let rep = h / kvh;
+        let mut x = x;
+        for (li, l) in self.layers.iter().enumerate() {
+            let hs = l.ln1.forward(x.clone());
+            let heads = |y: Tensor<3>, n: usize| y.reshape([b, t, n, hd]).swap_dims(1, 2);
+            let q = rotate(heads(l.q.forward(hs.clone()), h));
+            let mut k = rotate(heads(l.k.forward(hs.clone()), kvh));
+            let mut v = heads(l.v.forward(hs), kvh);
+            if let Some(c) = cache.as_deref_mut() {
+                if let Some((pk, pv)) = c.layers.get(li) {
+                    k = Tensor::cat(vec![pk.clone(), k], 2);
+                    v = Tensor::cat(vec![pv.clone(), v], 2);
+                }
+                if li < c.layers.len() {
+                    c.layers[li] = (k.clone(), v.clone());
+                } else {
+                    c.layers.push((k.clone(), v.clone()));
+                }
+            }
+            let total = k.dims()[2];
+            // grouped-query attention: query head i uses kv head i / (h / kvh)
+            let expand = |y: Tensor<4>| y.unsqueeze_dim::<5>(2).repeat_dim(2, rep).reshape([b * h, total, hd]);
+            let o = attention(q.reshape([b * h, t, hd]), expand(k), expand(v), mask.clone());
+            let o = o.reshape([b, h, t, hd]).swap_dims(1, 2).reshape([b, t, h * hd]);
+            x = x + l.o.forward(o);
+            let hs = l.ln2.forward(x.clone());
+            x = x + l.down.forward(act(self.cfg.act, l.gate.forward(hs.clone())) * l.up.forward(hs));
+        }
+        self.norm.forward(x)
+    }
+
+    /// Inference: runs `x` (`[T, D]` input embeddings) after the cached tokens, causally; returns
+    /// the final-norm hidden states `[T, D]`.
+    pub fn forward(&self, x: Tensor<2>, cache: &mut KvCache) -> Tensor<2> {
+        let [t, d] = x.dims();
+        let start = cache.len;
         let total = start + t;
         let mask = (t > 1).then(|| {
             let m: Vec<f32> = (0..t)
                 .flat_map(|i| (0..total).map(move |j| if j > start + i { f32::NEG_INFINITY } else { 0.0 }))
                 .collect();
-            Tensor::<2>::from_data(TensorData::new(m, [t, total]), &self.device)
+            Tensor::<2>::from_data(TensorData::new(m, [t, total]), &self.device())
         });
-        let mut x = x;
-        for (li, l) in self.layers.iter().enumerate() {
-            let hs = l.ln1.forward(x.clone());
-            let q = rotate(l.q.forward(hs.clone()).reshape([t, h, hd]).swap_dims(0, 1));
-            let k = rotate(l.k.forward(hs.clone()).reshape([t, kvh, hd]).swap_dims(0, 1));
-            let v = l.v.forward(hs).reshape([t, kvh, hd]).swap_dims(0, 1);
-            let (k, v) = match cache.layers.get(li) {
-                Some((pk, pv)) => (Tensor::cat(vec![pk.clone(), k], 1), Tensor::cat(vec![pv.clone(), v], 1)),
-                None => (k, v),
-            };
-            if li < cache.layers.len() {
-                cache.layers[li] = (k.clone(), v.clone());
-            } else {
-                cache.layers.push((k.clone(), v.clone()));
-            }
-            // grouped-query attention: query head i uses kv head i / (h / kvh)
-            let rep = h / kvh;
-            let expand = |y: Tensor<3>| y.unsqueeze_dim::<4>(1).repeat_dim(1, rep).reshape([h, total, hd]);
-            let o = attention(q, expand(k), expand(v), mask.clone());
-            let o = o.swap_dims(0, 1).reshape([t, h * hd]);
-            x = x + l.o.forward(o);
-            let hs = l.ln2.forward(x.clone());
-            let mlp = l.down.forward(act(self.cfg.act, l.gate.forward(hs.clone())) * l.up.forward(hs));
-            x = x + mlp;
-        }
+        let positions: Vec<usize> = (start..total).collect();
+        let out = self.run(x.unsqueeze_dim::<3>(0), &positions, mask, Some(cache));
         cache.len = total;
-        self.norm.forward(x)
+        out.reshape([t, d])
     }
 
-    /// Logits `[T, vocab]` of final hidden states `[T, D]`.
-    pub fn logits(&self, hidden: Tensor<2>) -> Tensor<2> {
-        hidden.matmul(self.lm_head.clone())
+    /// Training: `x` `[B, T, D]` with each token at `positions[i]`, attending where `mask`
+    /// (`[T, T]`, additive: 0 or -inf) allows; returns the final-norm hidden states `[B, T, D]`.
+    pub fn forward_masked(&self, x: Tensor<3>, positions: &[usize], mask: Tensor<2>) -> Tensor<3> {
+        self.run(x, positions, Some(mask), None)
     }
 
-    pub fn device(&self) -> &Device {
-        &self.device
+    /// Logits `[..., vocab]` of final hidden states `[..., D]`.
+    pub fn logits<const N: usize>(&self, hidden: Tensor<N>) -> Tensor<N> {
+        match &self.lm_head {
+            Some(h) => h.forward(hidden),
+            None => {
+                let dims = hidden.dims();
+                let d = dims[N - 1];
+                let rows: usize = dims[..N - 1].iter().product();
+                let y = hidden.reshape([rows, d]).matmul(self.embed.weight.val().transpose());
+                let mut out = dims;
+                out[N - 1] = self.cfg.vocab_size;
+                y.reshape(out)
+            }
+        }
     }
 }

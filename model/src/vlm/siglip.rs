@@ -1,66 +1,121 @@
-//! The SigLIP vision tower as LLaVA-OneVision uses it: patch embedding (a stride-`patch` conv,
-//! done as one matmul over unfolded patches), learned position embeddings, pre-norm encoder
-//! layers; the output is the hidden state selected by `vision_feature_layer` (no post-layernorm,
-//! no pooling head).
+//! The SigLIP vision tower as LLaVA-OneVision uses it, as a burn `Module`: patch embedding (a
+//! stride-`patch` conv, done as one matmul over unfolded patches), learned position embeddings,
+//! pre-norm encoder layers; the output is the hidden state selected by `vision_feature_layer`
+//! (no post-layernorm, no pooling head).
 
 use super::VlmError;
 use super::config::{LlavaConfig, VisionConfig};
-use super::layers::{LayerNorm, Linear, act, attention};
-use super::weights::WeightStore;
-use burn::tensor::Tensor;
+use super::layers::{act, attention, init_layer_norm, init_linear, load_layer_norm, load_linear, normal};
+use super::weights::{HfTensors, WeightStore};
+use crate::rng::Rng;
+use burn::module::{Module, Param};
+use burn::nn::{LayerNorm, Linear};
+use burn::tensor::{Device, Tensor};
 
-#[derive(Clone, Debug)]
-struct EncoderLayer {
-    ln1: LayerNorm,
-    q: Linear,
-    k: Linear,
-    v: Linear,
-    out: Linear,
-    ln2: LayerNorm,
-    fc1: Linear,
-    fc2: Linear,
+/// One pre-norm encoder layer.
+#[derive(Module, Debug)]
+pub struct EncoderLayer {
+    pub ln1: LayerNorm,
+    pub q: Linear,
+    pub k: Linear,
+    pub v: Linear,
+    pub out: Linear,
+    pub ln2: LayerNorm,
+    pub fc1: Linear,
+    pub fc2: Linear,
 }
 
-/// SigLIP vision tower (frozen).
-#[derive(Clone, Debug)]
+/// The SigLIP vision tower (the layers up to the selected hidden state).
+#[derive(Module, Debug)]
 pub struct VisionTower {
+    #[module(skip)]
     pub cfg: VisionConfig,
     /// `[3 * p * p, D]`, rows ordered (channel, y, x) like the conv weight.
-    patch_weight: Tensor<2>,
-    patch_bias: Tensor<1>,
+    pub patch: Linear,
     /// `[tokens, D]`
-    position: Tensor<2>,
-    layers: Vec<EncoderLayer>,
+    pub position: Param<Tensor<2>>,
+    pub layers: Vec<EncoderLayer>,
 }
+
+const PRE: &str = "vision_tower.vision_model";
 
 impl VisionTower {
     pub fn load(w: &WeightStore, cfg: &LlavaConfig) -> Result<Self, VlmError> {
         let v = cfg.vision.clone();
         let (d, f, p) = (v.hidden_size, v.intermediate_size, v.patch_size);
-        let pre = "vision_tower.vision_model";
         // [D, 3, p, p] -> [3 p p, D], rows ordered (channel, y, x) like the unfolded patches.
-        let patch_weight = w.transposed(&format!("{pre}.embeddings.patch_embedding.weight"), &[d, 3, p, p])?;
+        let patch = Linear {
+            weight: Param::from_tensor(
+                w.transposed(&format!("{PRE}.embeddings.patch_embedding.weight"), &[d, 3, p, p])?,
+            ),
+            bias: Some(Param::from_tensor(w.tensor(&format!("{PRE}.embeddings.patch_embedding.bias"), [d])?)),
+        };
         let mut layers = Vec::new();
         for i in 0..cfg.vision_layers_needed() {
-            let l = format!("{pre}.encoder.layers.{i}");
+            let l = format!("{PRE}.encoder.layers.{i}");
+            let eps = v.layer_norm_eps;
             layers.push(EncoderLayer {
-                ln1: LayerNorm::load(w, &format!("{l}.layer_norm1"), d, v.layer_norm_eps)?,
-                q: Linear::load(w, &format!("{l}.self_attn.q_proj"), d, d, true)?,
-                k: Linear::load(w, &format!("{l}.self_attn.k_proj"), d, d, true)?,
-                v: Linear::load(w, &format!("{l}.self_attn.v_proj"), d, d, true)?,
-                out: Linear::load(w, &format!("{l}.self_attn.out_proj"), d, d, true)?,
-                ln2: LayerNorm::load(w, &format!("{l}.layer_norm2"), d, v.layer_norm_eps)?,
-                fc1: Linear::load(w, &format!("{l}.mlp.fc1"), d, f, true)?,
-                fc2: Linear::load(w, &format!("{l}.mlp.fc2"), f, d, true)?,
+                ln1: load_layer_norm(w, &format!("{l}.layer_norm1"), d, eps)?,
+                q: load_linear(w, &format!("{l}.self_attn.q_proj"), d, d, true)?,
+                k: load_linear(w, &format!("{l}.self_attn.k_proj"), d, d, true)?,
+                v: load_linear(w, &format!("{l}.self_attn.v_proj"), d, d, true)?,
+                out: load_linear(w, &format!("{l}.self_attn.out_proj"), d, d, true)?,
+                ln2: load_layer_norm(w, &format!("{l}.layer_norm2"), d, eps)?,
+                fc1: load_linear(w, &format!("{l}.mlp.fc1"), d, f, true)?,
+                fc2: load_linear(w, &format!("{l}.mlp.fc2"), f, d, true)?,
             });
         }
-        Ok(Self {
-            patch_bias: w.tensor(&format!("{pre}.embeddings.patch_embedding.bias"), [d])?,
-            position: w.tensor(&format!("{pre}.embeddings.position_embedding.weight"), [v.tokens(), d])?,
-            patch_weight,
+        let position = w.tensor(&format!("{PRE}.embeddings.position_embedding.weight"), [v.tokens(), d])?;
+        Ok(Self { patch, position: Param::from_tensor(position), layers, cfg: v })
+    }
+
+    /// A freshly initialised tower with `cfg.vision_layers_needed()` layers (weights ~ N(0, 0.02²),
+    /// output projections scaled down by the depth), reproducible from `rng`.
+    pub fn init(cfg: &LlavaConfig, rng: &mut Rng, device: &Device) -> Self {
+        let v = cfg.vision.clone();
+        let (d, f, p) = (v.hidden_size, v.intermediate_size, v.patch_size);
+        let n = cfg.vision_layers_needed();
+        let (std, deep) = (0.02, 0.02 / (2.0 * n.max(1) as f32).sqrt());
+        let eps = v.layer_norm_eps;
+        let layers = (0..n)
+            .map(|_| EncoderLayer {
+                ln1: init_layer_norm(d, eps, device),
+                q: init_linear(rng, d, d, true, std, device),
+                k: init_linear(rng, d, d, true, std, device),
+                v: init_linear(rng, d, d, true, std, device),
+                out: init_linear(rng, d, d, true, deep, device),
+                ln2: init_layer_norm(d, eps, device),
+                fc1: init_linear(rng, d, f, true, std, device),
+                fc2: init_linear(rng, f, d, true, deep, device),
+            })
+            .collect();
+        let fan_in = 3 * p * p;
+        Self {
+            patch: init_linear(rng, fan_in, d, true, 1.0 / (fan_in as f32).sqrt(), device),
+            position: Param::from_tensor(normal(rng, [v.tokens(), d], std, device)),
             layers,
             cfg: v,
-        })
+        }
+    }
+
+    /// The tower's tensors under the llava-hf checkpoint names and layouts.
+    pub fn export(&self, out: &mut HfTensors) {
+        let (d, p) = (self.cfg.hidden_size, self.cfg.patch_size);
+        let pw = self.patch.weight.val().transpose().reshape([d, 3, p, p]);
+        out.tensor(&format!("{PRE}.embeddings.patch_embedding.weight"), pw);
+        out.vector(&format!("{PRE}.embeddings.patch_embedding.bias"), self.patch.bias.as_ref().expect("bias").val());
+        out.tensor(&format!("{PRE}.embeddings.position_embedding.weight"), self.position.val());
+        for (i, l) in self.layers.iter().enumerate() {
+            let pre = format!("{PRE}.encoder.layers.{i}");
+            out.layer_norm(&format!("{pre}.layer_norm1"), &l.ln1);
+            out.linear(&format!("{pre}.self_attn.q_proj"), &l.q);
+            out.linear(&format!("{pre}.self_attn.k_proj"), &l.k);
+            out.linear(&format!("{pre}.self_attn.v_proj"), &l.v);
+            out.linear(&format!("{pre}.self_attn.out_proj"), &l.out);
+            out.layer_norm(&format!("{pre}.layer_norm2"), &l.ln2);
+            out.linear(&format!("{pre}.mlp.fc1"), &l.fc1);
+            out.linear(&format!("{pre}.mlp.fc2"), &l.fc2);
+        }
     }
 
     /// `pixels`: `[B, 3, S, S]` normalised -> selected hidden state `[B, tokens, D]`.
@@ -78,8 +133,8 @@ impl VisionTower {
         let used = g * p; // 378 of 384: the conv never reaches the last 6 rows/columns
         let pixels = if used < s { pixels.narrow(2, 0, used).narrow(3, 0, used) } else { pixels };
         let patches = pixels.reshape([b, 3, g, p, g, p]).permute([0, 2, 4, 1, 3, 5]).reshape([b * g * g, 3 * p * p]);
-        let x = patches.matmul(self.patch_weight.clone()) + self.patch_bias.clone().unsqueeze_dim::<2>(0);
-        let mut x = x.reshape([b, g * g, d]) + self.position.clone().unsqueeze_dim::<3>(0);
+        let x = self.patch.forward(patches);
+        let mut x = x.reshape([b, g * g, d]) + self.position.val().unsqueeze_dim::<3>(0);
         let heads = self.cfg.num_heads;
         let hd = d / heads;
         let t = g * g;

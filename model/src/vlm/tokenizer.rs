@@ -66,17 +66,35 @@ impl ChatTokenizer {
         }
         let inner = tokenizers::Tokenizer::from_file(&path)
             .map_err(|e| VlmError::config(&path, format!("cannot load tokenizer: {e}")))?;
+        Self::new(inner, image_token_id, &path)
+    }
+
+    /// A tokenizer from the text of a `tokenizer.json`.
+    pub fn from_json(json: &str, image_token_id: u32) -> Result<Self, VlmError> {
+        let path = Path::new("tokenizer.json");
+        let inner: tokenizers::Tokenizer = json
+            .parse()
+            .map_err(|e: tokenizers::Error| VlmError::config(path, format!("cannot load tokenizer: {e}")))?;
+        Self::new(inner, image_token_id, path)
+    }
+
+    fn new(inner: tokenizers::Tokenizer, image_token_id: u32, path: &Path) -> Result<Self, VlmError> {
         match inner.id_to_token(image_token_id) {
             Some(t) if t == "<image>" => {}
             other => {
                 return Err(VlmError::config(
-                    &path,
+                    path,
                     format!("image_token_index {image_token_id} of config.json is {other:?} here, not \"<image>\""),
                 ));
             }
         }
         let stop_ids = ["<|im_end|>", "<|endoftext|>"].iter().filter_map(|t| inner.token_to_id(t)).collect();
         Ok(Self { inner, image_token_id, stop_ids })
+    }
+
+    /// The text of `tokenizer.json`.
+    pub fn to_json(&self) -> Result<String, VlmError> {
+        self.inner.to_string(true).map_err(|e| VlmError::config(Path::new("tokenizer.json"), e.to_string()))
     }
 
     /// Token ids of `text` (special tokens such as `<image>` are recognised).
@@ -93,4 +111,48 @@ impl ChatTokenizer {
     pub fn vocab_size(&self) -> usize {
         self.inner.get_vocab_size(true)
     }
+}
+
+/// The chat template of llava-hf LLaVA-OneVision models as Jinja (`chat_template.jinja`); the
+/// same text [`chat_template`] writes.
+pub const CHAT_TEMPLATE_JINJA: &str = include_str!("chat_template.jinja");
+
+/// The special tokens of a word-level tokenizer, in id order (`<image>` = 3, `<video>` = 4).
+pub const WORD_SPECIALS: [&str; 5] = ["<|endoftext|>", "<|im_start|>", "<|im_end|>", "<image>", "<video>"];
+
+/// `tokenizer.json` of a word-level tokenizer: the [`WORD_SPECIALS`], then `<unk>`, the chat
+/// roles and `words`; text splits at whitespace and punctuation (the `Whitespace`
+/// pre-tokenizer), decoding joins words with spaces. Built, checked and serialised with the
+/// `tokenizers` crate.
+pub fn word_level_tokenizer_json(words: &[String]) -> Result<String, VlmError> {
+    let mut vocab: Vec<String> = WORD_SPECIALS.iter().map(|s| s.to_string()).collect();
+    for w in ["<unk>", "user", "assistant", "system"].iter().map(|s| s.to_string()).chain(words.iter().cloned()) {
+        if !vocab.contains(&w) {
+            vocab.push(w);
+        }
+    }
+    let added: Vec<serde_json::Value> = WORD_SPECIALS
+        .iter()
+        .enumerate()
+        .map(|(id, t)| {
+            serde_json::json!({"id": id, "content": t, "single_word": false, "lstrip": false, "rstrip": false,
+                "normalized": false, "special": true})
+        })
+        .collect();
+    let map: serde_json::Map<String, serde_json::Value> =
+        vocab.iter().enumerate().map(|(i, w)| (w.clone(), serde_json::json!(i))).collect();
+    let json = serde_json::json!({
+        "version": "1.0",
+        "truncation": null,
+        "padding": null,
+        "added_tokens": added,
+        "normalizer": null,
+        "pre_tokenizer": {"type": "Whitespace"},
+        "post_processor": null,
+        "decoder": null,
+        "model": {"type": "WordLevel", "vocab": map, "unk_token": "<unk>"},
+    });
+    let bad = |e: String| VlmError::config(Path::new("tokenizer.json"), format!("word-level tokenizer: {e}"));
+    let tok: tokenizers::Tokenizer = json.to_string().parse().map_err(|e: tokenizers::Error| bad(e.to_string()))?;
+    tok.to_string(true).map_err(|e| bad(e.to_string()))
 }

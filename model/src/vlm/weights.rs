@@ -165,3 +165,73 @@ fn aliases(name: &str) -> Vec<String> {
     }
     out
 }
+
+/// Tensors collected under llava-hf checkpoint names and layouts (the inverse of the loader),
+/// written as one safetensors file.
+#[derive(Default)]
+pub struct HfTensors {
+    /// Name, shape, values.
+    pub tensors: Vec<(String, Vec<usize>, Vec<f32>)>,
+}
+
+impl HfTensors {
+    pub fn tensor<const D: usize>(&mut self, name: &str, t: Tensor<D>) {
+        let shape = t.dims().to_vec();
+        self.tensors.push((name.to_string(), shape, crate::splats::host(t)));
+    }
+
+    pub fn vector(&mut self, name: &str, t: Tensor<1>) {
+        self.tensor(name, t);
+    }
+
+    /// A `burn::nn::Linear` (`[in, out]`) as torch's `prefix.weight` `[out, in]` and `prefix.bias`.
+    pub fn linear(&mut self, prefix: &str, l: &burn::nn::Linear) {
+        self.tensor(&format!("{prefix}.weight"), l.weight.val().transpose());
+        if let Some(b) = &l.bias {
+            self.vector(&format!("{prefix}.bias"), b.val());
+        }
+    }
+
+    pub fn layer_norm(&mut self, prefix: &str, l: &burn::nn::LayerNorm) {
+        self.vector(&format!("{prefix}.weight"), l.gamma.val());
+        if let Some(b) = &l.beta {
+            self.vector(&format!("{prefix}.bias"), b.val());
+        }
+    }
+
+    pub fn rms_norm(&mut self, prefix: &str, l: &burn::nn::RmsNorm) {
+        self.vector(&format!("{prefix}.weight"), l.gamma.val());
+    }
+
+    /// Parameter count.
+    pub fn count(&self) -> usize {
+        self.tensors.iter().map(|(_, _, v)| v.len()).sum()
+    }
+
+    /// Writes `path` (atomically) as bf16 (how llava-hf checkpoints are stored) or f32 safetensors.
+    pub fn write(&self, path: &Path, as_bf16: bool) -> crate::Result<()> {
+        let bytes: Vec<(String, Vec<usize>, Vec<u8>)> = self
+            .tensors
+            .iter()
+            .map(|(n, s, v)| {
+                let b = if as_bf16 {
+                    v.iter().flat_map(|x| half::bf16::from_f32(*x).to_le_bytes()).collect()
+                } else {
+                    v.iter().flat_map(|x| x.to_le_bytes()).collect()
+                };
+                (n.clone(), s.clone(), b)
+            })
+            .collect();
+        let dtype = if as_bf16 { Dtype::BF16 } else { Dtype::F32 };
+        let mut views = Vec::with_capacity(bytes.len());
+        for (n, s, b) in &bytes {
+            let view = safetensors::tensor::TensorView::new(dtype, s.clone(), b)
+                .map_err(|e| crate::Error::invalid(path, format!("tensor {n} of shape {s:?}: {e}")))?;
+            views.push((n.clone(), view));
+        }
+        let mut meta = std::collections::HashMap::new();
+        meta.insert("format".to_string(), "pt".to_string());
+        let out = safetensors::serialize(views, Some(meta)).map_err(|e| crate::Error::invalid(path, e.to_string()))?;
+        crate::io::write_atomic(path, &out)
+    }
+}

@@ -1,8 +1,11 @@
-//! The tabletop made of Gaussians (deterministic from the seed): a wooden table top and the
-//! seed's objects, surfaces covered by flat Gaussians oriented along the surface normal. World
-//! frame: y up, table top at y = 0. It describes the same scene as the ray-cast dataset.
+//! A synthetic [`Scene`] made of Gaussians (for `chatsplat render` and tests): the table top and
+//! every object's surface covered by flat Gaussians oriented along the surface normal, coloured
+//! with the albedo. It describes the same scene as the ray-cast dataset.
 
-use super::scene::{Primitive, table_color, tabletop_objects};
+use super::scene::{
+    CONE_HEIGHT, CONE_RADIUS, CUBE_HALF, CYLINDER_HALF_HEIGHT, CYLINDER_RADIUS, Object, PYRAMID_HALF, PYRAMID_HEIGHT,
+    Scene, Shape, TORUS_MAJOR, TORUS_MINOR,
+};
 use crate::GaussianCloud;
 use crate::cloud::SH_C0;
 use crate::rng::Rng;
@@ -29,69 +32,96 @@ impl Builder {
     }
 }
 
-/// A tabletop of about `density^2 * 5` Gaussians (density 40 gives about 9,000).
-pub fn tabletop(seed: u64, density: usize) -> (GaussianCloud, Vec<Primitive>) {
-    let objects = tabletop_objects(seed);
+/// A point and normal on the surface of a unit-proportioned shape (object frame: bottom centre at
+/// the origin, scale 1), for sample `k` of `n` (a Fibonacci-like spread) and two uniforms `u, v`.
+fn surface(shape: Shape, k: usize, n: usize, u: f32, v: f32) -> (Vec3, Vec3) {
+    let t = (k as f32 + 0.5) / n as f32;
+    let phi = k as f32 * 2.399_963;
+    let ring = Vec3::new(phi.cos(), 0.0, phi.sin());
+    let (a, b) = (2.0 * u - 1.0, 2.0 * v - 1.0);
+    match shape {
+        Shape::Sphere => {
+            let y = 1.0 - 2.0 * t;
+            let dir = ring * (1.0 - y * y).sqrt() + Vec3::Y * y;
+            (Vec3::Y + dir, dir)
+        }
+        Shape::Cube => {
+            let h = CUBE_HALF;
+            let (p, nrm) = match k % 6 {
+                0 => (Vec3::new(1.0, a, b), Vec3::X),
+                1 => (Vec3::new(-1.0, a, b), -Vec3::X),
+                2 => (Vec3::new(a, 1.0, b), Vec3::Y),
+                3 => (Vec3::new(a, -1.0, b), -Vec3::Y),
+                4 => (Vec3::new(a, b, 1.0), Vec3::Z),
+                _ => (Vec3::new(a, b, -1.0), -Vec3::Z),
+            };
+            (p * h + Vec3::Y * h, nrm)
+        }
+        Shape::Cylinder => {
+            let (r, top) = (CYLINDER_RADIUS, 2.0 * CYLINDER_HALF_HEIGHT);
+            if k.is_multiple_of(5) {
+                (ring * r * u.sqrt() + Vec3::Y * top, Vec3::Y)
+            } else {
+                (ring * r + Vec3::Y * (t * top), ring)
+            }
+        }
+        Shape::Cone => {
+            let (r, h) = (CONE_RADIUS, CONE_HEIGHT);
+            let y = h * (1.0 - u.sqrt());
+            let nrm = (ring * h + Vec3::Y * r).normalize();
+            (ring * r * (1.0 - y / h) + Vec3::Y * y, nrm)
+        }
+        Shape::Pyramid => {
+            let (half, h) = (PYRAMID_HALF, PYRAMID_HEIGHT);
+            // one of the four faces; (u, v) -> a point of the triangle
+            let (mut s, mut w) = (u, v);
+            if s + w > 1.0 {
+                (s, w) = (1.0 - s, 1.0 - w);
+            }
+            let out = [Vec3::X, Vec3::Z, -Vec3::X, -Vec3::Z][k % 4];
+            let side = Vec3::Y.cross(out);
+            let (c0, c1, apex) = (out * half + side * half, out * half - side * half, Vec3::Y * h);
+            let p = c0 + (c1 - c0) * s + (apex - c0) * w;
+            (p, (out * h + Vec3::Y * half).normalize())
+        }
+        Shape::Torus => {
+            let (big, small) = (TORUS_MAJOR, TORUS_MINOR);
+            let theta = std::f32::consts::TAU * u;
+            let tube = ring * theta.cos() + Vec3::Y * theta.sin();
+            (ring * big + tube * small + Vec3::Y * small, tube)
+        }
+    }
+}
+
+fn object(b: &mut Builder, o: &Object, d: usize) {
+    let n = d * d / 4;
+    let base = o.center - Vec3::new(0.0, o.shape.centre_height(o.scale), 0.0);
+    let rot = Quat::from_rotation_y(o.yaw);
+    for k in 0..n {
+        let (u, v) = (b.rng.f(), b.rng.f());
+        let (p, nrm) = surface(o.shape, k, n, u, v);
+        let shade = 0.85 + 0.15 * nrm.normalize_or(Vec3::Y).y;
+        let col = o.color.rgb().map(|c| c * shade);
+        b.splat(base + rot * (p * o.scale), rot * nrm, o.scale * 3.2 / d as f32 * 2.0, col);
+    }
+}
+
+/// The scene of `seed` as about `density^2 * (1 + objects / 4)` Gaussians, and the scene.
+pub fn tabletop(seed: u64, density: usize) -> (GaussianCloud, Scene) {
+    let scene = Scene::from_seed(seed);
     let mut b = Builder { cloud: GaussianCloud::default(), rng: Rng::new(seed) };
-    // Table top: a 4 x 4 square with a wood-like stripe pattern.
     let d = density.max(4);
-    let step = 4.0 / d as f32;
+    let half = scene.table.half;
+    let step = 2.0 * half / d as f32;
     for i in 0..d {
         for j in 0..d {
-            let x = -2.0 + (i as f32 + 0.5) * step;
-            let z = -2.0 + (j as f32 + 0.5) * step;
-            b.splat(Vec3::new(x, 0.0, z), Vec3::Y, step * 0.7, table_color(x, z));
+            let x = -half + (i as f32 + 0.5) * step;
+            let z = -half + (j as f32 + 0.5) * step;
+            b.splat(Vec3::new(x, 0.0, z), Vec3::Y, step * 0.7, scene.table.color(x, z));
         }
     }
-    for o in &objects {
-        let s = o.size;
-        let n = d * d / 4;
-        for k in 0..n {
-            // Fibonacci-like sampling on the unit sphere, mapped per shape.
-            let t = (k as f32 + 0.5) / n as f32;
-            let phi = k as f32 * 2.399_963;
-            let (p, nrm) = match o.shape {
-                "sphere" => {
-                    let y = 1.0 - 2.0 * t;
-                    let rr = (1.0 - y * y).sqrt();
-                    let v = Vec3::new(rr * phi.cos(), y, rr * phi.sin());
-                    (o.center + v * s, v)
-                }
-                "box" => {
-                    let face = k % 6;
-                    let (u, w) = (b.rng.range(-1.0, 1.0), b.rng.range(-1.0, 1.0));
-                    let (v, nn) = match face {
-                        0 => (Vec3::new(1.0, u, w), Vec3::X),
-                        1 => (Vec3::new(-1.0, u, w), -Vec3::X),
-                        2 => (Vec3::new(u, 1.0, w), Vec3::Y),
-                        3 => (Vec3::new(u, -1.0, w), -Vec3::Y),
-                        4 => (Vec3::new(u, w, 1.0), Vec3::Z),
-                        _ => (Vec3::new(u, w, -1.0), -Vec3::Z),
-                    };
-                    (o.center + v * s * 0.85, nn)
-                }
-                "cylinder" => {
-                    let y = -1.0 + 2.0 * t;
-                    let v = Vec3::new(phi.cos(), 0.0, phi.sin());
-                    if k % 5 == 0 {
-                        let rr = b.rng.f().sqrt();
-                        (o.center + Vec3::new(rr * phi.cos() * s * 0.7, s, rr * phi.sin() * s * 0.7), Vec3::Y)
-                    } else {
-                        (o.center + Vec3::new(v.x * s * 0.7, y * s, v.z * s * 0.7), v)
-                    }
-                }
-                _ => {
-                    // cone: apex up
-                    let h = t;
-                    let rr = (1.0 - h) * s * 0.8;
-                    let v = Vec3::new(phi.cos(), 0.6, phi.sin());
-                    (o.center + Vec3::new(rr * phi.cos(), -s + 2.0 * s * h, rr * phi.sin()), v)
-                }
-            };
-            let shade = 0.85 + 0.15 * nrm.normalize_or(Vec3::Y).y;
-            let col = o.color.map(|c| c * shade);
-            b.splat(p, nrm, s * 3.2 / d as f32 * 2.0, col);
-        }
+    for o in &scene.objects {
+        object(&mut b, o, d);
     }
-    (b.cloud, objects)
+    (b.cloud, scene)
 }

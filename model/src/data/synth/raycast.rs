@@ -1,12 +1,15 @@
-//! The analytic renderer of the synthetic tabletop: one ray per pixel against the table and the
-//! objects, Lambert shading, instance ids and camera-space depth.
+//! The analytic renderer of a synthetic [`Scene`]: one ray per pixel against the table and the
+//! objects (closed forms for sphere, cube, cylinder, cone and pyramid; sphere tracing of the
+//! torus's distance function), Lambert shading under the scene's light, instance ids and
+//! camera-space depth.
 
-use super::scene::{Primitive, TABLE_HALF, table_color};
-use super::{FIRST_OBJECT_ID, TABLE_ID};
-use glam::Vec3;
+use super::TABLE_ID;
+use super::scene::{
+    CONE_HEIGHT, CONE_RADIUS, CUBE_HALF, CYLINDER_HALF_HEIGHT, CYLINDER_RADIUS, Object, PYRAMID_HALF, PYRAMID_HEIGHT,
+    Scene, Shape, TORUS_MAJOR, TORUS_MINOR,
+};
+use glam::{Quat, Vec3};
 use splat_kernels::Camera;
-
-const LIGHT: Vec3 = Vec3::new(0.4, 1.0, 0.3);
 
 /// A ray hit: distance along the (unnormalised) ray, unit normal, mask id, albedo.
 #[derive(Clone, Copy, Debug)]
@@ -23,7 +26,7 @@ fn closer(best: &mut Option<Hit>, h: Hit) {
     }
 }
 
-/// Smallest root above 1e-4 of a t^2 + b t + c, tested by `ok`.
+/// Smallest root above 1e-4 of a t^2 + b t + c accepted by `ok`.
 fn quadratic(a: f32, b: f32, c: f32, ok: impl Fn(f32) -> bool) -> Option<f32> {
     if a.abs() < 1e-12 {
         return None;
@@ -40,96 +43,158 @@ fn quadratic(a: f32, b: f32, c: f32, ok: impl Fn(f32) -> bool) -> Option<f32> {
     [t0, t1].into_iter().find(|&t| t > 1e-4 && ok(t))
 }
 
-fn intersect(o: Vec3, d: Vec3, p: &Primitive, id: u8, best: &mut Option<Hit>) {
-    let s = p.size;
-    let c = p.center;
-    let hit = |t: f32, normal: Vec3| Hit { t, normal: normal.normalize(), id, albedo: p.color };
-    match p.shape {
-        "sphere" => {
+/// Entry distance and outward normal of a ray into a convex solid given as half-spaces
+/// `n . p <= d` (object frame).
+fn convex(o: Vec3, d: Vec3, planes: &[(Vec3, f32)]) -> Option<(f32, Vec3)> {
+    let (mut t_in, mut t_out, mut normal) = (f32::NEG_INFINITY, f32::INFINITY, Vec3::Y);
+    for &(n, dist) in planes {
+        let (denom, num) = (n.dot(d), dist - n.dot(o));
+        if denom.abs() < 1e-12 {
+            if num < 0.0 {
+                return None;
+            }
+            continue;
+        }
+        let t = num / denom;
+        if denom < 0.0 {
+            if t > t_in {
+                t_in = t;
+                normal = n;
+            }
+        } else {
+            t_out = t_out.min(t);
+        }
+    }
+    (t_in <= t_out && t_in > 1e-4).then_some((t_in, normal))
+}
+
+/// The object's hit in its own frame: `o`, `d` relative to the bottom centre, y up, yaw undone.
+fn hit_local(o: Vec3, d: Vec3, shape: Shape, s: f32) -> Option<(f32, Vec3)> {
+    match shape {
+        Shape::Sphere => {
+            let c = Vec3::new(0.0, s, 0.0);
             let oc = o - c;
-            if let Some(t) = quadratic(d.dot(d), 2.0 * oc.dot(d), oc.dot(oc) - s * s, |_| true) {
-                closer(best, hit(t, o + d * t - c));
-            }
+            quadratic(d.dot(d), 2.0 * oc.dot(d), oc.dot(oc) - s * s, |_| true).map(|t| (t, o + d * t - c))
         }
-        "box" => {
-            let half = Vec3::splat(0.85 * s);
-            let (lo, hi) = (c - half, c + half);
-            let inv = d.recip();
-            let t1 = (lo - o) * inv;
-            let t2 = (hi - o) * inv;
-            let tmin = t1.min(t2);
-            let tmax = t1.max(t2);
-            let t_near = tmin.max_element();
-            let t_far = tmax.min_element();
-            if t_near <= t_far && t_near > 1e-4 {
-                let axis = if t_near == tmin.x {
-                    Vec3::X
-                } else if t_near == tmin.y {
-                    Vec3::Y
-                } else {
-                    Vec3::Z
-                };
-                closer(best, hit(t_near, -axis * d.dot(axis).signum()));
-            }
+        Shape::Cube => {
+            let h = CUBE_HALF * s;
+            let planes =
+                [(Vec3::X, h), (-Vec3::X, h), (Vec3::Z, h), (-Vec3::Z, h), (Vec3::Y, 2.0 * h), (-Vec3::Y, 0.0)];
+            convex(o, d, &planes)
         }
-        "cylinder" => {
-            let r = 0.7 * s;
-            let (y0, y1) = (c.y - s, c.y + s);
-            let (px, pz) = (o.x - c.x, o.z - c.z);
-            let side = quadratic(d.x * d.x + d.z * d.z, 2.0 * (px * d.x + pz * d.z), px * px + pz * pz - r * r, |t| {
-                (y0..=y1).contains(&(o.y + t * d.y))
-            });
+        Shape::Pyramid => {
+            let (a, hgt) = (PYRAMID_HALF * s, PYRAMID_HEIGHT * s);
+            // side through the base edge x = a and the apex (0, hgt, 0): hgt x + a y <= hgt a
+            let side = |n: Vec3| ((n * hgt + Vec3::Y * a).normalize(), hgt * a / (n * hgt + Vec3::Y * a).length());
+            let planes = [side(Vec3::X), side(-Vec3::X), side(Vec3::Z), side(-Vec3::Z), (-Vec3::Y, 0.0)];
+            convex(o, d, &planes)
+        }
+        Shape::Cylinder => {
+            let (r, top) = (CYLINDER_RADIUS * s, 2.0 * CYLINDER_HALF_HEIGHT * s);
+            let mut best: Option<(f32, Vec3)> = None;
+            let mut keep = |t: f32, n: Vec3| {
+                if t > 1e-4 && best.is_none_or(|b| t < b.0) {
+                    best = Some((t, n));
+                }
+            };
+            let side =
+                quadratic(d.x * d.x + d.z * d.z, 2.0 * (o.x * d.x + o.z * d.z), o.x * o.x + o.z * o.z - r * r, |t| {
+                    (0.0..=top).contains(&(o.y + t * d.y))
+                });
             if let Some(t) = side {
                 let q = o + d * t;
-                closer(best, hit(t, Vec3::new(q.x - c.x, 0.0, q.z - c.z)));
+                keep(t, Vec3::new(q.x, 0.0, q.z));
             }
-            for (y, n) in [(y1, Vec3::Y), (y0, -Vec3::Y)] {
-                if d.y.abs() > 1e-12 {
+            if d.y.abs() > 1e-12 {
+                for (y, n) in [(top, Vec3::Y), (0.0, -Vec3::Y)] {
                     let t = (y - o.y) / d.y;
                     let q = o + d * t;
-                    if (q.x - c.x).powi(2) + (q.z - c.z).powi(2) <= r * r {
-                        closer(best, hit(t, n));
+                    if q.x * q.x + q.z * q.z <= r * r {
+                        keep(t, n);
                     }
                 }
             }
+            best
         }
-        _ => {
-            // Cone: apex at c + (0, s, 0), base radius 0.8 s at c.y - s.
-            let apex = c + Vec3::new(0.0, s, 0.0);
-            let h = 2.0 * s;
-            let k = 0.8 * s / h;
+        Shape::Cone => {
+            let (r, h) = (CONE_RADIUS * s, CONE_HEIGHT * s);
+            let apex = Vec3::new(0.0, h, 0.0);
+            let k2 = (r / h) * (r / h);
             let p0 = o - apex;
-            let k2 = k * k;
             let a = d.x * d.x + d.z * d.z - k2 * d.y * d.y;
             let b = 2.0 * (p0.x * d.x + p0.z * d.z - k2 * p0.y * d.y);
-            let cc = p0.x * p0.x + p0.z * p0.z - k2 * p0.y * p0.y;
-            if let Some(t) = quadratic(a, b, cc, |t| (-h..=0.0).contains(&(p0.y + t * d.y))) {
+            let c = p0.x * p0.x + p0.z * p0.z - k2 * p0.y * p0.y;
+            let mut best: Option<(f32, Vec3)> = None;
+            if let Some(t) = quadratic(a, b, c, |t| (-h..=0.0).contains(&(p0.y + t * d.y))) {
                 let q = o + d * t;
-                closer(best, hit(t, Vec3::new(q.x - c.x, k2 * (apex.y - q.y), q.z - c.z)));
+                best = Some((t, Vec3::new(q.x, k2 * (h - q.y), q.z)));
             }
             if d.y.abs() > 1e-12 {
-                let t = (c.y - s - o.y) / d.y;
+                let t = -o.y / d.y;
                 let q = o + d * t;
-                if (q.x - c.x).powi(2) + (q.z - c.z).powi(2) <= (0.8 * s).powi(2) {
-                    closer(best, hit(t, -Vec3::Y));
+                if q.x * q.x + q.z * q.z <= r * r && t > 1e-4 && best.is_none_or(|b| t < b.0) {
+                    best = Some((t, -Vec3::Y));
                 }
             }
+            best
+        }
+        Shape::Torus => {
+            let (big, small) = (TORUS_MAJOR * s, TORUS_MINOR * s);
+            let c = Vec3::new(0.0, small, 0.0);
+            let sdf = |p: Vec3| {
+                let q = p - c;
+                (q.x.hypot(q.z) - big).hypot(q.y) - small
+            };
+            // Sphere tracing from where the ray enters the bounding sphere.
+            let (len, dir) = (d.length(), d.normalize());
+            let bound = big + small;
+            let oc = o - c;
+            let (bb, cc) = (oc.dot(dir), oc.dot(oc) - bound * bound);
+            let disc = bb * bb - cc;
+            if disc < 0.0 {
+                return None;
+            }
+            let (mut t, t_end) = ((-bb - disc.sqrt()).max(0.0), -bb + disc.sqrt());
+            for _ in 0..96 {
+                let dist = sdf(o + dir * t);
+                if dist < 1e-4 * bound {
+                    let q = o + dir * t - c;
+                    let ring = Vec3::new(q.x, 0.0, q.z).normalize_or_zero() * big;
+                    return Some((t / len, q - ring));
+                }
+                t += dist;
+                if t > t_end {
+                    break;
+                }
+            }
+            None
         }
     }
 }
 
+fn intersect(o: Vec3, d: Vec3, obj: &Object, best: &mut Option<Hit>) {
+    let base = obj.center - Vec3::new(0.0, obj.shape.centre_height(obj.scale), 0.0);
+    let undo = Quat::from_rotation_y(-obj.yaw);
+    if let Some((t, n)) = hit_local(undo * (o - base), undo * d, obj.shape, obj.scale) {
+        let normal = (Quat::from_rotation_y(obj.yaw) * n).normalize_or(Vec3::Y);
+        closer(best, Hit { t, normal, id: obj.id, albedo: obj.color.rgb() });
+    }
+}
+
 /// Casts one ray against the table and all objects.
-fn trace(o: Vec3, d: Vec3, objects: &[Primitive]) -> Option<Hit> {
+fn trace(o: Vec3, d: Vec3, scene: &Scene) -> Option<Hit> {
     let mut best = None;
     if d.y.abs() > 1e-12 {
         let t = -o.y / d.y;
         let q = o + d * t;
-        if q.x.abs() <= TABLE_HALF && q.z.abs() <= TABLE_HALF {
-            closer(&mut best, Hit { t, normal: Vec3::Y * o.y.signum(), id: TABLE_ID, albedo: table_color(q.x, q.z) });
+        let half = scene.table.half;
+        if q.x.abs() <= half && q.z.abs() <= half {
+            let normal = Vec3::Y * o.y.signum();
+            closer(&mut best, Hit { t, normal, id: TABLE_ID, albedo: scene.table.color(q.x, q.z) });
         }
     }
-    for (k, p) in objects.iter().enumerate() {
-        intersect(o, d, p, FIRST_OBJECT_ID + k as u8, &mut best);
+    for obj in &scene.objects {
+        intersect(o, d, obj, &mut best);
     }
     best
 }
@@ -141,24 +206,24 @@ pub struct SynthView {
     pub depth: Vec<f32>,
 }
 
-/// Ray-casts view `cam` of the objects.
-pub fn render_view(cam: &Camera, objects: &[Primitive]) -> SynthView {
+/// Ray-casts view `cam` of `scene`.
+pub fn render_view(cam: &Camera, scene: &Scene) -> SynthView {
     let (w, h) = (cam.width as usize, cam.height as usize);
     let c2w = cam.world_to_cam.inverse();
     let eye = c2w.transform_point3(Vec3::ZERO);
-    let light = LIGHT.normalize();
-    let mut v = SynthView { rgb: vec![1.0; w * h * 3], ids: vec![0; w * h], depth: vec![0.0; w * h] };
+    let bg = scene.background;
+    let mut v = SynthView { rgb: bg.repeat(w * h), ids: vec![0; w * h], depth: vec![0.0; w * h] };
     for y in 0..h {
         for x in 0..w {
             let dc = Vec3::new((x as f32 + 0.5 - cam.cx) / cam.fx, (y as f32 + 0.5 - cam.cy) / cam.fy, 1.0);
             let d = c2w.transform_vector3(dc);
-            if let Some(hit) = trace(eye, d, objects) {
+            if let Some(hit) = trace(eye, d, scene) {
                 let o = y * w + x;
                 // `d` has unit camera-space z, so `t` is the camera-space depth.
                 v.depth[o] = hit.t;
                 v.ids[o] = hit.id;
                 let n = if hit.normal.dot(d) > 0.0 { -hit.normal } else { hit.normal };
-                let shade = 0.35 + 0.65 * n.dot(light).max(0.0);
+                let shade = 0.35 + 0.65 * n.dot(scene.light).max(0.0);
                 for k in 0..3 {
                     v.rgb[o * 3 + k] = hit.albedo[k] * shade;
                 }

@@ -1,0 +1,195 @@
+//! The paper's comparison, offline: every question of a question file answered three ways,
+//! scored by exact match (normalised as SQA3D / ScanQA do):
+//!
+//! * (a) **ground truth** — the VLM on the dataset's own image (object level: the ground-truth
+//!   masked crop): the upper bound;
+//! * (b) **rendered RGB** — the VLM on the geometry's render of the view (object level: the
+//!   rendered crop cut by the ground-truth mask, the SAM + LLaVA baseline);
+//! * (c) **ChatSplat** — the trained scene's tokens (object level: by click, the rendered
+//!   identity picking the object).
+//!
+//! All three feed the LLM the same layout: one token grid per image, projector, newline.
+
+use crate::score::normalize;
+use model::chat::{ChatSession, answer};
+use model::data::Dataset;
+use model::error::{Error, Result};
+use model::language::ObjectCrop;
+use model::vlm::{GenerateOptions, LlavaOnevision, RgbImage};
+use model::vqa::{Level, Question, QuestionFile, target_of};
+use serde::Serialize;
+use std::collections::BTreeMap;
+use std::path::Path;
+
+/// Where the image tokens come from.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize)]
+#[serde(rename_all = "snake_case")]
+pub enum Source {
+    GroundTruth,
+    RenderedRgb,
+    ChatSplat,
+}
+
+impl Source {
+    pub const ALL: [Source; 3] = [Source::GroundTruth, Source::RenderedRgb, Source::ChatSplat];
+
+    pub fn label(self) -> &'static str {
+        match self {
+            Source::GroundTruth => "(a) VLM on the ground-truth image",
+            Source::RenderedRgb => "(b) VLM on the rendered RGB",
+            Source::ChatSplat => "(c) ChatSplat tokens",
+        }
+    }
+}
+
+/// Exact-match counts (right, asked) by level and by kind.
+#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+pub struct Tally {
+    pub by_level: BTreeMap<Level, (usize, usize)>,
+    pub by_kind: BTreeMap<String, (usize, usize)>,
+}
+
+impl Tally {
+    pub fn add(&mut self, q: &Question, right: bool) {
+        for e in [
+            self.by_level.entry(q.level).or_default(),
+            self.by_kind.entry(q.kind.clone().unwrap_or_else(|| "-".into())).or_default(),
+        ] {
+            e.0 += right as usize;
+            e.1 += 1;
+        }
+    }
+
+    pub fn merge(&mut self, o: &Tally) {
+        for (k, (r, n)) in &o.by_level {
+            let e = self.by_level.entry(*k).or_default();
+            e.0 += r;
+            e.1 += n;
+        }
+        for (k, (r, n)) in &o.by_kind {
+            let e = self.by_kind.entry(k.clone()).or_default();
+            e.0 += r;
+            e.1 += n;
+        }
+    }
+
+    /// Percent right at `level` (`None` when nothing was asked there).
+    pub fn level(&self, level: Level) -> Option<f64> {
+        self.by_level.get(&level).filter(|(_, n)| *n > 0).map(|(r, n)| 100.0 * *r as f64 / *n as f64)
+    }
+
+    /// Percent right overall.
+    pub fn overall(&self) -> f64 {
+        let (r, n) = self.by_level.values().fold((0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
+        100.0 * r as f64 / n.max(1) as f64
+    }
+}
+
+/// Whether `answer` is exactly the reference after normalisation.
+pub fn exact(answer: &str, reference: &str) -> bool {
+    normalize(answer) == normalize(reference)
+}
+
+/// Greedy options for short canonical answers.
+pub fn greedy() -> GenerateOptions {
+    GenerateOptions { max_new_tokens: 24, ..Default::default() }
+}
+
+/// The dataset image of frame `frame` (an index into the question file's `views`) and its view.
+fn frame_view<'a>(file: &QuestionFile, ds: &'a Dataset, frame: usize) -> Result<&'a model::data::View> {
+    let frames = file.views.as_ref().ok_or_else(|| Error::input("the question file lists no views"))?;
+    let name = Path::new(frames.get(frame).ok_or_else(|| Error::input(format!("no frame {frame}")))?)
+        .file_name()
+        .map(|n| n.to_os_string());
+    ds.train
+        .iter()
+        .chain(&ds.test)
+        .find(|v| v.image_path.file_name().map(|n| n.to_os_string()) == name)
+        .ok_or_else(|| Error::input(format!("frame {frame} is not in the dataset")))
+}
+
+fn image_of(v: &model::data::View, rgb: &[f32]) -> RgbImage {
+    RgbImage::from_f32(v.camera.width as usize, v.camera.height as usize, rgb)
+}
+
+/// The masked crop of the object under the question's click, cut by the ground-truth mask.
+fn object_crop(q: &Question, v: &model::data::View, img: &RgbImage, margin: f32) -> Result<RgbImage> {
+    let ids = v.instance_ids.as_ref().ok_or_else(|| Error::input("object questions need masks"))?;
+    let [x, y] = q.object.unwrap_or([0.0, 0.0]).map(|c| c as usize);
+    let (w, h) = (v.camera.width as usize, v.camera.height as usize);
+    if x >= w || y >= h {
+        return Err(Error::input(format!("{}: click ({x}, {y}) outside the {w}x{h} view", q.id)));
+    }
+    let id = ids[y * w + x];
+    let crop = ObjectCrop::of(ids, w, h, id, margin).ok_or_else(|| Error::input(format!("{}: no object", q.id)))?;
+    Ok(crop.masked_image(img, ids, id))
+}
+
+/// The token grids of question `q` from images: the dataset's (`rendered` = `None`) or the
+/// scene's renders.
+fn image_tokens(
+    vlm: &LlavaOnevision,
+    file: &QuestionFile,
+    q: &Question,
+    ds: &Dataset,
+    rendered: Option<&ChatSession>,
+    margin: f32,
+) -> Result<Vec<burn::tensor::Tensor<2>>> {
+    let picture = |frame: usize| -> Result<(RgbImage, &model::data::View)> {
+        let v = frame_view(file, ds, frame)?;
+        let rgb = match rendered {
+            None => v.rgb.clone(),
+            Some(s) => {
+                let view = model::vqa::scene_view(file, s, frame)?;
+                s.scene.render(s.camera(view)?)?.rgb.iter().map(|c| c.clamp(0.0, 1.0)).collect()
+            }
+        };
+        Ok((image_of(v, &rgb), v))
+    };
+    let frames: Vec<usize> = match q.level {
+        Level::Scene => {
+            q.views.clone().ok_or_else(|| Error::input(format!("{}: scene question without views", q.id)))?
+        }
+        _ => vec![q.view.unwrap_or(0)],
+    };
+    let mut out = Vec::new();
+    for f in frames {
+        let (img, v) = picture(f)?;
+        let img = if q.level == Level::Object { object_crop(q, v, &img, margin)? } else { img };
+        out.push(vlm.teacher_tokens(&img));
+    }
+    Ok(out)
+}
+
+/// Answers every question of `file` from `source` and scores it; `ds` is the dataset the file
+/// is about, `session` the trained scene (needed for (b) and (c)). Returns the tally and, per
+/// question, the answer given.
+pub fn answer_file(
+    vlm: &LlavaOnevision,
+    file: &QuestionFile,
+    ds: &Dataset,
+    session: Option<&ChatSession>,
+    source: Source,
+    margin: f32,
+) -> Result<(Tally, Vec<String>)> {
+    let opts = greedy();
+    let mut tally = Tally::default();
+    let mut answers = Vec::with_capacity(file.questions.len());
+    for q in &file.questions {
+        let tokens = match source {
+            Source::GroundTruth => image_tokens(vlm, file, q, ds, None, margin)?,
+            Source::RenderedRgb => {
+                let s = session.ok_or_else(|| Error::input("the rendered-RGB baseline needs a trained scene"))?;
+                image_tokens(vlm, file, q, ds, Some(s), margin)?
+            }
+            Source::ChatSplat => {
+                let s = session.ok_or_else(|| Error::input("ChatSplat needs a trained scene"))?;
+                s.tokens(&target_of(file, q, s, 4)?)?.images
+            }
+        };
+        let g = answer(vlm, &tokens, &q.question, &opts, |_| {})?;
+        tally.add(q, exact(&g.text, &q.answer));
+        answers.push(g.text);
+    }
+    Ok((tally, answers))
+}

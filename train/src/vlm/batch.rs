@@ -1,0 +1,302 @@
+//! Packing samples into one forward pass: every sample is its prompt prefix (`<|im_start|>
+//! user` and its image tokens) followed by its questions as separate segments; each segment sees
+//! the prefix and itself only, at the positions it would have alone, so one pass answers many
+//! questions exactly as single-turn inference would. The loss is cross-entropy on the answer
+//! tokens (and the closing `<|im_end|>`), plus an auxiliary per-token classification of colour,
+//! shape and size on the vision tokens.
+
+use super::data::{Sample, SampleKind};
+use burn::module::Module;
+use burn::nn::Linear;
+use burn::tensor::{Device, Int, Tensor, TensorData, activation};
+use model::data::synth::questions::Kind;
+use model::error::{Error, Result};
+use model::rng::Rng;
+use model::vlm::{LlavaOnevision, Turn, chat_template};
+
+/// The model being trained: the VLM and the auxiliary per-token head.
+#[derive(Module, Debug)]
+pub struct Trainable {
+    pub vlm: LlavaOnevision,
+    /// `[vision D, 8 + 1 + 6 + 1 + 2 + 1]`: colour, shape and size logits per vision token.
+    pub aux: Linear,
+}
+
+/// Class counts of the auxiliary head (none + each value).
+pub const AUX_CLASSES: [usize; 3] = [9, 7, 3];
+
+/// A packed batch on the host.
+pub struct Packed {
+    pub kind: SampleKind,
+    /// Samples in the batch.
+    pub b: usize,
+    /// Images per sample.
+    pub images: usize,
+    /// Token ids `[b, t]` (the image rows hold a placeholder).
+    pub ids: Vec<i64>,
+    pub t: usize,
+    /// Prefix tokens before the image rows (`<|im_start|> user`), and the prefix length.
+    pub head: usize,
+    pub prefix: usize,
+    pub positions: Vec<usize>,
+    /// Additive attention mask `[t, t]`.
+    pub mask: Vec<f32>,
+    /// Flat `b * t + i` of every position whose next token is an answer token, and that token.
+    pub targets: Vec<(usize, i64)>,
+    /// For every question: its kind and the range of its entries in `targets`.
+    pub questions: Vec<(Kind, std::ops::Range<usize>)>,
+    /// Normalised pixels `[b * images, 3, S, S]`.
+    pub pixels: Vec<f32>,
+    /// Per vision token `[b * images * tokens]` of each auxiliary task.
+    pub labels: [Vec<i64>; 3],
+    /// Per vision token: the camera depth of its object (0: none).
+    pub depth: Vec<f32>,
+    /// Per image: whether the LLM reads its label tokens instead of the tower's.
+    pub label_tokens: Vec<bool>,
+}
+
+/// The symbolic stand-in for the tower's output: per token a fixed random vector per colour,
+/// shape and size class plus depth along a fixed direction. The LLM first learns on these clean
+/// tokens while the tower learns to produce them (mean squared error), then on the tower's own.
+pub struct LabelTokens {
+    dim: usize,
+    classes: [Vec<Vec<f32>>; 3],
+    depth: Vec<f32>,
+}
+
+impl LabelTokens {
+    pub fn new(dim: usize, seed: u64) -> Self {
+        let mut rng = Rng::new(seed ^ 0x1AB1E);
+        let mut vecs =
+            |n: usize| -> Vec<Vec<f32>> { (0..n).map(|_| (0..dim).map(|_| rng.normal()).collect()).collect() };
+        let classes = [vecs(AUX_CLASSES[0]), vecs(AUX_CLASSES[1]), vecs(AUX_CLASSES[2])];
+        let depth = vecs(1).remove(0);
+        Self { dim, classes, depth }
+    }
+
+    /// `[n_tokens * dim]` of a packed batch.
+    fn tokens(&self, p: &Packed) -> Vec<f32> {
+        let n = p.depth.len();
+        let mut out = vec![0f32; n * self.dim];
+        for t in 0..n {
+            let row = &mut out[t * self.dim..(t + 1) * self.dim];
+            for (k, table) in self.classes.iter().enumerate() {
+                for (r, v) in row.iter_mut().zip(&table[p.labels[k][t] as usize]) {
+                    *r += v;
+                }
+            }
+            if p.depth[t] > 0.0 {
+                for (r, v) in row.iter_mut().zip(&self.depth) {
+                    *r += (p.depth[t] - 3.4) * v;
+                }
+            }
+        }
+        out
+    }
+}
+
+/// Packs samples of one kind (same number of images) with their picked questions.
+pub fn pack(vlm: &LlavaOnevision, samples: &[(Sample, Vec<model::data::synth::questions::Qa>)]) -> Result<Packed> {
+    let first = samples.first().ok_or_else(|| Error::input("empty batch"))?;
+    let (kind, images) = (first.0.kind, first.0.images.len());
+    let g2 = vlm.cfg.vision.tokens();
+    let rows = images * (g2 + 1);
+    let tok = &vlm.tokenizer;
+    let image_id = tok.image_token_id as i64;
+    // head: the template's tokens before the first <image>; segments: after the last one
+    let mut head_ids: Option<Vec<i64>> = None;
+    let mut segments: Vec<Vec<(Vec<i64>, usize, Kind)>> = Vec::with_capacity(samples.len());
+    for (s, qas) in samples {
+        if s.images.len() != images || s.kind != kind {
+            return Err(Error::input("a batch mixes sample kinds"));
+        }
+        let mut segs = Vec::new();
+        for qa in qas {
+            let prompt = chat_template(&[Turn::user(images, qa.question.clone())], true);
+            let p: Vec<i64> = tok.encode(&prompt)?.into_iter().map(|i| i as i64).collect();
+            let a: Vec<i64> = tok.encode(&format!("{}<|im_end|>", qa.answer))?.into_iter().map(|i| i as i64).collect();
+            let first_img =
+                p.iter().position(|&i| i == image_id).ok_or_else(|| Error::input("no <image> in the prompt"))?;
+            let last_img = p.iter().rposition(|&i| i == image_id).expect("found");
+            let h = p[..first_img].to_vec();
+            match &head_ids {
+                None => head_ids = Some(h),
+                Some(prev) if *prev != h => return Err(Error::input("prompts differ before the image")),
+                _ => {}
+            }
+            let mut seg = p[last_img + 1..].to_vec();
+            let prompt_len = seg.len();
+            seg.extend(a);
+            segs.push((seg, prompt_len, qa.kind));
+        }
+        segments.push(segs);
+    }
+    let head_ids = head_ids.unwrap_or_default();
+    let head = head_ids.len();
+    let prefix = head + rows;
+    let k = segments.iter().map(|s| s.len()).max().unwrap_or(0);
+    let l = segments.iter().flatten().map(|s| s.0.len()).max().unwrap_or(0);
+    let t = prefix + k * l;
+    let b = samples.len();
+    let pad = 0i64;
+    let mut ids = vec![pad; b * t];
+    let mut targets = Vec::new();
+    let mut questions = Vec::new();
+    for (bi, segs) in segments.iter().enumerate() {
+        let row = &mut ids[bi * t..(bi + 1) * t];
+        row[..head].copy_from_slice(&head_ids);
+        for (si, (seg, prompt_len, kind)) in segs.iter().enumerate() {
+            let start = prefix + si * l;
+            row[start..start + seg.len()].copy_from_slice(seg);
+            let first = targets.len();
+            // the token at offset j predicts offset j + 1; answers start at prompt_len
+            for j in prompt_len - 1..seg.len() - 1 {
+                targets.push((bi * t + start + j, seg[j + 1]));
+            }
+            questions.push((*kind, first..targets.len()));
+        }
+    }
+    let mut positions: Vec<usize> = (0..prefix).collect();
+    for _ in 0..k {
+        positions.extend(prefix..prefix + l);
+    }
+    let mut mask = vec![f32::NEG_INFINITY; t * t];
+    for i in 0..t {
+        let seg_i = (i >= prefix).then(|| (i - prefix) / l);
+        for j in 0..=i {
+            let ok = j < prefix || Some((j - prefix) / l) == seg_i;
+            if ok {
+                mask[i * t + j] = 0.0;
+            }
+        }
+    }
+    let mut pixels = Vec::new();
+    let mut labels: [Vec<i64>; 3] = Default::default();
+    let mut depth = Vec::new();
+    for (s, _) in samples {
+        for img in &s.images {
+            pixels.extend_from_slice(&img.pixels);
+            depth.extend_from_slice(&img.depth);
+            for l in &img.labels {
+                for (k, v) in l.iter().enumerate() {
+                    labels[k].push(*v as i64);
+                }
+            }
+        }
+    }
+    let label_tokens = vec![false; b * images];
+    Ok(Packed {
+        kind,
+        b,
+        images,
+        ids,
+        t,
+        head,
+        prefix,
+        positions,
+        mask,
+        targets,
+        questions,
+        pixels,
+        labels,
+        depth,
+        label_tokens,
+    })
+}
+
+/// What one forward pass gives.
+pub struct Forward {
+    /// Mean cross-entropy of the answer tokens.
+    pub answer_loss: Tensor<1>,
+    /// Mean cross-entropy of the auxiliary classes.
+    pub aux_loss: Tensor<1>,
+    /// Mean squared error of the tower's tokens against the label tokens (zero without them).
+    pub label_loss: Tensor<1>,
+    /// Log-probabilities `[targets, vocab]` at the answer positions.
+    pub log_probs: Tensor<2>,
+}
+
+/// Runs the packed batch through the model. `noise` (with its generator): the std of Gaussian
+/// noise added to the vision tokens before the projector, relative to their RMS (training the LLM
+/// to read tokens that are close to, not equal to, the tower's: what ChatSplat's encoder gives);
+/// `None` at evaluation.
+pub fn forward(
+    m: &Trainable,
+    p: &Packed,
+    label_tokens: Option<&LabelTokens>,
+    noise: Option<(f32, &mut Rng)>,
+    device: &Device,
+) -> Forward {
+    let vlm = &m.vlm;
+    let s = vlm.cfg.vision.image_size;
+    let n_img = p.b * p.images;
+    let pixels = Tensor::<4>::from_data(TensorData::new(p.pixels.clone(), [n_img, 3, s, s]), device);
+    let vis = vlm.vision.forward(pixels); // [N, g2, Dv]
+    let [_, g2, dv] = vis.dims();
+    // auxiliary per-token classification
+    let aux_logits = m.aux.forward(vis.clone().reshape([n_img * g2, dv]));
+    let mut aux_loss: Option<Tensor<1>> = None;
+    let mut off = 0;
+    for (k, &c) in AUX_CLASSES.iter().enumerate() {
+        let lp = activation::log_softmax(aux_logits.clone().narrow(1, off, c), 1);
+        let lab = Tensor::<1, Int>::from_data(TensorData::new(p.labels[k].clone(), [n_img * g2]), device);
+        let l = lp.gather(1, lab.reshape([n_img * g2, 1])).mean().neg();
+        aux_loss = Some(match aux_loss {
+            Some(a) => a + l,
+            None => l,
+        });
+        off += c;
+    }
+    let (vis, label_loss) = match label_tokens {
+        Some(lt) => {
+            let e = Tensor::<3>::from_data(TensorData::new(lt.tokens(p), [n_img, g2, dv]), device);
+            let loss = (vis.clone() - e.clone()).powf_scalar(2.0).mean();
+            let flags: Vec<f32> = p.label_tokens.iter().map(|&f| if f { 1.0 } else { 0.0 }).collect();
+            let m = Tensor::<3>::from_data(TensorData::new(flags, [n_img, 1, 1]), device);
+            (vis * (m.clone().neg() + 1.0) + e * m, loss)
+        }
+        None => (vis, Tensor::zeros([1], device)),
+    };
+    let vis = match noise {
+        Some((std, rng)) if std > 0.0 => {
+            let rms = vis.clone().powf_scalar(2.0).mean().sqrt().detach();
+            let eps: Vec<f32> = (0..n_img * g2 * dv).map(|_| rng.normal()).collect();
+            let eps = Tensor::<3>::from_data(TensorData::new(eps, [n_img, g2, dv]), device);
+            vis + eps * rms.unsqueeze_dim::<2>(0).unsqueeze_dim::<3>(0) * std
+        }
+        _ => vis,
+    };
+    let proj = vlm.projector.forward(vis); // [N, g2, Dt]
+    let dt = proj.dims()[2];
+    let newline = vlm.image_newline.val().reshape([1, 1, dt]).expand([n_img, 1, dt]);
+    let rows = Tensor::cat(vec![proj, newline], 1).reshape([p.b, p.images * (g2 + 1), dt]);
+    let ids = Tensor::<2, Int>::from_data(TensorData::new(p.ids.clone(), [p.b, p.t]), device);
+    let text = vlm.llm.embed.forward(ids); // [b, t, Dt]
+    let mut parts = Vec::new();
+    if p.head > 0 {
+        parts.push(text.clone().narrow(1, 0, p.head));
+    }
+    parts.push(rows);
+    if p.t > p.prefix {
+        parts.push(text.narrow(1, p.prefix, p.t - p.prefix));
+    }
+    let x = Tensor::cat(parts, 1);
+    let mask = Tensor::<2>::from_data(TensorData::new(p.mask.clone(), [p.t, p.t]), device);
+    let hidden = vlm.llm.forward_masked(x, &p.positions, mask); // [b, t, Dt]
+    let idx: Vec<i64> = p.targets.iter().map(|&(i, _)| i as i64).collect();
+    let n = idx.len();
+    let idx = Tensor::<1, Int>::from_data(TensorData::new(idx, [n]), device);
+    let h = hidden.reshape([p.b * p.t, dt]).select(0, idx);
+    let log_probs = activation::log_softmax(vlm.llm.logits(h), 1);
+    let tgt: Vec<i64> = p.targets.iter().map(|&(_, t)| t).collect();
+    let tgt = Tensor::<1, Int>::from_data(TensorData::new(tgt, [n]), device).reshape([n, 1]);
+    let answer_loss = log_probs.clone().gather(1, tgt).mean().neg();
+    Forward { answer_loss, aux_loss: aux_loss.expect("three tasks") / AUX_CLASSES.len() as f32, label_loss, log_probs }
+}
+
+/// Per question of a packed batch: whether greedy decoding gives exactly the reference answer
+/// (every answer token, and the closing `<|im_end|>`, is the most likely one).
+pub fn exact(p: &Packed, log_probs: Tensor<2>) -> Vec<(Kind, bool)> {
+    let best = log_probs.argmax(1).into_data().convert::<i64>().to_vec::<i64>().expect("i64 argmax");
+    p.questions.iter().map(|(kind, range)| (*kind, range.clone().all(|i| best[i] == p.targets[i].1))).collect()
+}

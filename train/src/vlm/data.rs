@@ -1,0 +1,217 @@
+//! Training and evaluation samples for the tabletop VLM, in exactly the token layouts ChatSplat
+//! feeds the LLM: a whole view (view questions), the masked crop of one object (object
+//! questions, through the one crop rule), several views of a scene (scene questions). Scenes are
+//! drawn from seeds and ray-cast on the fly; every answer is true by construction
+//! (`model::data::synth::questions`).
+
+use model::data::synth::questions::{
+    CLICK_FRACTION, Qa, ViewFacts, covering_views, object_questions, scene_questions, view_questions,
+};
+use model::data::synth::raycast::{SynthView, render_view};
+use model::data::synth::scene::Scene;
+use model::data::synth::{SCENE_VIEWS, random_camera};
+use model::language::ObjectCrop;
+use model::rng::Rng;
+use model::vlm::preprocess::ImagePatches;
+use model::vlm::preprocess::{RgbImage, resize};
+use model::vlm::{LlavaConfig, ProcessorConfig};
+use serde::{Deserialize, Serialize};
+
+/// What a sample shows.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum SampleKind {
+    View,
+    Object,
+    Scene,
+}
+
+impl SampleKind {
+    pub const ALL: [SampleKind; 3] = [SampleKind::View, SampleKind::Object, SampleKind::Scene];
+}
+
+/// One image as the vision tower sees it, and what each of its tokens shows: the labels of the
+/// auxiliary loss and of the label tokens (the symbolic stand-in for the tower's output that the
+/// LLM first learns on).
+#[derive(Clone, Debug)]
+pub struct TowerImage {
+    /// Normalised `[3, S, S]`.
+    pub pixels: Vec<f32>,
+    /// Per token (row-major grid): (colour, shape, size) class of the object with the most
+    /// pixels in the token's patch (at least [`MIN_TOKEN_PIXELS`] of them), 0 = none (else colour
+    /// 1..=8, shape 1..=6, size 1..=2).
+    pub labels: Vec<[u8; 3]>,
+    /// Per token: camera-space depth of that object's pixels in the patch (0 for none).
+    pub depth: Vec<f32>,
+}
+
+/// Fraction of a token's patch an object must cover to label the token.
+pub const MIN_TOKEN_PIXELS: f32 = 0.04;
+
+/// A sample: its images and the questions asked about them.
+#[derive(Clone, Debug)]
+pub struct Sample {
+    pub kind: SampleKind,
+    pub images: Vec<TowerImage>,
+    pub qas: Vec<Qa>,
+}
+
+/// How samples are made.
+#[derive(Clone, Debug)]
+pub struct DataSpec {
+    /// Rendered view side (the synthetic datasets' resolution); resized to the tower's input.
+    pub resolution: u32,
+    pub fov_deg: f32,
+    /// Object crop margin (the teacher's).
+    pub margin: f32,
+    pub processor: ProcessorConfig,
+    /// The tower's input side, patch and token grid.
+    pub image_size: usize,
+    pub patch: usize,
+    pub grid: usize,
+}
+
+impl DataSpec {
+    pub fn new(cfg: &LlavaConfig, processor: &ProcessorConfig, resolution: u32, margin: f32) -> Self {
+        Self {
+            resolution,
+            fov_deg: 50.0,
+            margin,
+            processor: processor.clone(),
+            image_size: cfg.vision.image_size,
+            patch: cfg.vision.patch_size,
+            grid: cfg.vision.grid(),
+        }
+    }
+
+    /// The tower input of an image, its id map and depth (`[h, w]`, same size), resized like
+    /// the processor's base view (the ids and depths by nearest sample).
+    fn tower_image(&self, img: &RgbImage, ids: &[u8], depth: &[f32], scene: &Scene) -> TowerImage {
+        let s = self.image_size;
+        let resized = resize(img, s, s, self.processor.resample);
+        let patches = ImagePatches { views: vec![resized], orig_hw: (img.height, img.width), anyres: false };
+        let pixels = patches.pixel_values(&self.processor);
+        let (g, p) = (self.grid, self.patch);
+        let mut labels = Vec::with_capacity(g * g);
+        let mut depths = Vec::with_capacity(g * g);
+        for ty in 0..g {
+            for tx in 0..g {
+                let mut count = [0usize; 256];
+                let mut dsum = [0f32; 256];
+                for y in ty * p..(ty + 1) * p {
+                    for x in tx * p..(tx + 1) * p {
+                        let sx = (x * img.width / s).min(img.width - 1);
+                        let sy = (y * img.height / s).min(img.height - 1);
+                        let i = ids[sy * img.width + sx] as usize;
+                        count[i] += 1;
+                        dsum[i] += depth[sy * img.width + sx];
+                    }
+                }
+                let (best, n) =
+                    (2..256).map(|i| (i, count[i])).max_by_key(|&(i, n)| (n, usize::MAX - i)).unwrap_or((0, 0));
+                let enough = n as f32 >= MIN_TOKEN_PIXELS * (p * p) as f32;
+                depths.push(if enough { dsum[best] / n as f32 } else { 0.0 });
+                let label = match scene.object(best as u8) {
+                    Some(o) if enough => [
+                        1 + model::data::synth::scene::Color::ALL.iter().position(|c| *c == o.color).unwrap_or(0) as u8,
+                        1 + model::data::synth::scene::Shape::ALL.iter().position(|c| *c == o.shape).unwrap_or(0) as u8,
+                        1 + model::data::synth::scene::Size::ALL.iter().position(|c| *c == o.size).unwrap_or(0) as u8,
+                    ],
+                    _ => [0; 3],
+                };
+                labels.push(label);
+            }
+        }
+        TowerImage { pixels, labels, depth: depths }
+    }
+
+    fn render(&self, scene: &Scene, rng: &mut Rng) -> (SynthView, ViewFacts, RgbImage) {
+        let r = self.resolution;
+        let cam = random_camera(rng, self.fov_deg, r, r);
+        let v = render_view(&cam, scene);
+        let facts = ViewFacts::of(scene, &v.ids, &v.depth, r as usize, r as usize);
+        let img = RgbImage::from_f32(r as usize, r as usize, &v.rgb);
+        (v, facts, img)
+    }
+
+    /// A sample of `kind` from the scene of `seed` (random cameras from `rng`); `None` when the
+    /// drawn views give nothing to ask (e.g. an ambiguous view, or no object large enough).
+    pub fn sample(&self, kind: SampleKind, seed: u64, rng: &mut Rng) -> Option<Sample> {
+        let scene = Scene::from_seed(seed);
+        match kind {
+            SampleKind::View => {
+                let (v, facts, img) = self.render(&scene, rng);
+                let qas = view_questions(&scene, &facts, rng);
+                (!qas.is_empty()).then(|| Sample {
+                    kind,
+                    images: vec![self.tower_image(&img, &v.ids, &v.depth, &scene)],
+                    qas,
+                })
+            }
+            SampleKind::Object => {
+                let (v, facts, img) = self.render(&scene, rng);
+                if facts.ambiguous {
+                    return None;
+                }
+                let r = self.resolution as usize;
+                let big: Vec<u8> = facts
+                    .seen
+                    .iter()
+                    .filter(|s| s.pixels as f32 >= CLICK_FRACTION * (r * r) as f32)
+                    .map(|s| s.id)
+                    .collect();
+                if big.is_empty() {
+                    return None;
+                }
+                let id = big[(rng.next_u64() % big.len() as u64) as usize];
+                let crop = ObjectCrop::of(&v.ids, r, r, id, self.margin)?;
+                let obj_img = crop.masked_image(&img, &v.ids, id);
+                // the crop's id map: the object where it is, nothing elsewhere
+                let side = crop.side;
+                let mut ids = vec![0u8; side * side];
+                let mut depth = vec![0f32; side * side];
+                let [bx0, by0, bx1, by1] = crop.bbox;
+                for y in by0..by1 {
+                    for x in bx0..bx1 {
+                        if v.ids[y * r + x] == id {
+                            let o = (y - by0 + crop.offset[1]) * side + (x - bx0 + crop.offset[0]);
+                            ids[o] = id;
+                            depth[o] = v.depth[y * r + x];
+                        }
+                    }
+                }
+                let o = scene.object(id)?;
+                let image = self.tower_image(&obj_img, &ids, &depth, &scene);
+                Some(Sample { kind, images: vec![image], qas: object_questions(o) })
+            }
+            SampleKind::Scene => {
+                // candidate views around the scene; the first SCENE_VIEWS that together see everything
+                let renders: Vec<_> = (0..8).map(|_| self.render(&scene, rng)).collect();
+                let facts: Vec<ViewFacts> = renders.iter().map(|r| r.1.clone()).collect();
+                let chosen = covering_views(&scene, &facts, SCENE_VIEWS)?;
+                let images = chosen
+                    .iter()
+                    .map(|&i| self.tower_image(&renders[i].2, &renders[i].0.ids, &renders[i].0.depth, &scene))
+                    .collect();
+                Some(Sample { kind, images, qas: scene_questions(&scene) })
+            }
+        }
+    }
+}
+
+/// Picks up to `k` questions of a sample, spread over kinds (a kind at random, then a question of
+/// it), without repeats.
+pub fn pick_questions(qas: &[Qa], k: usize, rng: &mut Rng) -> Vec<Qa> {
+    let mut left: Vec<Qa> = qas.to_vec();
+    let mut out = Vec::with_capacity(k);
+    while out.len() < k && !left.is_empty() {
+        let mut kinds: Vec<_> = left.iter().map(|q| q.kind).collect();
+        kinds.sort();
+        kinds.dedup();
+        let kind = kinds[(rng.next_u64() % kinds.len() as u64) as usize];
+        let of: Vec<usize> = (0..left.len()).filter(|&i| left[i].kind == kind).collect();
+        let i = of[(rng.next_u64() % of.len() as u64) as usize];
+        out.push(left.swap_remove(i));
+    }
+    out
+}

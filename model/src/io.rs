@@ -55,6 +55,18 @@ pub fn read_json<T: DeserializeOwned>(path: &Path) -> Result<T> {
         .map_err(|e| Error::invalid(path, format!("invalid JSON at line {}, column {}: {e}", e.line(), e.column())))
 }
 
+/// Reads a config file a user wrote: a JSON object (not an array, which serde would map onto the
+/// fields by position), unknown keys refused by the type.
+pub fn read_config<T: DeserializeOwned>(path: &Path) -> Result<T> {
+    let text = std::fs::read_to_string(path).at(path, "cannot read")?;
+    let value: serde_json::Value = serde_json::from_str(&text)
+        .map_err(|e| Error::invalid(path, format!("invalid JSON at line {}, column {}: {e}", e.line(), e.column())))?;
+    if !value.is_object() {
+        return Err(Error::invalid(path, "a config must be a JSON object of settings, e.g. {\"iters\": 1000}"));
+    }
+    serde_json::from_value(value).map_err(|e| Error::invalid(path, format!("config: {e}")))
+}
+
 /// f32 safetensors with optional metadata, atomically.
 pub fn write_f32(path: &Path, tensors: Named, meta: Option<HashMap<String, String>>) -> Result<()> {
     let bytes: Vec<(String, Vec<usize>, Vec<u8>)> =

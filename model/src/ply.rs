@@ -180,6 +180,10 @@ pub fn parse(bytes: &[u8], src: impl AsRef<Path>) -> Result<GaussianCloud> {
             }
         }
     }
+    if let Some(k) = values.iter().position(|v| !v.is_finite()) {
+        let (name, v) = (&props[k % width].0, values[k]);
+        return Err(err(format!("vertex {} property `{name}` is not finite ({v})", k / width)));
+    }
     let get = |name: &str| index.get(name).copied();
     let col = |j: Option<usize>, default: f32| -> Vec<f32> {
         (0..n).map(|i| j.map(|j| values[i * width + j]).unwrap_or(default)).collect()

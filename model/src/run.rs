@@ -111,6 +111,9 @@ pub struct DataRef {
     pub downscale: u32,
     /// The RGB the dataset's transparent pixels were composited over.
     pub background: [f32; 3],
+    /// [`crate::data::Dataset::fingerprint`] of the loaded dataset (empty in older runs).
+    #[serde(default)]
+    pub fingerprint: String,
 }
 
 /// The scene bounds a geometry run uses (initialisation, learning-rate scale, densification).
@@ -336,6 +339,9 @@ pub struct TeacherIndex {
     pub teacher: String,
     /// The dataset the tokens were extracted from.
     pub data: StoredPath,
+    /// [`crate::data::Dataset::fingerprint`] of that dataset as loaded (empty in older indexes).
+    #[serde(default)]
+    pub fingerprint: String,
     pub vision_feature_layer: i64,
     /// Token grid side and width.
     pub grid: usize,

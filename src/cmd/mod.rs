@@ -32,34 +32,54 @@ enum Command {
     /// The whole pipeline on the built-in synthetic tabletop with the built-in LLaVA-OneVision
     /// (no downloads): synth -> geometry -> teacher tokens -> language field -> chat at view,
     /// object and scene level -> VQA scoring -> encoder export.
+    #[command(allow_negative_numbers = true)]
     Demo(demo::Args),
     /// Write the built-in synthetic tabletop as a dataset: ray-cast RGB views, instance masks,
     /// depth, transforms.json, scene.json and questions.json.
+    #[command(allow_negative_numbers = true)]
     Synth(synth::Args),
     /// Render a Gaussian scene (an Inria-layout .ply, or the built-in synthetic tabletop) to PNG.
+    #[command(allow_negative_numbers = true)]
     Render(render::Args),
     /// Geometry stage: fit 3D Gaussians with a 16-channel identity field to a posed dataset.
+    #[command(allow_negative_numbers = true)]
     Train(train::Args),
     /// Export a run's Gaussians as an Inria-layout .ply (with identity features as extra properties).
+    #[command(allow_negative_numbers = true)]
     ExportPly(export_ply::Args),
     /// Teacher tokens for the language field: SigLIP patch features of every training view and of
     /// every masked object, as f16 safetensors (resumable).
+    #[command(allow_negative_numbers = true)]
     Extract(extract::Args),
     /// Language stage: train the per-Gaussian language features, the encoder and the scaling
     /// adjustment against the teacher tokens (geometry frozen).
+    #[command(allow_negative_numbers = true)]
     TrainLanguage(train_language::Args),
     /// Write the encoder and scaling adjustment as safetensors (PyTorch Conv2d layout) with a JSON header.
+    #[command(allow_negative_numbers = true)]
     ExportEncoder(export_encoder::Args),
     /// Train the tabletop LLaVA-OneVision from scratch on synthetic scenes (the built-in model).
+    #[command(allow_negative_numbers = true)]
     TrainVlm(train_vlm::Args),
     /// Ask one question: plain LLaVA-OneVision on images (the paper's baseline), or a trained
     /// scene at view, object (click) or scene level.
+    #[command(allow_negative_numbers = true)]
     Ask(ask::Args),
     /// Interactive chat with a trained scene: view, object (click) and scene level.
+    #[command(allow_negative_numbers = true)]
     Chat(chat::Args),
     /// Answer an annotated question file about a trained scene and score the answers (offline
     /// exact-match/keyword scorer; plus an OpenAI-compatible grader when CHATSPLAT_GRADER_URL is set).
+    #[command(allow_negative_numbers = true)]
     Vqa(vqa::Args),
+}
+
+/// A config's range check, naming the config file when the settings came from one.
+pub fn check_config(path: Option<&std::path::Path>, r: model::error::Result<()>) -> anyhow::Result<()> {
+    match (r, path) {
+        (Err(e), Some(p)) => Err(anyhow::anyhow!("{}: {e}", p.display())),
+        (r, _) => Ok(r?),
+    }
 }
 
 /// Runs one command.

@@ -100,6 +100,9 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     };
     let up = parse_vec3("up", &a.up)?;
     let bg = parse_vec3("background", &a.background)?;
+    if !bg.to_array().iter().all(|c| (0.0..=1.0).contains(c)) {
+        bail!("--background {}: each channel must be in [0, 1]", a.background);
+    }
     if (eye - centre).length() < 1e-6 || (eye - centre).normalize().cross(up.normalize_or_zero()).length() < 1e-4 {
         bail!("--eye, --target and --up must not be collinear");
     }

@@ -45,13 +45,19 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         bail!("--downscale must be >= 1");
     }
     let mut cfg = match &a.config {
-        Some(p) => model::io::read_json::<GeometryConfig>(p)?,
+        Some(p) => model::io::read_config::<GeometryConfig>(p)?,
         None => GeometryConfig { background: bgc, ..Default::default() },
     };
     if let Some(n) = a.iters {
         cfg.iters = n;
+    } else if a.resume {
+        // resuming without --iters: the run's own total
+        let stored = GeometryRun::new(&a.out).config();
+        if stored.is_file() {
+            cfg.iters = model::io::read_json::<GeometryConfig>(&stored)?.iters;
+        }
     }
-    cfg.validate()?;
+    super::check_config(a.config.as_deref(), cfg.validate())?;
     let load = LoadOptions { downscale: a.downscale, background: bg, ..Default::default() };
     // COLMAP projects initialise from their sparse points.
     let (ds, points) = if a.data.join("sparse").is_dir() && !a.data.join("poses_bounds.npy").is_file() {

@@ -35,7 +35,7 @@ pub struct Args {
 
 pub fn run(a: Args) -> anyhow::Result<()> {
     let mut cfg = match &a.config {
-        Some(p) => model::io::read_json::<LanguageTrainConfig>(p)?,
+        Some(p) => model::io::read_config::<LanguageTrainConfig>(p)?,
         None => LanguageTrainConfig::default(),
     };
     if let Some(n) = a.iters {
@@ -48,8 +48,13 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         cfg.field.view_channels = c;
         cfg.field.object_channels = c;
     }
+    super::check_config(a.config.as_deref(), cfg.validate())?;
     let geometry = GeometryRun::new(&a.run);
     let out = a.out.as_ref().map(LanguageRun::new).unwrap_or_else(|| geometry.language());
+    if a.iters.is_none() && a.resume && out.config().is_file() {
+        // resuming without --iters: the run's own total
+        cfg.iters = model::io::read_json::<LanguageTrainConfig>(&out.config())?.iters;
+    }
     let device = a.backend.device();
     let bar = Progress::new("language", "it");
     let s = model::catch_backend("language training", || {

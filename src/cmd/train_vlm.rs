@@ -26,7 +26,7 @@ pub struct Args {
 
 pub fn run(a: Args) -> anyhow::Result<()> {
     let mut cfg = match &a.config {
-        Some(p) => model::io::read_json::<VlmTrainConfig>(p)?,
+        Some(p) => model::io::read_config::<VlmTrainConfig>(p)?,
         None => VlmTrainConfig::default(),
     };
     if let Some(s) = a.steps {
@@ -35,7 +35,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     if let Some(s) = a.seed {
         cfg.seed = s;
     }
-    cfg.validate()?;
+    super::check_config(a.config.as_deref(), cfg.validate())?;
     let device = a.backend.device();
     let bar = Progress::new("train-vlm", "steps");
     let t0 = std::time::Instant::now();

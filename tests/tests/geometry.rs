@@ -88,7 +88,7 @@ fn checkpoint_resume_gives_the_same_parameters() {
     let ds = tiny_scene("geo-resume", 6);
     let dev = Device::ndarray();
     let run = GeometryRun::new(temp_dir("geo-resume-run"));
-    let data = data_ref(std::path::Path::new("scene"), &LoadOptions::default(), &run);
+    let data = data_ref(&ds, std::path::Path::new("scene"), &LoadOptions::default(), &run);
     let mut a = GeometryTrainer::new(&ds, cfg(80), &dev).unwrap();
     train(&mut a, &ds, 25);
     a.save(&run, &data).unwrap();

@@ -208,7 +208,7 @@ fn scene_with_teacher(tag: &str) -> (PathBuf, PathBuf, LlavaOnevision) {
     }
     let run_dir = temp_dir(&format!("{tag}-run"));
     let run = GeometryRun::new(&run_dir);
-    g.save(&run, &data_ref(&data, &LoadOptions::default(), &run)).unwrap();
+    g.save(&run, &data_ref(&ds, &data, &LoadOptions::default(), &run)).unwrap();
     write_cameras(&run, &ds).unwrap();
     let vlm = LlavaOnevision::load(&fixture(), &dev).unwrap();
     let teacher = temp_dir(&format!("{tag}-teacher"));

@@ -128,6 +128,20 @@ impl LanguageTrainer {
             cfg.field.object_channels = ix.dim;
         }
         let (splats, state) = run.load_model(device)?;
+        let geo = &state.data.fingerprint;
+        if !geo.is_empty() && !ix.fingerprint.is_empty() && *geo != ix.fingerprint {
+            return Err(Error::invalid(
+                teacher.dir.index(),
+                format!(
+                    "the teacher tokens come from {} (fingerprint {}), but the geometry run {} was trained on {} \
+                     (fingerprint {geo}): extract the teacher from the run's dataset",
+                    teacher.data_dir().display(),
+                    ix.fingerprint,
+                    run.dir.display(),
+                    state.data.dir.resolve(&run.dir).display()
+                ),
+            ));
+        }
         let views = teacher.dataset()?.train;
         if cfg.field.patch == 0 {
             let (w, h) = views.iter().fold((0, 0), |(w, h), v| (w.max(v.camera.width), h.max(v.camera.height)));
@@ -424,7 +438,7 @@ pub fn run(
             return Err(Error::invalid(&out.dir, "--resume: there is no language checkpoint to resume from"));
         }
         let mut t = LanguageTrainer::resume(run, out, device)?;
-        t.cfg.iters = cfg.iters.max(t.cfg.iters);
+        t.cfg.iters = cfg.iters; // train until the requested total (nothing more when already past it)
         let at = t.iter;
         (t, Some(at))
     } else {

@@ -170,6 +170,7 @@ pub fn extract(
     let index = TeacherIndex {
         teacher: vlm.dir.display().to_string(),
         data: StoredPath::new(data, &out.dir),
+        fingerprint: ds.fingerprint(),
         vision_feature_layer: vlm.cfg.vision_feature_layer,
         grid,
         dim,
@@ -263,6 +264,18 @@ impl TeacherSet {
                     self.views.len(),
                     data.display(),
                     ds.train.len()
+                ),
+            ));
+        }
+        let now = ds.fingerprint();
+        if !self.index.fingerprint.is_empty() && self.index.fingerprint != now {
+            return Err(Error::invalid(
+                self.dir.index(),
+                format!(
+                    "the tokens were extracted from a different version of {} (fingerprint {}, now {now}): \
+                     run `chatsplat extract` again",
+                    data.display(),
+                    self.index.fingerprint
                 ),
             ));
         }

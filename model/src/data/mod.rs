@@ -82,6 +82,42 @@ pub struct Dataset {
     pub test: Vec<View>,
 }
 
+impl Dataset {
+    /// A fingerprint of what was loaded (16 hex digits): per view, in split order, its file name
+    /// and size on disk, image size, intrinsics, pose and a sample of its pixels. Moving the dataset keeps it; other
+    /// photos, poses, split or downscale change it. Runs and teacher directories store it so
+    /// that resuming or training on other data is refused.
+    pub fn fingerprint(&self) -> String {
+        // FNV-1a, 64 bit
+        let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+        let mut eat = |bytes: &[u8]| {
+            for b in bytes {
+                h = (h ^ *b as u64).wrapping_mul(0x0100_0000_01b3);
+            }
+        };
+        for (split, views) in [(0u8, &self.train), (1, &self.test)] {
+            eat(&[split]);
+            eat(&(views.len() as u64).to_le_bytes());
+            for v in views {
+                let name = v.image_path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+                eat(name.as_bytes());
+                eat(&std::fs::metadata(&v.image_path).map(|m| m.len()).unwrap_or(0).to_le_bytes());
+                let c = &v.camera;
+                eat(&c.width.to_le_bytes());
+                eat(&c.height.to_le_bytes());
+                for x in [c.fx, c.fy, c.cx, c.cy].into_iter().chain(c.world_to_cam.to_cols_array()) {
+                    // poses rounded to 1e-5 so that re-parsing the same file cannot differ
+                    eat(&((x as f64 * 1e5).round() as i64).to_le_bytes());
+                }
+                for x in v.rgb.iter().step_by(61) {
+                    eat(&[(x * 255.0).round() as u8]);
+                }
+            }
+        }
+        format!("{h:016x}")
+    }
+}
+
 /// Splits `views` (in order) into train and test: every `every`-th view is held out (0: none).
 pub(crate) fn split(views: Vec<View>, every: usize) -> Dataset {
     let (mut train, mut test) = (vec![], vec![]);

@@ -192,6 +192,11 @@ fn load_file(file: &Path, dir: &Path, opts: &LoadOptions, maps: &mut Maps) -> Re
         let fy = get("fl_y").unwrap_or(fx);
         let cx = get("cx").unwrap_or(0.5 * w as f32);
         let cy = get("cy").unwrap_or(0.5 * h as f32);
+        if !(fx.is_finite() && fx > 0.0 && fy.is_finite() && fy > 0.0 && cx.is_finite() && cy.is_finite()) {
+            return Err(at(&format!(
+                "intrinsics fl_x {fx}, fl_y {fy}, cx {cx}, cy {cy}: focal lengths must be positive"
+            )));
+        }
         let m = f
             .get("transform_matrix")
             .and_then(Value::as_array)

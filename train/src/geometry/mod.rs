@@ -91,9 +91,14 @@ pub struct GeometryMetrics {
 }
 
 /// Where the data of a run come from: the dataset directory and how it was loaded.
-pub fn data_ref(data_dir: &Path, load: &LoadOptions, run: &GeometryRun) -> DataRef {
+pub fn data_ref(ds: &Dataset, data_dir: &Path, load: &LoadOptions, run: &GeometryRun) -> DataRef {
     let bg = load.background.value();
-    DataRef { dir: StoredPath::new(data_dir, &run.dir), downscale: load.downscale, background: [bg; 3] }
+    DataRef {
+        dir: StoredPath::new(data_dir, &run.dir),
+        downscale: load.downscale,
+        background: [bg; 3],
+        fingerprint: ds.fingerprint(),
+    }
 }
 
 /// Trains (or resumes) a run in `out` on dataset `ds` (read from `data_dir` with `load`):
@@ -115,7 +120,7 @@ pub fn run(
     mut progress: impl FnMut(Progress),
 ) -> Result<RunSummary> {
     cfg.validate()?;
-    let data = data_ref(data_dir, load, out);
+    let data = data_ref(ds, data_dir, load, out);
     let (mut t, resumed_from) = if resume {
         if !out.checkpoint().is_file() {
             return Err(Error::invalid(&out.dir, "--resume: there is no checkpoint to resume from"));
@@ -123,19 +128,24 @@ pub fn run(
         let (mut t, stored) = GeometryTrainer::load(out, device)?;
         let (was, now) = (stored.dir.resolve(&out.dir), data_dir);
         let same_dir = std::fs::canonicalize(&was).ok() == std::fs::canonicalize(now).ok();
-        if !same_dir || stored.downscale != data.downscale {
+        // runs with a fingerprint may resume on a moved copy of the same data; older ones need the same path
+        let same_data = if stored.fingerprint.is_empty() { same_dir } else { stored.fingerprint == data.fingerprint };
+        if !same_data || stored.downscale != data.downscale {
             return Err(Error::invalid(
                 &out.dir,
                 format!(
-                    "--resume: the run was trained on {} at downscale {}, not {} at downscale {}",
+                    "--resume: the run was trained on {} at downscale {} (fingerprint {}), not on {} at downscale {} \
+                     (fingerprint {})",
                     was.display(),
                     stored.downscale,
+                    stored.fingerprint,
                     now.display(),
-                    data.downscale
+                    data.downscale,
+                    data.fingerprint
                 ),
             ));
         }
-        t.cfg.iters = cfg.iters.max(t.cfg.iters);
+        t.cfg.iters = cfg.iters; // train until the requested total (nothing more when already past it)
         let at = t.iter;
         (t, Some(at))
     } else {

@@ -56,12 +56,15 @@ pub struct Packed {
 }
 
 /// The symbolic stand-in for the tower's output: per token a fixed random vector per colour,
-/// shape and size class plus depth along a fixed direction. The LLM first learns on these clean
-/// tokens while the tower learns to produce them (mean squared error), then on the tower's own.
+/// shape and size class, plus depth, x and y (the token's centre, -1..1) along fixed directions:
+/// what a patch shows and where, nothing from other patches (what ChatSplat's per-patch encoder
+/// can reproduce). The LLM first learns on these clean tokens while the tower learns to produce
+/// them (mean squared error), then on the tower's own.
 pub struct LabelTokens {
     dim: usize,
     classes: [Vec<Vec<f32>>; 3],
     depth: Vec<f32>,
+    xy: [Vec<f32>; 2],
 }
 
 impl LabelTokens {
@@ -71,15 +74,23 @@ impl LabelTokens {
             |n: usize| -> Vec<Vec<f32>> { (0..n).map(|_| (0..dim).map(|_| rng.normal()).collect()).collect() };
         let classes = [vecs(AUX_CLASSES[0]), vecs(AUX_CLASSES[1]), vecs(AUX_CLASSES[2])];
         let depth = vecs(1).remove(0);
-        Self { dim, classes, depth }
+        let xy = [vecs(1).remove(0), vecs(1).remove(0)];
+        Self { dim, classes, depth, xy }
     }
 
     /// `[n_tokens * dim]` of a packed batch.
     fn tokens(&self, p: &Packed) -> Vec<f32> {
         let n = p.depth.len();
+        let g2 = n / (p.b * p.images).max(1);
+        let g = (g2 as f32).sqrt().round() as usize;
         let mut out = vec![0f32; n * self.dim];
         for t in 0..n {
             let row = &mut out[t * self.dim..(t + 1) * self.dim];
+            let (gx, gy) = ((t % g2) % g, (t % g2) / g);
+            let at = |i: usize| (i as f32 + 0.5) / g as f32 * 2.0 - 1.0;
+            for ((r, x), y) in row.iter_mut().zip(&self.xy[0]).zip(&self.xy[1]) {
+                *r += at(gx) * x + at(gy) * y;
+            }
             for (k, table) in self.classes.iter().enumerate() {
                 for (r, v) in row.iter_mut().zip(&table[p.labels[k][t] as usize]) {
                     *r += v;

@@ -142,8 +142,12 @@ pub fn write_dataset(dir: &Path, opts: &SynthOptions, mut progress: impl FnMut(u
     if opts.views == 0 || opts.width == 0 || opts.height == 0 {
         return Err(Error::input("synth: views, width and height must be positive"));
     }
-    if opts.width > MAX_SIDE || opts.height > MAX_SIDE || opts.views > 10_000 {
-        return Err(Error::input(format!("synth: at most {MAX_SIDE}x{MAX_SIDE} pixels and 10000 views")));
+    for (name, v, max) in
+        [("width", opts.width, MAX_SIDE), ("height", opts.height, MAX_SIDE), ("views", opts.views as u32, 10_000)]
+    {
+        if v > max {
+            return Err(Error::input(format!("synth: --{name} {v} is out of range (at most {max})")));
+        }
     }
     let scene = Scene::from_seed(opts.seed);
     for sub in ["images", "masks", "depth"] {

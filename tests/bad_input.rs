@@ -1,0 +1,399 @@
+//! The bad-input suite: broken files, bad configs and bad command lines, generated here, each run
+//! through the `chatsplat` binary as a user would. Every case must exit non-zero (or succeed where
+//! a success is the documented behaviour), name the file or option and the problem, never panic,
+//! and leave what the user had intact.
+
+use std::path::{Path, PathBuf};
+use std::process::{Command, Output};
+
+fn chatsplat() -> Command {
+    Command::new(env!("CARGO_BIN_EXE_chatsplat"))
+}
+
+fn root(tag: &str) -> PathBuf {
+    let d = std::env::temp_dir().join(format!("chatsplat-bad-{tag}-{}", std::process::id()));
+    std::fs::remove_dir_all(&d).ok();
+    std::fs::create_dir_all(&d).unwrap();
+    d
+}
+
+fn run(args: &[&str], paths: &[&Path]) -> Output {
+    let mut c = chatsplat();
+    c.args(args);
+    for p in paths {
+        c.arg(p);
+    }
+    c.output().unwrap()
+}
+
+/// One case: what it ran, what the user must read in the error.
+struct Case {
+    name: String,
+    out: Output,
+    /// Every one of these must be in stderr (case-insensitive).
+    expect: Vec<String>,
+}
+
+#[derive(Default)]
+struct Suite {
+    cases: usize,
+    failures: Vec<String>,
+}
+
+impl Suite {
+    /// Checks a case that must fail: non-zero exit, no panic, every expected word in stderr.
+    fn fails(&mut self, c: Case) {
+        self.cases += 1;
+        let err = String::from_utf8_lossy(&c.out.stderr).to_lowercase();
+        let mut why = Vec::new();
+        if c.out.status.success() {
+            why.push("exited 0".to_string());
+        }
+        if err.contains("panicked") || c.out.status.code().is_none() {
+            why.push("panicked or was killed".to_string());
+        }
+        for e in &c.expect {
+            if !err.contains(&e.to_lowercase()) {
+                why.push(format!("no \"{e}\" in the message"));
+            }
+        }
+        if !why.is_empty() {
+            self.failures.push(format!("{}: {} -- stderr: {}", c.name, why.join(", "), err.trim()));
+        }
+    }
+
+    /// Checks a case that must succeed (documented behaviour).
+    fn succeeds(&mut self, name: &str, out: Output) {
+        self.cases += 1;
+        if !out.status.success() {
+            self.failures.push(format!("{name}: failed: {}", String::from_utf8_lossy(&out.stderr).trim()));
+        }
+    }
+
+    fn check(&mut self, name: &str, ok: bool, what: &str) {
+        self.cases += 1;
+        if !ok {
+            self.failures.push(format!("{name}: {what}"));
+        }
+    }
+
+    fn finish(self, at_least: usize) {
+        eprintln!("{} cases, {} failures", self.cases, self.failures.len());
+        assert!(
+            self.failures.is_empty(),
+            "{} of {} cases failed:\n{}",
+            self.failures.len(),
+            self.cases,
+            self.failures.join("\n")
+        );
+        assert!(self.cases >= at_least, "only {} cases", self.cases);
+    }
+}
+
+fn name_of(p: &Path) -> String {
+    p.file_name().unwrap().to_string_lossy().into_owned()
+}
+
+/// A valid binary .ply in the Inria 3DGS layout with `n` Gaussians.
+fn inria_ply(n: usize) -> Vec<u8> {
+    let props = [
+        "x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1",
+        "rot_2", "rot_3",
+    ];
+    let mut out = format!("ply\nformat binary_little_endian 1.0\nelement vertex {n}\n").into_bytes();
+    for p in props {
+        out.extend(format!("property float {p}\n").bytes());
+    }
+    out.extend(b"end_header\n");
+    for i in 0..n {
+        let v = [i as f32 * 0.1, 0.0, 0.0, 0.5, 0.2, 0.1, 2.0, -3.0, -3.0, -3.0, 1.0, 0.0, 0.0, 0.0];
+        for x in v {
+            out.extend(x.to_le_bytes());
+        }
+    }
+    out
+}
+
+fn ply_header(count: &str) -> Vec<u8> {
+    let props = "property float x\nproperty float y\nproperty float z\n";
+    format!("ply\nformat binary_little_endian 1.0\nelement vertex {count}\n{props}end_header\n").into_bytes()
+}
+
+/// Broken .ply files through `chatsplat render --ply`; the existing output image is never
+/// overwritten by a failed render.
+#[test]
+fn broken_ply_files_are_refused_with_the_file_and_the_problem() {
+    let dir = root("ply");
+    let mut s = Suite::default();
+    let out_png = dir.join("keep.png");
+    std::fs::write(&out_png, b"the user's picture").unwrap();
+    let good = inria_ply(4);
+    let header_len = good.windows(11).position(|w| w == b"end_header\n").unwrap() + 11;
+    let mut files: Vec<(String, Vec<u8>, &str)> = vec![
+        ("empty".into(), vec![], "ply"),
+        ("magic".into(), b"plx\nformat binary_little_endian 1.0\nend_header\n".to_vec(), "ply"),
+        ("no-end-header".into(), b"ply\nformat binary_little_endian 1.0\nelement vertex 1\n".to_vec(), "header"),
+        ("huge-count".into(), ply_header("10000000000000000000"), "vertices"),
+        ("absurd-count".into(), ply_header("200000000000"), "vertices"),
+        ("negative-count".into(), ply_header("-5"), "vertex"),
+        ("text-count".into(), ply_header("many"), "vertex"),
+        ("no-body".into(), ply_header("10"), "truncated"),
+        (
+            "big-endian".into(),
+            b"ply\nformat binary_big_endian 1.0\nelement vertex 1\nend_header\n".to_vec(),
+            "property",
+        ),
+        ("binary-junk".into(), (0..400u32).map(|i| (i * 7919 % 251) as u8).collect(), "ply"),
+    ];
+    // a valid file cut at many lengths: inside the header and inside the body
+    for cut in [3, 20, header_len - 5, header_len + 1, header_len + 17, good.len() - 1] {
+        files.push((format!("cut-{cut}"), good[..cut].to_vec(), "ply"));
+    }
+    // a NaN position
+    let mut nan = good.clone();
+    nan[header_len..header_len + 4].copy_from_slice(&f32::NAN.to_le_bytes());
+    files.push(("nan".into(), nan, "not finite"));
+    // an unknown property type
+    let mut odd = String::from_utf8_lossy(&good[..header_len]).replace("property float rot_3", "property quad rot_3");
+    odd.push_str("\0\0\0\0");
+    files.push(("unknown-type".into(), odd.into_bytes(), "quad"));
+    for (tag, bytes, want) in files {
+        let p = dir.join(format!("{tag}.ply"));
+        std::fs::write(&p, &bytes).unwrap();
+        let out = run(&["render", "--width", "16", "--height", "16", "--ply"], &[&p]);
+        let out2 = run(&["render", "--width", "16", "--height", "16", "--out"], &[&out_png, Path::new("--ply"), &p]);
+        s.fails(Case { name: format!("ply {tag}"), out, expect: vec![name_of(&p), want.into()] });
+        s.fails(Case { name: format!("ply {tag} with --out"), out: out2, expect: vec![name_of(&p)] });
+    }
+    let kept = std::fs::read(&out_png).unwrap();
+    s.check("ply: the user's picture", kept == b"the user's picture", "a failed render overwrote --out");
+    // the valid file renders (the cases above fail for their defect, not for the layout)
+    let p = dir.join("good.ply");
+    std::fs::write(&p, &good).unwrap();
+    s.succeeds(
+        "ply good",
+        run(&["render", "--width", "16", "--height", "16", "--out"], &[&dir.join("g.png"), Path::new("--ply"), &p]),
+    );
+    s.finish(35);
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+fn copy_dir(from: &Path, to: &Path) {
+    std::fs::create_dir_all(to).unwrap();
+    for e in std::fs::read_dir(from).unwrap() {
+        let e = e.unwrap();
+        let t = to.join(e.file_name());
+        if e.file_type().unwrap().is_dir() {
+            copy_dir(&e.path(), &t);
+        } else {
+            std::fs::copy(e.path(), t).unwrap();
+        }
+    }
+}
+
+fn synth(dir: &Path, seed: &str) {
+    let out = run(&["synth", "--views", "4", "--width", "24", "--height", "24", "--seed", seed, "--out"], &[dir]);
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+}
+
+fn edit_json(p: &Path, f: impl FnOnce(&mut serde_json::Value)) {
+    let mut v: serde_json::Value = serde_json::from_slice(&std::fs::read(p).unwrap()).unwrap();
+    f(&mut v);
+    std::fs::write(p, serde_json::to_vec_pretty(&v).unwrap()).unwrap();
+}
+
+/// Broken datasets, configs and command lines through `chatsplat train`, `synth`, `extract` and
+/// `render`; resuming checks what it resumes; a run killed with SIGKILL resumes.
+#[test]
+fn broken_datasets_configs_and_arguments_are_refused() {
+    let dir = root("data");
+    let mut s = Suite::default();
+    let base = dir.join("base");
+    synth(&base, "46");
+    let train = |data: &Path, out: &Path, extra: &[&str]| {
+        let mut args = vec!["train"];
+        if !extra.contains(&"--iters") {
+            args.extend(["--iters", "2"]);
+        }
+        args.extend(extra);
+        run(&args, &[Path::new("--data"), data, Path::new("--out"), out])
+    };
+    // datasets: each a copy of the base with one defect
+    type Edit = Box<dyn Fn(&Path)>;
+    let tj =
+        |f: fn(&mut serde_json::Value)| -> Edit { Box::new(move |d: &Path| edit_json(&d.join("transforms.json"), f)) };
+    let write = |rel: &'static str, bytes: &'static [u8]| -> Edit {
+        Box::new(move |d: &Path| std::fs::write(d.join(rel), bytes).unwrap())
+    };
+    let cut = |rel: &'static str, keep: usize| -> Edit {
+        Box::new(move |d: &Path| {
+            let b = std::fs::read(d.join(rel)).unwrap();
+            std::fs::write(d.join(rel), &b[..keep.min(b.len())]).unwrap()
+        })
+    };
+    let datasets: Vec<(&str, Edit, &str)> = vec![
+        ("transforms-cut", cut("transforms.json", 300), "transforms.json"),
+        ("transforms-text", write("transforms.json", b"hello"), "transforms.json"),
+        ("transforms-empty", write("transforms.json", b""), "transforms.json"),
+        ("no-frames", tj(|v| drop(v.as_object_mut().unwrap().remove("frames"))), "transforms.json"),
+        ("zero-frames", tj(|v| v["frames"] = serde_json::json!([])), "transforms.json"),
+        (
+            "matrix-3x3",
+            tj(|v| v["frames"][0]["transform_matrix"] = serde_json::json!([[1, 0, 0], [0, 1, 0], [0, 0, 1]])),
+            "transforms.json",
+        ),
+        ("matrix-text", tj(|v| v["frames"][1]["transform_matrix"] = serde_json::json!("identity")), "transforms.json"),
+        ("matrix-huge", tj(|v| v["frames"][0]["transform_matrix"][0][3] = serde_json::json!(1e300)), "transforms.json"),
+        ("focal-zero", tj(|v| v["fl_x"] = serde_json::json!(0.0)), "transforms.json"),
+        ("focal-negative", tj(|v| v["fl_y"] = serde_json::json!(-20.0)), "transforms.json"),
+        ("width-zero", tj(|v| v["w"] = serde_json::json!(0)), "the transforms say 0x24"),
+        ("width-absurd", tj(|v| v["w"] = serde_json::json!(4_000_000_000u64)), "the transforms say 4000000000x24"),
+        ("path-missing", tj(|v| v["frames"][2]["file_path"] = serde_json::json!("images/nope.png")), "nope.png"),
+        ("path-number", tj(|v| v["frames"][2]["file_path"] = serde_json::json!(7)), "transforms.json"),
+        ("image-cut", cut("images/frame_0001.png", 60), "frame_0001.png"),
+        ("image-junk", write("images/frame_0002.png", b"not a png at all"), "frame_0002.png"),
+        ("image-empty", write("images/frame_0003.png", b""), "frame_0003.png"),
+        ("mask-cut", cut("masks/frame_0000.png", 50), "frame_0000.png"),
+        ("mask-junk", write("masks/frame_0001.png", b"\x89PNG junk"), "frame_0001.png"),
+        ("depth-junk", write("depth/frame_0002.png", b"junk"), "frame_0002.png"),
+    ];
+    for (tag, edit, want) in &datasets {
+        let d = dir.join(tag);
+        copy_dir(&base, &d);
+        edit(&d);
+        let before = std::fs::read(d.join("transforms.json")).unwrap();
+        let out = train(&d, &dir.join(format!("run-{tag}")), &[]);
+        s.fails(Case { name: format!("dataset {tag}"), out, expect: vec![want.to_string()] });
+        s.check(
+            &format!("dataset {tag} intact"),
+            std::fs::read(d.join("transforms.json")).unwrap() == before,
+            "changed",
+        );
+    }
+    let missing = dir.join("no-such-dataset");
+    s.fails(Case {
+        name: "dataset missing".into(),
+        out: train(&missing, &dir.join("run-missing"), &[]),
+        expect: vec!["no-such-dataset".into()],
+    });
+    // configs
+    let configs: Vec<(&str, &str, &str)> = vec![
+        ("unknown-key", r#"{"lr_means": 0.001, "frobnicate": 1}"#, "frobnicate"),
+        ("not-json", "iters = 5", "invalid json"),
+        ("wrong-type", r#"{"iters": "many"}"#, "\"many\""),
+        ("negative-iters", r#"{"iters": -3}"#, "iters"),
+        ("zero-densify", r#"{"densify_every": 0, "densify_until": 100}"#, "densify_every"),
+        ("negative-lr", r#"{"lr_means": -0.1}"#, "lr"),
+        ("nan-ish", r#"{"lambda_dssim": 7.0}"#, "lambda_dssim"),
+        ("array", "[1, 2, 3]", "json object"),
+        ("empty", "", "invalid json"),
+    ];
+    for (tag, text, want) in configs {
+        let c = dir.join(format!("{tag}.json"));
+        std::fs::write(&c, text).unwrap();
+        let out = run(
+            &["train", "--iters", "2", "--config"],
+            &[&c, Path::new("--data"), &base, Path::new("--out"), &dir.join(format!("run-cfg-{tag}"))],
+        );
+        s.fails(Case { name: format!("config {tag}"), out, expect: vec![format!("{tag}.json"), want.into()] });
+    }
+    // command lines
+    let out_dir = dir.join("cli");
+    let o = out_dir.to_string_lossy().to_string();
+    let b = base.to_string_lossy().to_string();
+    let lines: Vec<(Vec<&str>, &str)> = vec![
+        (vec!["synth", "--width", "100000", "--height", "100000", "--out", &o], "width"),
+        (vec!["synth", "--views", "0", "--out", &o], "views"),
+        (vec!["synth", "--views", "100000000", "--out", &o], "views"),
+        (vec!["synth", "--width", "-5", "--out", &o], "width"),
+        (vec!["synth", "--seed", "x", "--out", &o], "seed"),
+        (vec!["render", "--width", "0", "--out", &o], "width"),
+        (vec!["render", "--width", "200000", "--height", "200000", "--out", &o], "width"),
+        (vec!["render", "--fov", "0", "--out", &o], "fov"),
+        (vec!["render", "--fov", "180", "--out", &o], "fov"),
+        (vec!["render", "--eye", "1,2", "--out", &o], "eye"),
+        (vec!["render", "--eye", "0,0,0", "--target", "0,0,0", "--out", &o], "eye"),
+        (vec!["render", "--background", "2,0,0", "--out", &o], "background"),
+        (vec!["train", "--data", &b, "--out", &o, "--downscale", "0"], "downscale"),
+        (vec!["train", "--data", &b, "--out", &o, "--iters", "-1"], "iters"),
+        (vec!["train", "--data", &b, "--out", &o, "--backend", "cuda"], "backend"),
+        (vec!["train", "--data", &b, "--out", &o, "--background", "grey"], "background"),
+        (vec!["extract", "--data", &b, "--out", &o, "--margin", "-1"], "margin"),
+        (vec!["extract", "--data", &b, "--out", &o, "--downscale", "0"], "downscale"),
+        (vec!["ask", "--image", "x.png", "--run", &o, "What?"], "--image"),
+        (vec!["export-ply", "--run", &o, "--out", &o], "run"),
+    ];
+    for (args, want) in lines {
+        let out = run(&args, &[]);
+        s.fails(Case { name: format!("cli {}", args.join(" ")), out, expect: vec![want.into()] });
+    }
+    // resume: no checkpoint; another dataset; a moved copy of the same dataset resumes
+    let empty_run = dir.join("empty-run");
+    std::fs::create_dir_all(&empty_run).unwrap();
+    s.fails(Case {
+        name: "resume without checkpoint".into(),
+        out: train(&base, &empty_run, &["--resume"]),
+        expect: vec!["checkpoint".into()],
+    });
+    let r = dir.join("run-a");
+    s.succeeds("train a", train(&base, &r, &[]));
+    let other = dir.join("other");
+    synth(&other, "7");
+    s.fails(Case {
+        name: "resume on another dataset".into(),
+        out: train(&other, &r, &["--resume"]),
+        expect: vec!["base".into(), "other".into(), "fingerprint".into()],
+    });
+    s.fails(Case {
+        name: "resume at another downscale".into(),
+        out: train(&base, &r, &["--resume", "--downscale", "2"]),
+        expect: vec!["downscale".into()],
+    });
+    let moved = dir.join("moved");
+    copy_dir(&base, &moved);
+    s.succeeds("resume on a moved copy", train(&moved, &r, &["--resume", "--iters", "4"]));
+    // teacher tokens: from another scene, or from a dataset that changed since, are refused
+    let (teacher_other, teacher_base) = (dir.join("teacher-other"), dir.join("teacher-base"));
+    s.succeeds("extract other", run(&["extract", "--data"], &[&other, Path::new("--out"), &teacher_other]));
+    s.succeeds("extract base", run(&["extract", "--data"], &[&base, Path::new("--out"), &teacher_base]));
+    let language = |teacher: &Path, extra: &[&str]| {
+        let mut args = vec!["train-language", "--iters", "1"];
+        args.extend(extra);
+        run(&args, &[Path::new("--run"), &r, Path::new("--teacher"), teacher])
+    };
+    s.fails(Case {
+        name: "teacher from another scene".into(),
+        out: language(&teacher_other, &[]),
+        expect: vec!["fingerprint".into(), "other".into(), "run-a".into()],
+    });
+    s.fails(Case {
+        name: "language resume without checkpoint".into(),
+        out: language(&teacher_base, &["--resume"]),
+        expect: vec!["checkpoint".into()],
+    });
+    let img = base.join("images/frame_0001.png");
+    let photo = std::fs::read(&img).unwrap();
+    std::fs::write(&img, std::fs::read(other.join("images/frame_0001.png")).unwrap()).unwrap();
+    s.fails(Case {
+        name: "teacher of a changed dataset".into(),
+        out: language(&teacher_base, &[]),
+        expect: vec!["teacher.json".into(), "extract".into()],
+    });
+    std::fs::write(&img, photo).unwrap();
+    // kill -9 during training, then --resume
+    let k = dir.join("run-killed");
+    let mut child =
+        chatsplat().args(["train", "--iters", "1000000", "--data"]).arg(&base).arg("--out").arg(&k).spawn().unwrap();
+    let t0 = std::time::Instant::now();
+    while !k.join("checkpoint.safetensors").is_file() && t0.elapsed().as_secs() < 120 {
+        std::thread::sleep(std::time::Duration::from_millis(200));
+    }
+    std::thread::sleep(std::time::Duration::from_millis(500));
+    child.kill().unwrap();
+    child.wait().unwrap();
+    s.check("kill -9: first checkpoint", k.join("checkpoint.safetensors").is_file(), "no checkpoint within 120 s");
+    s.check("kill -9: config", k.join("config.json").is_file(), "no config.json");
+    s.succeeds("kill -9 then resume", train(&base, &k, &["--resume", "--iters", "3"]));
+    s.finish(50);
+    std::fs::remove_dir_all(&dir).ok();
+}

@@ -327,6 +327,11 @@ fn broken_datasets_configs_and_arguments_are_refused() {
         let out = run(&args, &[]);
         s.fails(Case { name: format!("cli {}", args.join(" ")), out, expect: vec![want.into()] });
     }
+    // a 100 KB question is longer than the model's context
+    let photo = base.join("images/frame_0000.png");
+    let long = "what is on the table ".repeat(5000);
+    let out = run(&["ask", "--image"], &[&photo, Path::new(&long)]);
+    s.fails(Case { name: "ask with a 100 KB question".into(), out, expect: vec!["at most 4096".into()] });
     // resume: no checkpoint; another dataset; a moved copy of the same dataset resumes
     let empty_run = dir.join("empty-run");
     std::fs::create_dir_all(&empty_run).unwrap();

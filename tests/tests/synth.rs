@@ -110,6 +110,14 @@ fn recompute(scene: &Scene, ids: &[u8], depth: &[f32], w: usize, qa: &model::dat
         Kind::Count => visible.len().to_string(),
         Kind::Colors => words(visible.iter().map(|o| o.color.word()).collect(), &color_rank),
         Kind::Shapes => words(visible.iter().map(|o| o.shape.word()).collect(), &shape_rank),
+        Kind::Objects => {
+            let mut v: Vec<_> =
+                visible.iter().map(|o| (color_rank(o.color.word()), shape_rank(o.shape.word()))).collect();
+            v.sort();
+            let names: Vec<String> =
+                v.iter().map(|&(c, s)| format!("{} {}", Color::ALL[c].word(), Shape::ALL[s].word())).collect();
+            if names.is_empty() { "none".into() } else { names.join(" ") }
+        }
         Kind::ColorOf => {
             let shape = q.trim_start_matches("What color is the ");
             let with: Vec<_> = visible.iter().filter(|o| o.shape.word() == shape).collect();

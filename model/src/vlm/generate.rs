@@ -86,6 +86,14 @@ impl LlavaOnevision {
         mut on_text: impl FnMut(&str),
     ) -> Result<Generation, VlmError> {
         let prompt_tokens = prompt.dims()[0];
+        let max = self.cfg.text.max_positions;
+        if prompt_tokens >= max {
+            return Err(VlmError::prompt(format!(
+                "the prompt is {prompt_tokens} tokens but the model takes at most {max}"
+            )));
+        }
+        // the answer stops at the model's context
+        let new_tokens = opts.max_new_tokens.min(max - prompt_tokens);
         let mut cache = KvCache::default();
         let mut rng = Rng::new(opts.seed);
         let hidden = self.llm.forward(prompt, &mut cache);
@@ -94,7 +102,7 @@ impl LlavaOnevision {
         let mut ids = Vec::new();
         let mut printed = String::new();
         let mut stopped = false;
-        for step in 0..opts.max_new_tokens {
+        for step in 0..new_tokens {
             let next = pick(&logits, opts, &mut rng);
             if !opts.ignore_stop && self.tokenizer.stop_ids.contains(&next) {
                 stopped = true;
@@ -107,7 +115,7 @@ impl LlavaOnevision {
                 on_text(&text[printed.len()..]);
                 printed = text;
             }
-            if step + 1 == opts.max_new_tokens {
+            if step + 1 == new_tokens {
                 break;
             }
             let x = self.llm.embed(&[next]);

@@ -211,6 +211,15 @@ impl LlavaOnevision {
         let prompt = chat_template(&[Turn::user(images.len(), question.to_string())], true);
         let counts: Vec<usize> = images.iter().map(|e| e.dims()[0]).collect();
         let ids = self.expand_image_tokens(&self.tokenizer.encode(&prompt)?, &counts)?;
+        let max = self.cfg.text.max_positions;
+        if ids.len() >= max {
+            return Err(VlmError::prompt(format!(
+                "the prompt is {} tokens (question {} characters, {} image(s)) but the model takes at most {max}",
+                ids.len(),
+                question.len(),
+                images.len()
+            )));
+        }
         self.embed_prompt(&ids, images)
     }
 

@@ -159,6 +159,7 @@ impl VlmTrainConfig {
                 head_dim: m.text_width / m.text_heads,
                 rms_norm_eps: 1e-6,
                 rope_theta: 10_000.0,
+                max_positions: 4096,
                 tie_word_embeddings: true,
                 eos_token_ids: vec![2],
                 act: Act::Silu,

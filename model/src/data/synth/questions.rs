@@ -10,6 +10,7 @@
 //! | view | count | How many objects are there? | `3` |
 //! | view | colors | What colors are there? | `red blue` (colour order of [`Color::ALL`]) |
 //! | view | shapes | What shapes are there? | `cube cone` (order of [`Shape::ALL`]) |
+//! | view | objects | What objects are there? | `red cube blue cone` (colour, then shape order) |
 //! | view | color_of | What color is the cube? (one cube in view) | `red` |
 //! | view | shape_of | What shape is the red object? (one red object in view) | `cube` |
 //! | view | exists | Is there a red cube? | `yes` / `no` |
@@ -42,6 +43,7 @@ pub enum Kind {
     Count,
     Colors,
     Shapes,
+    Objects,
     ColorOf,
     ShapeOf,
     Exists,
@@ -58,10 +60,11 @@ pub enum Kind {
 }
 
 impl Kind {
-    pub const ALL: [Kind; 16] = [
+    pub const ALL: [Kind; 17] = [
         Kind::Count,
         Kind::Colors,
         Kind::Shapes,
+        Kind::Objects,
         Kind::ColorOf,
         Kind::ShapeOf,
         Kind::Exists,
@@ -83,6 +86,7 @@ impl Kind {
             Kind::Count => "count",
             Kind::Colors => "colors",
             Kind::Shapes => "shapes",
+            Kind::Objects => "objects",
             Kind::ColorOf => "color_of",
             Kind::ShapeOf => "shape_of",
             Kind::Exists => "exists",
@@ -209,6 +213,7 @@ pub fn view_questions(scene: &Scene, facts: &ViewFacts, rng: &mut Rng) -> Vec<Qa
         Qa::new(Kind::Count, "How many objects are there?".into(), objs.len().to_string()),
         Qa::new(Kind::Colors, "What colors are there?".into(), sorted_words(objs.iter().map(|o| o.color), Color::word)),
         Qa::new(Kind::Shapes, "What shapes are there?".into(), sorted_words(objs.iter().map(|o| o.shape), Shape::word)),
+        Qa::new(Kind::Objects, "What objects are there?".into(), list_names(&objs)),
     ];
     for shape in Shape::ALL {
         let with: Vec<_> = objs.iter().filter(|o| o.shape == shape).collect();
@@ -327,6 +332,7 @@ pub fn vocabulary() -> Vec<String> {
         "How many objects are there?",
         "What colors are there?",
         "What shapes are there?",
+        "What objects are there?",
         "What color is the",
         "What shape is the object?",
         "Is there a",

@@ -899,3 +899,52 @@ fn load_any_detects_each_format() {
         std::fs::remove_dir_all(d).ok();
     }
 }
+
+/// The teacher stage reads every format through the same detection as `train` (not only
+/// nerfstudio): tokens of every training view of a COLMAP and an LLFF capture, and the teacher
+/// directory reloads its dataset.
+#[test]
+fn teacher_tokens_are_extracted_from_colmap_and_llff_captures() {
+    let dev = burn::tensor::Device::ndarray();
+    let fixture = Path::new(env!("CARGO_MANIFEST_DIR")).join("../checkpoints/tiny-llava-ov");
+    let vlm = model::vlm::LlavaOnevision::load(&fixture, &dev).unwrap();
+    for (tag, dir) in [("colmap", colmap_dir("teacher-colmap", true).0), ("llff", llff_dir("teacher-llff"))] {
+        let out = temp_dir(&format!("teacher-{tag}-out"));
+        let teacher = model::run::TeacherDir::new(&out);
+        let sum = train::teacher::extract(&vlm, &dir, &teacher, &Default::default(), |_| {}, |_, _| {}).unwrap();
+        let set = train::teacher::TeacherSet::open(&out).unwrap();
+        let ds = set.dataset().unwrap();
+        assert!(!ds.train.is_empty(), "{tag}");
+        assert_eq!(sum.written, ds.train.len(), "{tag}: one token file per training view");
+        assert_eq!(set.views.len(), ds.train.len(), "{tag}");
+        let (g, d) = (set.index.grid, set.index.dim);
+        for v in 0..ds.train.len() {
+            let t = set.tokens(v, None).unwrap();
+            assert_eq!(t.len(), g * g * d, "{tag} view {v}");
+            assert!(t.iter().any(|x| *x != 0.0), "{tag} view {v}: tokens of a real image");
+        }
+        assert_eq!(set.index.fingerprint, ds.fingerprint(), "{tag}: the index records the dataset");
+        std::fs::remove_dir_all(&out).ok();
+    }
+}
+
+/// Gaussian Grouping's layout: instance-id PNGs in `object_mask/` beside `images/` (what SAM +
+/// DEVA write) are the capture's masks when there is no `masks/`, for COLMAP and LLFF alike.
+#[test]
+fn gaussian_grouping_object_masks_are_read() {
+    let (dir, _) = colmap_dir("colmap-grouping", true);
+    let (with_masks, _) = colmap::load(&dir, &opts(1, 0)).unwrap();
+    std::fs::rename(dir.join("masks"), dir.join("object_mask")).unwrap();
+    let (grouping, _) = colmap::load(&dir, &opts(1, 0)).unwrap();
+    assert!(grouping.train[0].instance_ids.is_some(), "object_mask/img_a.png is read");
+    for (a, b) in with_masks.train.iter().zip(&grouping.train) {
+        assert_eq!(a.instance_ids, b.instance_ids);
+    }
+    let dir = llff_dir("llff-grouping");
+    let ids: Vec<u8> = (0..W * H).map(|i| (i % 3) as u8).collect();
+    write_gray8(&dir.join("object_mask/b.jpg.png"), W, H, &ids).unwrap();
+    let ds = llff::load(&dir, &opts(1, 0)).unwrap();
+    let b = ds.train.iter().find(|v| v.image_path.ends_with("b.jpg.png")).unwrap();
+    assert_eq!(b.instance_ids.as_deref(), Some(&ids[..]));
+    assert!(ds.train.iter().filter(|v| v.instance_ids.is_some()).count() == 1);
+}

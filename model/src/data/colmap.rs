@@ -2,7 +2,8 @@
 //!
 //! Layout: `dir/sparse/0/{cameras,images,points3D}.{bin,txt}` (or the same files directly in
 //! `dir/sparse/`), images in `dir/images/<name>` and optional instance masks in
-//! `dir/masks/<name with extension .png>` (8-bit ids, 0 = background). For each of the three
+//! `dir/masks/<name with extension .png>` (8-bit ids, 0 = background; Gaussian Grouping's
+//! `dir/object_mask/` is read the same way when there is no `masks/`). For each of the three
 //! model files the binary version is used when both exist.
 //!
 //! Both encodings follow COLMAP's `model.cc` (binary: little endian):
@@ -153,7 +154,7 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<(Dataset, SparsePoints)> {
         let mut camera = Camera::new(world_to_cam, (intr.fx / s) as f32, (intr.fy / s) as f32, dw, dh);
         camera.cx = (intr.cx / s) as f32;
         camera.cy = (intr.cy / s) as f32;
-        let mask = dir.join("masks").join(Path::new(&im.name).with_extension("png"));
+        let mask = super::mask_dir(dir).join(Path::new(&im.name).with_extension("png"));
         let instance_ids = if mask.is_file() { Some(read_ids8(&mask, w, h, k)?) } else { None };
         views.push(View { image_path: path, camera, rgb, instance_ids, depth: None });
     }

@@ -10,7 +10,8 @@
 //! * `dir/images_{k}/`: pre-downscaled copies; with `downscale = k` they are used instead of
 //!   box-filtering `images/` when they exist with `N` images and there are no masks.
 //! * `dir/masks/<image stem>.png` (optional): 8-bit instance ids (0 = background) the size of
-//!   the image in `images/`.
+//!   the image in `images/`; Gaussian Grouping's `dir/object_mask/` is read the same way when
+//!   there is no `masks/`.
 //!
 //! Cameras: OpenCV camera-to-world axes `[right, down, forward] = [R1, R0, -R2]`, inverted to
 //! `world_to_cam`. The focal length is scaled by `image width / w` when the images on disk have
@@ -34,7 +35,7 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
     let rows = read_npy(&npy)?;
     let n = rows.len();
     let k = opts.downscale;
-    let masks = dir.join("masks");
+    let masks = super::mask_dir(dir);
     let small = dir.join(format!("images_{k}"));
     let mut box_k = k;
     let mut images_dir = dir.join("images");

@@ -118,6 +118,14 @@ impl Dataset {
     }
 }
 
+/// The instance-mask folder of a capture: `masks/`, else Gaussian Grouping's `object_mask/` (the
+/// per-image instance-id PNGs that SAM + DEVA write beside `images/`).
+pub(crate) fn mask_dir(dir: &Path) -> PathBuf {
+    let ours = dir.join("masks");
+    let grouping = dir.join("object_mask");
+    if !ours.is_dir() && grouping.is_dir() { grouping } else { ours }
+}
+
 /// Splits `views` (in order) into train and test: every `every`-th view is held out (0: none).
 pub(crate) fn split(views: Vec<View>, every: usize) -> Dataset {
     let (mut train, mut test) = (vec![], vec![]);

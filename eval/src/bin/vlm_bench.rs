@@ -27,6 +27,32 @@ struct Args {
     /// Decoded tokens per repetition.
     #[arg(long, default_value_t = 32)]
     decode: usize,
+    /// Time a random-weight model of the published configuration (`0.5b` or `7b`) built in
+    /// memory instead of a directory (no download, no Python; a word-level tokenizer).
+    #[arg(long)]
+    random: Option<String>,
+}
+
+/// A random-weight LLaVA-OneVision of the published `size` configuration.
+fn random_model(size: &str, device: &burn::tensor::Device) -> model::Result<LlavaOnevision> {
+    use model::vlm::tokenizer::{ChatTokenizer, word_level_tokenizer_json};
+    let mut cfg = match size {
+        "0.5b" => LlavaConfig::onevision_0_5b(),
+        "7b" => LlavaConfig::onevision_7b(),
+        other => return Err(model::Error::input(format!("--random {other}: expected 0.5b or 7b"))),
+    };
+    let words = model::data::synth::questions::vocabulary();
+    let tokenizer = ChatTokenizer::from_json(&word_level_tokenizer_json(&words)?, 3)?;
+    cfg.image_token_id = tokenizer.image_token_id;
+    let processor = model::vlm::ProcessorConfig {
+        mean: [0.5; 3],
+        std: [0.5; 3],
+        rescale_factor: 1.0 / 255.0,
+        size: (384, 384),
+        resample: 3,
+        pinpoints: cfg.pinpoints.clone(),
+    };
+    Ok(LlavaOnevision::init(cfg, processor, tokenizer, 0, device))
 }
 
 fn sync(t: Tensor<2>) {
@@ -65,7 +91,10 @@ fn main() -> std::process::ExitCode {
             return std::process::ExitCode::FAILURE;
         }
     };
-    println!("## vlm-bench: {}", dir.display());
+    match &a.random {
+        Some(size) => println!("## vlm-bench: random-weight {size} (published configuration)"),
+        None => println!("## vlm-bench: {}", dir.display()),
+    }
     println!();
     println!(
         "| backend | vision tower (1 view 384x384) | images/s | anyres image (3 views) | prefill tokens | \
@@ -75,7 +104,10 @@ fn main() -> std::process::ExitCode {
     for backend in &a.backend {
         let r = catch_backend("benchmark", || -> model::Result<String> {
             let device = backend.device();
-            let m = LlavaOnevision::load(&dir, &device)?;
+            let m = match &a.random {
+                Some(size) => random_model(size, &device)?,
+                None => LlavaOnevision::load(&dir, &device)?,
+            };
             let img = RgbImage::read_png(&dir.join("image_wide.png")).unwrap_or_else(|_| {
                 let (w, h) = (700, 300);
                 RgbImage::new(w, h, (0..w * h * 3).map(|i| (i * 37 % 256) as u8).collect())

@@ -385,6 +385,32 @@ fn broken_datasets_configs_and_arguments_are_refused() {
         expect: vec!["teacher.json".into(), "extract".into()],
     });
     std::fs::write(&img, photo).unwrap();
+    // a capture without masks: view level works, object level says it needs masks
+    let bare = dir.join("no-masks");
+    copy_dir(&base, &bare);
+    std::fs::remove_dir_all(bare.join("masks")).unwrap();
+    edit_json(&bare.join("transforms.json"), |v| {
+        for f in v["frames"].as_array_mut().unwrap() {
+            f.as_object_mut().unwrap().remove("instance_mask_path");
+        }
+    });
+    let (bare_run, bare_teacher) = (dir.join("run-no-masks"), dir.join("teacher-no-masks"));
+    s.succeeds("train without masks", train(&bare, &bare_run, &[]));
+    s.succeeds("extract without masks", run(&["extract", "--data"], &[&bare, Path::new("--out"), &bare_teacher]));
+    let lang = run(&["train-language", "--iters", "1", "--run"], &[&bare_run, Path::new("--teacher"), &bare_teacher]);
+    s.succeeds("train-language without masks", lang);
+    let ask = |extra: &[&str]| {
+        let mut args = vec!["ask", "--view", "0", "--max-new-tokens", "2"];
+        args.extend(extra);
+        args.push("What is this?");
+        run(&args, &[Path::new("--run"), &bare_run])
+    };
+    s.succeeds("view level without masks", ask(&[]));
+    s.fails(Case {
+        name: "object level without masks".into(),
+        out: ask(&["--object", "5", "5"]),
+        expect: vec!["needs instance masks".into()],
+    });
     // kill -9 during training, then --resume
     let k = dir.join("run-killed");
     let mut child =

@@ -114,6 +114,14 @@ pub struct DataRef {
     /// [`crate::data::Dataset::fingerprint`] of the loaded dataset (empty in older runs).
     #[serde(default)]
     pub fingerprint: String,
+    /// Whether the dataset has instance masks (the identity field, and so object-level chat, is
+    /// trained only then).
+    #[serde(default = "yes")]
+    pub masks: bool,
+}
+
+fn yes() -> bool {
+    true
 }
 
 /// The scene bounds a geometry run uses (initialisation, learning-rate scale, densification).

@@ -22,6 +22,9 @@ pub struct LanguageScene {
     pub field: LanguageField,
     /// Object crop margin (the teacher's).
     pub margin: f32,
+    /// Whether the geometry was trained with instance masks: without them the rendered identity
+    /// means nothing and object-level picks are refused.
+    pub masks: bool,
 }
 
 impl LanguageScene {
@@ -42,6 +45,7 @@ impl LanguageScene {
             background: state.background,
             field,
             margin: lstate.margin,
+            masks: state.data.masks,
         })
     }
 
@@ -119,6 +123,12 @@ impl LanguageScene {
         if x >= w || y >= h {
             return Err(Error::input(format!("pixel ({x}, {y}) lies outside the {w}x{h} view")));
         }
+        if !self.masks {
+            return Err(Error::input(
+                "object level needs instance masks, and this scene's dataset has none: give the capture masks \
+                 (masks/ or Gaussian Grouping's object_mask/) and train again; view and scene level work without",
+            ));
+        }
         let ids = self.render(cam)?.ids;
         let id = ids[y * w + x];
         if id == 0 {
@@ -157,6 +167,7 @@ impl LanguageScene {
             background: self.background,
             field: LanguageField::from_named(named).expect("the same tensors"),
             margin: self.margin,
+            masks: self.masks,
         }
     }
 }

@@ -172,6 +172,7 @@ impl LanguageTrainer {
             background: state.background,
             field,
             margin: teacher.index.object_margin,
+            masks: state.data.masks,
         };
         Ok(Self::with(cfg, scene, teacher, views, device, n))
     }

@@ -98,6 +98,7 @@ pub fn data_ref(ds: &Dataset, data_dir: &Path, load: &LoadOptions, run: &Geometr
         downscale: load.downscale,
         background: [bg; 3],
         fingerprint: ds.fingerprint(),
+        masks: ds.train.iter().chain(&ds.test).any(|v| v.instance_ids.is_some()),
     }
 }
 

@@ -48,17 +48,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     })?;
 
     step(2, "geometry stage: 3DGS + identity field");
-    let d = a.iters;
-    let geometry = GeometryConfig {
-        iters: d,
-        densify_from: d / 8,
-        densify_every: (d / 8).max(1),
-        densify_until: d * 3 / 4,
-        opacity_reset_every: 0,
-        sh_degree_every: (d / 4).max(1),
-        checkpoint_every: 0,
-        ..Default::default()
-    };
+    let geometry = GeometryConfig::short(a.iters);
     let geometry_cfg = a.out.join("geometry_config.json");
     model::io::write_json(&geometry_cfg, &geometry)?;
     super::train::run(super::train::Args {

@@ -112,17 +112,7 @@ fn bench(a: &Args) -> Result<()> {
         let load = LoadOptions::default();
         let ds = load_any(&data, &load)?;
         let run = GeometryRun::new(dir.join("run"));
-        let it = a.geometry_iters;
-        let gcfg = GeometryConfig {
-            iters: it,
-            densify_from: it / 8,
-            densify_every: (it / 10).max(1),
-            densify_until: it * 3 / 4,
-            opacity_reset_every: 0,
-            sh_degree_every: (it / 4).max(1),
-            checkpoint_every: 0,
-            ..Default::default()
-        };
+        let gcfg = GeometryConfig::short(a.geometry_iters);
         let bar = Progress::new(format!("seed {seed} geometry"), "it");
         let g = train::geometry::run(&ds, None, &data, &load, &run, gcfg, &device, false, |p| {
             if p.iter % 20 == 0 || p.iter == p.iters {
@@ -249,20 +239,18 @@ fn bench(a: &Args) -> Result<()> {
     println!("\n| tokens of | views/s | objects/s | view token L1 vs teacher(GT) | cosine |\n|---|---|---|---|---|");
     let rate = |s: Source, l: Level| seconds.get(&(s, l)).map(|(t, n)| *n as f64 / t.max(1e-9)).unwrap_or(0.0);
     let (fr, fc) = (fid_rgb.mean(), fid_cs.mean());
-    println!(
-        "| (b) render RGB + vision tower | {:.1} | {:.1} | {:.4} | {:.4} |",
-        rate(Source::RenderedRgb, Level::View),
-        rate(Source::RenderedRgb, Level::Object),
-        fr.l1,
-        fr.cos
-    );
-    println!(
-        "| (c) ChatSplat: render language map + encoder | {:.1} | {:.1} | {:.4} | {:.4} |",
-        rate(Source::ChatSplat, Level::View),
-        rate(Source::ChatSplat, Level::Object),
-        fc.l1,
-        fc.cos
-    );
+    for (name, s, f) in [
+        ("(b) render RGB + vision tower", Source::RenderedRgb, &fr),
+        ("(c) ChatSplat: render language map + encoder", Source::ChatSplat, &fc),
+    ] {
+        println!(
+            "| {name} | {:.1} | {:.1} | {:.4} | {:.4} |",
+            rate(s, Level::View),
+            rate(s, Level::Object),
+            f.l1,
+            f.cos
+        );
+    }
     let json = serde_json::json!({
         "seeds": [a.first_seed, a.first_seed + a.seeds], "views": a.views, "resolution": a.resolution,
         "geometry_iters": a.geometry_iters, "language_iters": a.language_iters, "backend": a.backend.to_string(),

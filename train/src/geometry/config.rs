@@ -89,6 +89,22 @@ impl Default for GeometryConfig {
 }
 
 impl GeometryConfig {
+    /// The 3DGS schedule squeezed into a short run of `iters` (the demo, the benches):
+    /// densification every eighth of the run from the first eighth to three quarters, SH degree
+    /// raised every quarter, no opacity reset and no periodic checkpoints.
+    pub fn short(iters: usize) -> Self {
+        Self {
+            iters,
+            densify_from: iters / 8,
+            densify_every: (iters / 8).max(1),
+            densify_until: iters * 3 / 4,
+            opacity_reset_every: 0,
+            sh_degree_every: (iters / 4).max(1),
+            checkpoint_every: 0,
+            ..Default::default()
+        }
+    }
+
     /// The learning rate of every parameter at `iter`; the means' rate decays exponentially and
     /// is scaled by the scene radius, as 3DGS does.
     pub fn lrs(&self, iter: usize, radius: f32) -> SplatParams<f64> {

@@ -58,9 +58,7 @@ pub fn read_json<T: DeserializeOwned>(path: &Path) -> Result<T> {
 /// Reads a config file a user wrote: a JSON object (not an array, which serde would map onto the
 /// fields by position), unknown keys refused by the type.
 pub fn read_config<T: DeserializeOwned>(path: &Path) -> Result<T> {
-    let text = std::fs::read_to_string(path).at(path, "cannot read")?;
-    let value: serde_json::Value = serde_json::from_str(&text)
-        .map_err(|e| Error::invalid(path, format!("invalid JSON at line {}, column {}: {e}", e.line(), e.column())))?;
+    let value: serde_json::Value = read_json(path)?;
     if !value.is_object() {
         return Err(Error::invalid(path, "a config must be a JSON object of settings, e.g. {\"iters\": 1000}"));
     }

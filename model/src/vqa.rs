@@ -21,7 +21,7 @@
 //! question and answer texts non-empty. Unknown keys are rejected (typos).
 
 use crate::chat::{ChatSession, Target};
-use crate::error::{Error, IoContext, Result};
+use crate::error::{Error, Result};
 use crate::vlm::GenerateOptions;
 use serde::{Deserialize, Serialize};
 use std::collections::HashSet;
@@ -84,9 +84,7 @@ pub struct QuestionFile {
 
 /// Reads and validates a question file; errors name the file and the problem.
 pub fn load_questions(path: &Path) -> Result<QuestionFile> {
-    let text = std::fs::read_to_string(path).at(path, "cannot read")?;
-    let file: QuestionFile = serde_json::from_str(&text)
-        .map_err(|e| Error::invalid(path, format!("invalid JSON at line {}, column {}: {e}", e.line(), e.column())))?;
+    let file: QuestionFile = crate::io::read_json(path)?;
     if file.questions.is_empty() {
         return Err(Error::invalid(path, "holds no questions"));
     }

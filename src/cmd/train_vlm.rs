@@ -45,8 +45,9 @@ pub fn run(a: Args) -> anyhow::Result<()> {
                 let labels = p.eval_labels.as_ref().map(|l| format!(" (reading label tokens: {})", l.summary()));
                 eprintln!("\nstep {}: held-out exact match {}{}", p.step, e.summary(), labels.unwrap_or_default());
             }
-            let msg = format!("loss {:.4} answer {:.4} aux {:.4}", p.loss, p.answer_loss, p.aux_loss);
-            bar.update_with(p.step, p.steps, &msg);
+            let loss = p.answer_loss + cfg.aux_weight * p.aux_loss;
+            let msg = format!("loss {loss:.4} answer {:.4} aux {:.4}", p.answer_loss, p.aux_loss);
+            bar.update_with(p.step, cfg.steps, &msg);
         })
     })??;
     println!(

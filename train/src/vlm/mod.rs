@@ -366,29 +366,18 @@ pub fn evaluate_with(
     Ok(acc)
 }
 
-/// Progress of [`train`], after every step.
-#[derive(Clone, Debug)]
-pub struct VlmProgress {
-    pub step: usize,
-    pub steps: usize,
-    pub loss: f32,
-    pub answer_loss: f32,
-    pub aux_loss: f32,
-    /// Held-out accuracy, when this step evaluated.
-    pub eval: Option<Accuracy>,
-    /// Held-out accuracy reading label tokens, when this step evaluated.
-    pub eval_labels: Option<Accuracy>,
-}
-
-/// One line of `training_log.json`.
+/// One line of `training_log.json`, also what [`train`]'s progress callback sees after every step.
 #[derive(Clone, Debug, Serialize, Deserialize)]
 pub struct LogLine {
+    /// Steps done.
     pub step: usize,
     pub seconds: f64,
     pub lr: f64,
     pub answer_loss: f32,
     pub aux_loss: f32,
+    /// Held-out accuracy, when this step evaluated.
     pub eval: Option<Accuracy>,
+    /// Held-out accuracy reading label tokens, when this step evaluated.
     pub eval_labels: Option<Accuracy>,
 }
 
@@ -492,7 +481,7 @@ pub fn train(
     cfg: &VlmTrainConfig,
     out: &Path,
     device: &Device,
-    mut progress: impl FnMut(&VlmProgress),
+    mut progress: impl FnMut(&LogLine),
 ) -> Result<Accuracy> {
     let mut t = Trainer::new(cfg, device)?;
     io::create_dir(out)?;
@@ -521,12 +510,11 @@ pub fn train(
             lr,
             answer_loss: al,
             aux_loss: xl,
-            eval: eval.clone(),
-            eval_labels: eval_labels.clone(),
+            eval,
+            eval_labels,
         };
+        progress(&line);
         log.push(line);
-        let loss = al + cfg.aux_weight * xl;
-        progress(&VlmProgress { step, steps: cfg.steps, loss, answer_loss: al, aux_loss: xl, eval, eval_labels });
         if evaluated {
             io::write_json(&out.join("training_log.json"), &log)?;
         }

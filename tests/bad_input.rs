@@ -320,6 +320,9 @@ fn broken_datasets_configs_and_arguments_are_refused() {
         (vec!["train", "--data", &b, "--out", &o, "--background", "grey"], "background"),
         (vec!["extract", "--data", &b, "--out", &o, "--margin", "-1"], "margin"),
         (vec!["extract", "--data", &b, "--out", &o, "--downscale", "0"], "downscale"),
+        (vec!["train", "--data", &b, "--out", &o, "--masks", "/no/such/masks"], "/no/such/masks"),
+        (vec!["extract", "--data", &b, "--out", &o, "--masks", &o], "is not a directory"),
+        (vec!["train", "--data", &b, "--out", &o, "--masks", &b], "is missing: every image needs a mask"),
         (vec!["ask", "--image", "x.png", "--run", &o, "What?"], "--image"),
         (vec!["export-ply", "--run", &o, "--out", &o], "run"),
     ];

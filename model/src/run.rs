@@ -118,6 +118,9 @@ pub struct DataRef {
     /// trained only then).
     #[serde(default = "yes")]
     pub masks: bool,
+    /// The instance masks given with `--masks` (else the dataset's own).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub mask_dir: Option<StoredPath>,
 }
 
 fn yes() -> bool {
@@ -361,6 +364,9 @@ pub struct TeacherIndex {
     pub dtype: String,
     pub object_margin: f32,
     pub downscale: u32,
+    /// The instance masks given with `--masks` (else the dataset's own).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub masks: Option<StoredPath>,
     pub min_object_pixels: usize,
     pub views: Vec<TeacherViewEntry>,
 }

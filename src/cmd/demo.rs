@@ -57,6 +57,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         iters: None,
         backend: a.backend,
         downscale: 1,
+        masks: None,
         resume: false,
         config: Some(geometry_cfg),
         background: "white".into(),
@@ -68,6 +69,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         data: data.clone(),
         out: Some(data.join("teacher")),
         downscale: 1,
+        masks: None,
         margin: 0.1,
         backend: a.backend,
     })?;

@@ -19,6 +19,10 @@ pub struct Args {
     /// Output directory (default: DATA/teacher).
     #[arg(long)]
     pub out: Option<PathBuf>,
+    /// Instance masks from another tool: DIR/<image stem>.png per image (8-bit ids, 0 =
+    /// background, the image's size), instead of the dataset's own; use the same as for `train`.
+    #[arg(long, value_name = "DIR")]
+    pub masks: Option<PathBuf>,
     /// Integer image downscale before extraction.
     #[arg(long, default_value_t = 1)]
     pub downscale: u32,
@@ -39,7 +43,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     let m = model::catch_backend("loading the model", || model::vlm::LlavaOnevision::load(&vlm_dir, &device))??;
     let opts = ExtractOptions {
         margin: a.margin,
-        load: LoadOptions { downscale: a.downscale, ..Default::default() },
+        load: LoadOptions { downscale: a.downscale, masks: a.masks.clone(), ..Default::default() },
         ..Default::default()
     };
     let bar = Progress::new("extract", "views");

@@ -24,6 +24,11 @@ pub struct Args {
     /// Integer image downscale.
     #[arg(long, default_value_t = 1)]
     pub downscale: u32,
+    /// Instance masks from another tool (e.g. SAM + DEVA, Gaussian Grouping): DIR/<image
+    /// stem>.png per image, 8-bit ids (0 = background) the image's size, replacing the dataset's
+    /// own masks; they train the identity field that object-level chat needs.
+    #[arg(long, value_name = "DIR")]
+    pub masks: Option<PathBuf>,
     /// Continue from the run directory's last checkpoint.
     #[arg(long)]
     pub resume: bool,
@@ -58,10 +63,11 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         }
     }
     super::check_config(a.config.as_deref(), cfg.validate())?;
-    let load = LoadOptions { downscale: a.downscale, background: bg, ..Default::default() };
+    let load = LoadOptions { downscale: a.downscale, background: bg, masks: a.masks.clone(), ..Default::default() };
     // COLMAP projects initialise from their sparse points.
     let (ds, points) = if a.data.join("sparse").is_dir() && !a.data.join("poses_bounds.npy").is_file() {
-        let (ds, p) = colmap::load(&a.data, &load)?;
+        let (mut ds, p) = colmap::load(&a.data, &load)?;
+        model::data::apply_masks(&mut ds, &load)?;
         (ds, Some(p))
     } else {
         (load_any(&a.data, &load)?, None)

@@ -948,3 +948,37 @@ fn gaussian_grouping_object_masks_are_read() {
     assert_eq!(b.instance_ids.as_deref(), Some(&ids[..]));
     assert!(ds.train.iter().filter(|v| v.instance_ids.is_some()).count() == 1);
 }
+
+#[test]
+fn masks_from_another_tool_replace_any_formats_own() {
+    // Replica (own 16-bit labels) and LLFF (no masks): `--masks DIR` gives both the same ids.
+    for (tag, dir, images) in [
+        ("masks-replica", replica_dir("masks-replica-data", 2), vec!["rgb_0", "rgb_1"]),
+        ("masks-llff", llff_dir("masks-llff-data"), vec!["a", "b.jpg", "c"]),
+    ] {
+        let masks = temp_dir(tag);
+        let ids = |i: usize| -> Vec<u8> { (0..W * H).map(|p| ((p as usize + i) % 7) as u8).collect() };
+        for (i, stem) in images.iter().enumerate() {
+            write_gray8(&masks.join(format!("{stem}.png")), W, H, &ids(i)).unwrap();
+        }
+        let with = |k: u32| LoadOptions { masks: Some(masks.clone()), ..opts(k, 0) };
+        let ds = load_any(&dir, &with(1)).unwrap();
+        assert_eq!(ds.train.len(), images.len(), "{tag}");
+        for (i, v) in ds.train.iter().enumerate() {
+            assert_eq!(v.instance_ids.as_ref().unwrap(), &ids(i), "{tag} view {i}");
+        }
+        // downscaled by nearest sample, like the format's own masks
+        let half = load_any(&dir, &with(2)).unwrap();
+        let got = half.train[1].instance_ids.as_ref().unwrap();
+        assert_eq!(got, &(0..12).map(|j| ids(1)[(j / 4) * 16 + (j % 4) * 2]).collect::<Vec<_>>(), "{tag}");
+        // a mask of the wrong size, a missing mask, a folder that is not there: errors naming the file
+        write_gray8(&masks.join(format!("{}.png", images[1])), W - 2, H, &vec![0; ((W - 2) * H) as usize]).unwrap();
+        expect_err(load_any(&dir, &with(1)), &[&format!("{}.png", images[1]), "is 6x6 but its image"]);
+        std::fs::remove_file(masks.join(format!("{}.png", images[0]))).unwrap();
+        expect_err(load_any(&dir, &with(1)), &[&format!("{}.png", images[0]), "is missing: every image needs a mask"]);
+        let gone = LoadOptions { masks: Some(masks.join("nope")), ..opts(1, 0) };
+        expect_err(load_any(&dir, &gone), &["nope", "is not a directory"]);
+        std::fs::remove_dir_all(&dir).ok();
+        std::fs::remove_dir_all(&masks).ok();
+    }
+}

@@ -179,6 +179,7 @@ pub fn extract(
         dtype: "F16".into(),
         object_margin: opts.margin,
         downscale: opts.load.downscale,
+        masks: opts.load.masks.as_ref().map(|m| StoredPath::new(m, &out.dir)),
         min_object_pixels: opts.min_object_pixels,
         views: plan
             .views
@@ -255,7 +256,8 @@ impl TeacherSet {
     /// The dataset the tokens were extracted from (same split and downscale).
     pub fn dataset(&self) -> Result<Dataset> {
         let data = self.data_dir();
-        let ds = load_any(&data, &LoadOptions { downscale: self.index.downscale, ..Default::default() })?;
+        let masks = self.index.masks.as_ref().map(|m| m.resolve(&self.dir.dir));
+        let ds = load_any(&data, &LoadOptions { downscale: self.index.downscale, masks, ..Default::default() })?;
         if ds.train.len() != self.views.len() {
             return Err(Error::invalid(
                 self.dir.index(),

@@ -54,11 +54,14 @@ pub struct LoadOptions {
     /// Without a test split on disk, every `holdout_every`-th view is held out (0: none): views
     /// `every-1, 2*every-1, ...` in the loader's view order.
     pub holdout_every: usize,
+    /// Instance masks from another tool (`--masks DIR`): `DIR/<image stem>.png` per image, 8-bit
+    /// ids (0 = background) the size of the image, replacing the format's own masks.
+    pub masks: Option<PathBuf>,
 }
 
 impl Default for LoadOptions {
     fn default() -> Self {
-        Self { downscale: 1, background: Background::White, holdout_every: 8 }
+        Self { downscale: 1, background: Background::White, holdout_every: 8, masks: None }
     }
 }
 
@@ -126,6 +129,39 @@ pub(crate) fn mask_dir(dir: &Path) -> PathBuf {
     if !ours.is_dir() && grouping.is_dir() { grouping } else { ours }
 }
 
+/// Replaces every view's instance ids with `opts.masks`' (nothing without it): for each image
+/// `DIR/<image stem>.png` must exist, the size of the full-resolution image, and is downscaled by
+/// nearest sample like the format's own masks.
+pub fn apply_masks(ds: &mut Dataset, opts: &LoadOptions) -> Result<()> {
+    let Some(dir) = &opts.masks else { return Ok(()) };
+    if !dir.is_dir() {
+        return Err(image::err(dir, "is not a directory (--masks: a folder of per-image instance-id PNGs)"));
+    }
+    let k = opts.downscale.max(1);
+    for v in ds.train.iter_mut().chain(ds.test.iter_mut()) {
+        let mut name = v.image_path.file_stem().map(|s| s.to_os_string()).unwrap_or_default();
+        name.push(".png");
+        let path = dir.join(name);
+        if !path.is_file() {
+            return Err(image::err(
+                &path,
+                format!("is missing: every image needs a mask (image {})", v.image_path.display()),
+            ));
+        }
+        let (mw, mh, mc, bytes) = crate::images::read_png8(&path)?;
+        let (w, h) = (v.camera.width, v.camera.height);
+        if mw / k != w || mh / k != h || mc == 0 {
+            return Err(image::err(
+                &path,
+                format!("is {mw}x{mh} but its image {} is {}x{} (after downscale {k})", v.image_path.display(), w, h),
+            ));
+        }
+        let ids: Vec<u8> = bytes.chunks_exact(mc).map(|c| c[0]).collect();
+        v.instance_ids = Some(image::subsample(&ids, mw, w, h, k));
+    }
+    Ok(())
+}
+
 /// Splits `views` (in order) into train and test: every `every`-th view is held out (0: none).
 pub(crate) fn split(views: Vec<View>, every: usize) -> Dataset {
     let (mut train, mut test) = (vec![], vec![]);
@@ -151,8 +187,16 @@ pub(crate) fn check_options(opts: &LoadOptions) -> Result<()> {
 ///    made from, with the original, distorted cameras, so this marker wins over `sparse/`);
 /// 3. a `sparse/` directory: [`colmap`] (its sparse points are dropped; call
 ///    [`colmap::load`] to keep them);
-/// 4. `traj_w_c.txt`: [`replica`].
+/// 4. `traj_w_c.txt`: [`replica`];
+///
+/// then [`apply_masks`] (`opts.masks`).
 pub fn load_any(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
+    let mut ds = load_format(dir, opts)?;
+    apply_masks(&mut ds, opts)?;
+    Ok(ds)
+}
+
+fn load_format(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
     if dir.join("transforms.json").is_file() || dir.join("transforms_train.json").is_file() {
         nerfstudio::load(dir, opts)
     } else if dir.join("poses_bounds.npy").is_file() {

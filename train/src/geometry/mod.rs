@@ -99,6 +99,7 @@ pub fn data_ref(ds: &Dataset, data_dir: &Path, load: &LoadOptions, run: &Geometr
         background: [bg; 3],
         fingerprint: ds.fingerprint(),
         masks: ds.train.iter().chain(&ds.test).any(|v| v.instance_ids.is_some()),
+        mask_dir: load.masks.as_ref().map(|m| StoredPath::new(m, &run.dir)),
     }
 }
 

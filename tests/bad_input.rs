@@ -414,6 +414,36 @@ fn broken_datasets_configs_and_arguments_are_refused() {
         out: ask(&["--object", "5", "5"]),
         expect: vec!["needs instance masks".into()],
     });
+    // the chat REPL: bad commands are reported and the session goes on (documented: an
+    // interactive session is not ended by a typo); each line's message names the problem
+    let mut child = chatsplat()
+        .args(["chat", "--max-new-tokens", "1", "--run"])
+        .arg(&bare_run)
+        .stdin(std::process::Stdio::piped())
+        .stdout(std::process::Stdio::piped())
+        .stderr(std::process::Stdio::piped())
+        .spawn()
+        .unwrap();
+    {
+        use std::io::Write;
+        let lines = ":frobnicate\n:scene 0\n:view x\n:view 99999\n:click 1\n:click 99999 5\n:click 5 5\n:quit\n";
+        child.stdin.take().unwrap().write_all(lines.as_bytes()).unwrap();
+    }
+    let out = child.wait_with_output().unwrap();
+    s.succeeds("chat REPL with bad commands", out.clone());
+    let err = String::from_utf8_lossy(&out.stderr).to_lowercase();
+    for (what, want) in [
+        (":frobnicate", "unknown command :frobnicate"),
+        (":scene 0", "k >= 1"),
+        (":view x", "usage: :view n"),
+        (":view 99999", "99999"),
+        (":click 1", "usage: :click x y"),
+        (":click 99999 5", "outside"),
+        (":click without masks", "needs instance masks"),
+    ] {
+        s.check(&format!("chat REPL {what}"), err.contains(want), &format!("no \"{want}\" in: {err}"));
+    }
+    s.check("chat REPL: no panic", !err.contains("panicked"), &err);
     // kill -9 during training, then --resume
     let k = dir.join("run-killed");
     let mut child =

@@ -126,7 +126,8 @@ impl LanguageScene {
         if !self.masks {
             return Err(Error::input(
                 "object level needs instance masks, and this scene's dataset has none: give the capture masks \
-                 (masks/ or Gaussian Grouping's object_mask/) and train again; view and scene level work without",
+                 (masks/, Gaussian Grouping's object_mask/, or --masks DIR on train and extract) and train \
+                 again; view and scene level work without",
             ));
         }
         let ids = self.render(cam)?.ids;

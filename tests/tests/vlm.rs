@@ -8,7 +8,7 @@ use burn::tensor::{Device, Tensor, TensorData};
 use chatsplat_tests::{host, max_abs_diff, temp_dir, wgpu_device};
 use model::vlm::preprocess::{anyres_views, base_view};
 use model::vlm::weights::WeightStore;
-use model::vlm::{GenerateOptions, LlavaOnevision, RgbImage, Turn, VlmError, chat_template};
+use model::vlm::{GenerateOptions, LlavaOnevision, PromptLayout, RgbImage, Turn, VlmError, chat_template};
 use safetensors::{Dtype, SafeTensors};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
@@ -197,6 +197,30 @@ fn copy_fixture(name: &str) -> PathBuf {
     dir
 }
 
+#[test]
+fn the_prompt_layout_follows_the_models_chat_template() {
+    let dev = Device::ndarray();
+    let m = LlavaOnevision::load(&fixture(), &dev).unwrap();
+    assert_eq!(m.tokenizer.layout, PromptLayout::ImagesFirst, "llava-hf's template renders images first");
+    let text_first = PromptLayout::TextFirst.jinja();
+    assert_eq!(PromptLayout::of_template(&text_first), PromptLayout::TextFirst);
+    assert_eq!(PromptLayout::of_template(&PromptLayout::ImagesFirst.jinja()), PromptLayout::ImagesFirst);
+    let dir = copy_fixture("vlm-text-first");
+    std::fs::write(dir.join("chat_template.jinja"), &text_first).unwrap();
+    let t = LlavaOnevision::load(&dir, &dev).unwrap();
+    assert_eq!(t.tokenizer.layout, PromptLayout::TextFirst);
+    let prompt = t.tokenizer.prompt(&[Turn::user(2, "Which is red?")], true);
+    assert_eq!(prompt, "<|im_start|>user\nWhich is red?<image>\n<image>\n<|im_end|>\n<|im_start|>assistant\n");
+    // the image embeddings follow the question's tokens
+    let d = t.cfg.text.hidden_size;
+    let img = Tensor::<2>::from_data(TensorData::new(vec![7.0f32; 3 * d], [3, d]), &dev);
+    let rows = host(t.prompt_embeds("Which is red?", &[img]).unwrap());
+    let at: Vec<usize> = (0..rows.len() / d).filter(|&r| rows[r * d..(r + 1) * d].iter().all(|&v| v == 7.0)).collect();
+    let before = t.tokenizer.encode("<|im_start|>user\nWhich is red?").unwrap().len();
+    assert_eq!(at, (before..before + 3).collect::<Vec<_>>());
+    std::fs::remove_dir_all(&dir).ok();
+}
+
 fn load_err(dir: &Path) -> String {
     match LlavaOnevision::load(dir, &Device::ndarray()) {
         Ok(_) => panic!("{} loaded but should not", dir.display()),
@@ -376,6 +400,16 @@ fn teacher_extraction_writes_f16_tokens_and_resumes() {
     assert_eq!((s.written, s.skipped), (2, planned - 2));
     let (_, again) = read_tokens(&out.join(view_file(0)), "view").unwrap();
     assert_eq!(again, got, "extraction is deterministic");
+    // Another downscale: every view is redone (complete files of the old setting are not kept)
+    // and the index says what the tokens are; the same setting again skips everything.
+    let half = ExtractOptions { load: model::data::LoadOptions { downscale: 2, ..Default::default() }, ..eo.clone() };
+    let s = extract(&m, &data, &teacher, &half, |_| {}, |_, _| {}).unwrap();
+    assert_eq!((s.written, s.skipped), (planned, 0));
+    assert_eq!(teacher.read_index().unwrap().downscale, 2);
+    let (_, small) = read_tokens(&out.join(view_file(0)), "view").unwrap();
+    assert!(max_abs_diff(&small, &got) > 1e-3, "downscale-2 tokens replace the full-size ones");
+    let s = extract(&m, &data, &teacher, &half, |_| {}, |_, _| {}).unwrap();
+    assert_eq!((s.written, s.skipped), (0, planned));
     // A dataset path that does not exist is a clear error.
     let e = extract(&m, Path::new("/nonexistent/scene"), &teacher, &eo, |_| {}, |_, _| {}).unwrap_err().to_string();
     assert!(e.contains("/nonexistent/scene"), "{e}");

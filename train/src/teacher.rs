@@ -127,11 +127,28 @@ pub fn extract(
     let plan = plan(&ds.train, grid, dim, opts);
     on_start(&plan);
     io::create_dir(&out.dir)?;
+    // tokens made from other data, another downscale or masks, or by another teacher are redone,
+    // and the old index goes first: an interrupted re-run leaves no index rather than a mixed one
+    let fingerprint = ds.fingerprint();
+    let masks = opts.load.masks.as_ref().map(|m| StoredPath::new(m, &out.dir));
+    let stale = out.index().is_file()
+        && match out.read_index() {
+            Ok(old) => {
+                old.fingerprint != fingerprint
+                    || old.downscale != opts.load.downscale
+                    || old.masks.as_ref().map(|m| m.absolute.clone()) != masks.as_ref().map(|m| m.absolute.clone())
+                    || old.teacher != vlm.dir.display().to_string()
+            }
+            Err(_) => true,
+        };
+    if stale {
+        std::fs::remove_file(out.index()).map_err(|e| Error::invalid(out.index(), format!("cannot remove: {e}")))?;
+    }
     let (mut written, mut skipped, mut images) = (0, 0, 0);
     let total = plan.views.len();
     for (vp, view) in plan.views.iter().zip(&ds.train) {
         let path = out.view_file(vp.index);
-        if complete(&path, vp, grid, dim, opts.margin) {
+        if !stale && complete(&path, vp, grid, dim, opts.margin) {
             skipped += 1;
             progress(vp.index + 1, total);
             continue;
@@ -170,7 +187,7 @@ pub fn extract(
     let index = TeacherIndex {
         teacher: vlm.dir.display().to_string(),
         data: StoredPath::new(data, &out.dir),
-        fingerprint: ds.fingerprint(),
+        fingerprint,
         vision_feature_layer: vlm.cfg.vision_feature_layer,
         grid,
         dim,
@@ -179,7 +196,7 @@ pub fn extract(
         dtype: "F16".into(),
         object_margin: opts.margin,
         downscale: opts.load.downscale,
-        masks: opts.load.masks.as_ref().map(|m| StoredPath::new(m, &out.dir)),
+        masks,
         min_object_pixels: opts.min_object_pixels,
         views: plan
             .views

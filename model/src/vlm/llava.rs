@@ -7,7 +7,7 @@ use super::layers::{act, init_linear, load_linear, normal};
 use super::preprocess::{AnyresGrid, ImagePatches, RgbImage, anyres_views, base_view, num_image_tokens};
 use super::qwen2::{KvCache, Qwen2};
 use super::siglip::VisionTower;
-use super::tokenizer::{ChatTokenizer, Turn, chat_template};
+use super::tokenizer::{ChatTokenizer, Turn};
 use super::weights::{HfTensors, WeightStore};
 use crate::rng::Rng;
 use burn::module::{Module, Param};
@@ -208,7 +208,7 @@ impl LlavaOnevision {
     /// `token_embeds` of a token grid): the chat template with one `<image>` per image, each
     /// expanded to its number of rows. The one place prompts are assembled.
     pub fn prompt_embeds(&self, question: &str, images: &[Tensor<2>]) -> Result<Tensor<2>, VlmError> {
-        let prompt = chat_template(&[Turn::user(images.len(), question.to_string())], true);
+        let prompt = self.tokenizer.prompt(&[Turn::user(images.len(), question.to_string())], true);
         let counts: Vec<usize> = images.iter().map(|e| e.dims()[0]).collect();
         let ids = self.expand_image_tokens(&self.tokenizer.encode(&prompt)?, &counts)?;
         let max = self.cfg.text.max_positions;

@@ -23,7 +23,7 @@ pub use config::{LlavaConfig, ProcessorConfig};
 pub use generate::{GenerateOptions, Generation};
 pub use llava::LlavaOnevision;
 pub use preprocess::RgbImage;
-pub use tokenizer::{ChatTokenizer, Turn, chat_template};
+pub use tokenizer::{ChatTokenizer, PromptLayout, Turn, chat_template, chat_template_in};
 
 use std::path::{Path, PathBuf};
 

@@ -185,7 +185,8 @@ impl Qwen2 {
         positions: &[usize],
         mask: Option<Tensor<2>>,
         mut cache: Option<&mut KvCache>,
-    ) -> Tensor<3> {
+        tap: Option<usize>,
+    ) -> (Tensor<3>, Option<Tensor<3>>) {
         let [b, t, _] = x.dims();
         let (h, kvh, hd) = (self.cfg.num_heads, self.cfg.num_kv_heads, self.cfg.head_dim);
         let (cos, sin) = self.rope(positions);
@@ -202,7 +203,11 @@ impl Qwen2 {
         };
         let rep = h / kvh;
         let mut x = x;
+        let mut tapped = None;
         for (li, l) in self.layers.iter().enumerate() {
+            if tap == Some(li) {
+                tapped = Some(x.clone());
+            }
             let hs = l.ln1.forward(x.clone());
             let heads = |y: Tensor<3>, n: usize| y.reshape([b, t, n, hd]).swap_dims(1, 2);
             let q = rotate(heads(l.q.forward(hs.clone()), h));
@@ -228,7 +233,7 @@ impl Qwen2 {
             let hs = l.ln2.forward(x.clone());
             x = x + l.down.forward(act(self.cfg.act, l.gate.forward(hs.clone())) * l.up.forward(hs));
         }
-        self.norm.forward(x)
+        (self.norm.forward(x), tapped)
     }
 
     /// Inference: runs `x` (`[T, D]` input embeddings) after the cached tokens, causally; returns
@@ -244,7 +249,7 @@ impl Qwen2 {
             Tensor::<2>::from_data(TensorData::new(m, [t, total]), &self.device())
         });
         let positions: Vec<usize> = (start..total).collect();
-        let out = self.run(x.unsqueeze_dim::<3>(0), &positions, mask, Some(cache));
+        let (out, _) = self.run(x.unsqueeze_dim::<3>(0), &positions, mask, Some(cache), None);
         cache.len = total;
         out.reshape([t, d])
     }
@@ -252,7 +257,19 @@ impl Qwen2 {
     /// Training: `x` `[B, T, D]` with each token at `positions[i]`, attending where `mask`
     /// (`[T, T]`, additive: 0 or -inf) allows; returns the final-norm hidden states `[B, T, D]`.
     pub fn forward_masked(&self, x: Tensor<3>, positions: &[usize], mask: Tensor<2>) -> Tensor<3> {
-        self.run(x, positions, Some(mask), None)
+        self.run(x, positions, Some(mask), None, None).0
+    }
+
+    /// [`Self::forward_masked`], also returning the residual stream entering layer `tap` `[B, T, D]`.
+    pub fn forward_masked_tapped(
+        &self,
+        x: Tensor<3>,
+        positions: &[usize],
+        mask: Tensor<2>,
+        tap: usize,
+    ) -> (Tensor<3>, Tensor<3>) {
+        let (out, tapped) = self.run(x, positions, Some(mask), None, Some(tap));
+        (out, tapped.expect("tap is a layer index"))
     }
 
     /// Logits `[..., vocab]` of final hidden states `[..., D]`.

@@ -1,6 +1,7 @@
 //! The model's `tokenizer.json` through the Hugging Face `tokenizers` crate, and the
 //! LLaVA-OneVision chat template (Qwen2 `<|im_start|>` / `<|im_end|>` turns, `<image>\n` per image
-//! at the start of a user turn), written out in Rust instead of evaluated as Jinja.
+//! at the start of a user turn, or after its text for models trained that way: [`PromptLayout`]),
+//! written out in Rust instead of evaluated as Jinja.
 
 use super::VlmError;
 use std::path::Path;
@@ -10,7 +11,7 @@ use std::path::Path;
 pub struct Turn {
     /// `user`, `assistant` or `system`.
     pub role: String,
-    /// Images attached to this turn (each becomes `<image>\n` before the text).
+    /// Images attached to this turn (each becomes `<image>\n`, before the text or after it: [`PromptLayout`]).
     pub images: usize,
     pub text: String,
 }
@@ -24,17 +25,66 @@ impl Turn {
     }
 }
 
-/// The llava-hf LLaVA-OneVision chat template.
+/// Where a user turn's images go relative to its text: llava-hf's template renders images first;
+/// a model may ship a template that renders the text first (the tabletop models do: a small LLM
+/// trained from scratch reads the image tokens knowing the question, as FiLM-style models do).
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub enum PromptLayout {
+    #[default]
+    ImagesFirst,
+    TextFirst,
+}
+
+impl PromptLayout {
+    /// The layout a Jinja chat template renders: whichever of the `'image'` and `'text'` content
+    /// loops comes first; images first when the template has neither (llava-hf's behaviour).
+    pub fn of_template(jinja: &str) -> Self {
+        let at = |kind: &str| jinja.find(&format!("'equalto', '{kind}')"));
+        match (at("image"), at("text")) {
+            (Some(i), Some(t)) if t < i => PromptLayout::TextFirst,
+            _ => PromptLayout::ImagesFirst,
+        }
+    }
+
+    /// The Jinja template of this layout (`chat_template.jinja`).
+    pub fn jinja(self) -> String {
+        match self {
+            PromptLayout::ImagesFirst => CHAT_TEMPLATE_JINJA.to_string(),
+            PromptLayout::TextFirst => {
+                let images = "{# Render all images first #}{% for content in message['content'] | selectattr('type', \
+                              'equalto', 'image') %}{{ '<image>\\n' }}{% endfor %}";
+                assert!(CHAT_TEMPLATE_JINJA.contains(images), "the template's image loop");
+                let rest = CHAT_TEMPLATE_JINJA.replacen(images, "", 1);
+                let end = rest.find("{{'<|im_end|>'").expect("the template's turn end");
+                format!("{}{}{}", &rest[..end], images.replace("images first", "images after the text"), &rest[end..])
+            }
+        }
+    }
+}
+
+/// The llava-hf LLaVA-OneVision chat template (images first).
 pub fn chat_template(turns: &[Turn], add_generation_prompt: bool) -> String {
+    chat_template_in(turns, add_generation_prompt, PromptLayout::ImagesFirst)
+}
+
+/// The chat template with the images of each turn placed by `layout`.
+pub fn chat_template_in(turns: &[Turn], add_generation_prompt: bool, layout: PromptLayout) -> String {
     let mut s = String::new();
     for t in turns {
         s.push_str("<|im_start|>");
         s.push_str(&t.role);
         s.push('\n');
-        for _ in 0..t.images {
-            s.push_str("<image>\n");
+        let images = "<image>\n".repeat(t.images);
+        match layout {
+            PromptLayout::ImagesFirst => {
+                s.push_str(&images);
+                s.push_str(&t.text);
+            }
+            PromptLayout::TextFirst => {
+                s.push_str(&t.text);
+                s.push_str(&images);
+            }
         }
-        s.push_str(&t.text);
         s.push_str("<|im_end|>\n");
     }
     if add_generation_prompt {
@@ -50,12 +100,34 @@ pub struct ChatTokenizer {
     pub image_token_id: u32,
     /// `<|im_end|>` and `<|endoftext|>` when present: generation stops on them.
     pub stop_ids: Vec<u32>,
+    /// Where images go in a user turn, from the model's chat template.
+    pub layout: PromptLayout,
 }
 
 impl std::fmt::Debug for ChatTokenizer {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         write!(f, "ChatTokenizer(vocab {}, image {})", self.inner.get_vocab_size(true), self.image_token_id)
     }
+}
+
+/// The layout of the chat template in `dir` (`chat_template.jinja`, else `chat_template.json`'s
+/// `chat_template`); images first when there is none.
+fn template_layout(dir: &Path) -> Result<PromptLayout, VlmError> {
+    let jinja = dir.join("chat_template.jinja");
+    let json = dir.join("chat_template.json");
+    let read = |p: &Path| std::fs::read_to_string(p).map_err(|e| VlmError::config(p, format!("cannot read: {e}")));
+    if jinja.exists() {
+        return Ok(PromptLayout::of_template(&read(&jinja)?));
+    }
+    if json.exists() {
+        let v: serde_json::Value =
+            serde_json::from_str(&read(&json)?).map_err(|e| VlmError::config(&json, format!("invalid JSON: {e}")))?;
+        return match v.get("chat_template").and_then(|t| t.as_str()) {
+            Some(t) => Ok(PromptLayout::of_template(t)),
+            None => Err(VlmError::config(&json, "has no \"chat_template\" string")),
+        };
+    }
+    Ok(PromptLayout::ImagesFirst)
 }
 
 impl ChatTokenizer {
@@ -66,7 +138,20 @@ impl ChatTokenizer {
         }
         let inner = tokenizers::Tokenizer::from_file(&path)
             .map_err(|e| VlmError::config(&path, format!("cannot load tokenizer: {e}")))?;
-        Self::new(inner, image_token_id, &path)
+        let mut tok = Self::new(inner, image_token_id, &path)?;
+        tok.layout = template_layout(dir)?;
+        Ok(tok)
+    }
+
+    /// The same tokenizer with prompts built in `layout`.
+    pub fn with_layout(mut self, layout: PromptLayout) -> Self {
+        self.layout = layout;
+        self
+    }
+
+    /// The prompt text of `turns` in this model's layout.
+    pub fn prompt(&self, turns: &[Turn], add_generation_prompt: bool) -> String {
+        chat_template_in(turns, add_generation_prompt, self.layout)
     }
 
     /// A tokenizer from the text of a `tokenizer.json`.
@@ -89,7 +174,7 @@ impl ChatTokenizer {
             }
         }
         let stop_ids = ["<|im_end|>", "<|endoftext|>"].iter().filter_map(|t| inner.token_to_id(t)).collect();
-        Ok(Self { inner, image_token_id, stop_ids })
+        Ok(Self { inner, image_token_id, stop_ids, layout: PromptLayout::ImagesFirst })
     }
 
     /// The text of `tokenizer.json`.

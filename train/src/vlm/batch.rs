@@ -1,7 +1,9 @@
-//! Packing samples into one forward pass: every sample is its prompt prefix (`<|im_start|>
-//! user` and its image tokens) followed by its questions as separate segments; each segment sees
-//! the prefix and itself only, at the positions it would have alone, so one pass answers many
-//! questions exactly as single-turn inference would. The loss is cross-entropy on the answer
+//! Packing samples into one forward pass. Images first (llava-hf's layout): every sample is its
+//! prompt prefix (`<|im_start|> user` and its image tokens) followed by its questions as separate
+//! segments; each segment sees the prefix and itself only, at the positions it would have alone,
+//! so one pass answers many questions exactly as single-turn inference would. Text first: one row
+//! per question (the image tokens depend on the question before them), the tower's tokens of an
+//! image gathered into every row that asks about it. The loss is cross-entropy on the answer
 //! tokens (and the closing `<|im_end|>`), plus an auxiliary per-token classification of colour,
 //! shape and size on the vision tokens.
 
@@ -9,10 +11,10 @@ use super::data::{Sample, SampleKind};
 use burn::module::Module;
 use burn::nn::Linear;
 use burn::tensor::{Device, Int, Tensor, TensorData, activation};
-use model::data::synth::questions::Kind;
+use model::data::synth::questions::{Kind, Qa};
 use model::error::{Error, Result};
 use model::rng::Rng;
-use model::vlm::{LlavaOnevision, Turn, chat_template};
+use model::vlm::{LlavaOnevision, PromptLayout, Turn};
 
 /// The model being trained: the VLM and the auxiliary per-token head.
 #[derive(Module, Debug)]
@@ -20,6 +22,10 @@ pub struct Trainable {
     pub vlm: LlavaOnevision,
     /// `[vision D, 8 + 1 + 6 + 1 + 2 + 1]`: colour, shape and size logits per vision token.
     pub aux: Linear,
+    /// `[text D, 1]`: text first, whether an image token shows an object the question names, read
+    /// off the LLM's residual stream halfway up (the first hop of every look-up question,
+    /// supervised so that a small LLM learns it).
+    pub relevance: Linear,
 }
 
 /// Class counts of the auxiliary head (none + each value).
@@ -30,6 +36,11 @@ pub struct Packed {
     pub kind: SampleKind,
     /// Samples in the batch.
     pub b: usize,
+    /// Rows of the LLM batch (`b` images first, one per question text first).
+    pub rows: usize,
+    /// Text first: per position of the `[rows, t]` batch, the row of `[text embeddings of ids
+    /// (rows * t); image rows (b * images * (tokens + 1))]` it reads.
+    pub gather: Option<Vec<i64>>,
     /// Images per sample.
     pub images: usize,
     /// Token ids `[b, t]` (the image rows hold a placeholder).
@@ -53,6 +64,9 @@ pub struct Packed {
     pub depth: Vec<f32>,
     /// Per image: whether the LLM reads its label tokens instead of the tower's.
     pub label_tokens: Vec<bool>,
+    /// Text first: flat `row * t + i` of every image token (not the newline rows) of a question
+    /// that names objects, and whether the token shows one of them.
+    pub relevance: Vec<(usize, f32)>,
 }
 
 /// The symbolic stand-in for the tower's output: per token a fixed random vector per colour,
@@ -107,9 +121,15 @@ impl LabelTokens {
 }
 
 /// Packs samples of one kind (same number of images) with their picked questions.
-pub fn pack(vlm: &LlavaOnevision, samples: &[(Sample, Vec<model::data::synth::questions::Qa>)]) -> Result<Packed> {
+pub fn pack(vlm: &LlavaOnevision, samples: &[(Sample, Vec<Qa>)]) -> Result<Packed> {
     let first = samples.first().ok_or_else(|| Error::input("empty batch"))?;
     let (kind, images) = (first.0.kind, first.0.images.len());
+    if samples.iter().any(|(s, _)| s.images.len() != images || s.kind != kind) {
+        return Err(Error::input("a batch mixes sample kinds"));
+    }
+    if vlm.tokenizer.layout == PromptLayout::TextFirst {
+        return pack_text_first(vlm, samples);
+    }
     let g2 = vlm.cfg.vision.tokens();
     let rows = images * (g2 + 1);
     let tok = &vlm.tokenizer;
@@ -117,13 +137,10 @@ pub fn pack(vlm: &LlavaOnevision, samples: &[(Sample, Vec<model::data::synth::qu
     // head: the template's tokens before the first <image>; segments: after the last one
     let mut head_ids: Option<Vec<i64>> = None;
     let mut segments: Vec<Vec<(Vec<i64>, usize, Kind)>> = Vec::with_capacity(samples.len());
-    for (s, qas) in samples {
-        if s.images.len() != images || s.kind != kind {
-            return Err(Error::input("a batch mixes sample kinds"));
-        }
+    for (_, qas) in samples {
         let mut segs = Vec::new();
         for qa in qas {
-            let prompt = chat_template(&[Turn::user(images, qa.question.clone())], true);
+            let prompt = tok.prompt(&[Turn::user(images, qa.question.clone())], true);
             let p: Vec<i64> = tok.encode(&prompt)?.into_iter().map(|i| i as i64).collect();
             let a: Vec<i64> = tok.encode(&format!("{}<|im_end|>", qa.answer))?.into_iter().map(|i| i as i64).collect();
             let first_img =
@@ -181,6 +198,33 @@ pub fn pack(vlm: &LlavaOnevision, samples: &[(Sample, Vec<model::data::synth::qu
             }
         }
     }
+    let (pixels, labels, depth) = tower_inputs(samples);
+    let label_tokens = vec![false; b * images];
+    Ok(Packed {
+        kind,
+        b,
+        rows: b,
+        gather: None,
+        images,
+        ids,
+        t,
+        head,
+        prefix,
+        positions,
+        mask,
+        targets,
+        questions,
+        pixels,
+        labels,
+        depth,
+        label_tokens,
+        relevance: Vec::new(),
+    })
+}
+
+/// Pixels, auxiliary labels and depths of every image of `samples`, in order.
+#[allow(clippy::type_complexity)]
+fn tower_inputs(samples: &[(Sample, Vec<Qa>)]) -> (Vec<f32>, [Vec<i64>; 3], Vec<f32>) {
     let mut pixels = Vec::new();
     let mut labels: [Vec<i64>; 3] = Default::default();
     let mut depth = Vec::new();
@@ -195,24 +239,112 @@ pub fn pack(vlm: &LlavaOnevision, samples: &[(Sample, Vec<model::data::synth::qu
             }
         }
     }
-    let label_tokens = vec![false; b * images];
+    (pixels, labels, depth)
+}
+
+/// [`pack`] for a text-first model: one causal row per question, `prompt + answer`, its
+/// `<image>` placeholders expanded to the image's tokens and newline row.
+fn pack_text_first(vlm: &LlavaOnevision, samples: &[(Sample, Vec<Qa>)]) -> Result<Packed> {
+    let (kind, images) = (samples[0].0.kind, samples[0].0.images.len());
+    let per_image = vlm.cfg.vision.tokens() + 1;
+    let tok = &vlm.tokenizer;
+    let image_id = tok.image_token_id as i64;
+    // per row: the ids (image rows as `image_id`), which image each image run is, the prompt length, the kind
+    let mut seqs: Vec<(Vec<i64>, usize, usize, Kind)> = Vec::new();
+    let mut named: Vec<Vec<(u8, u8)>> = Vec::new();
+    for (si, (_, qas)) in samples.iter().enumerate() {
+        for qa in qas {
+            let prompt = tok.prompt(&[Turn::user(images, qa.question.clone())], true);
+            let mut ids = Vec::new();
+            for id in tok.encode(&prompt)? {
+                let n = if id as i64 == image_id { per_image } else { 1 };
+                ids.extend(std::iter::repeat_n(id as i64, n));
+            }
+            if ids.iter().filter(|&&i| i == image_id).count() != images * per_image {
+                return Err(Error::input("the prompt does not hold one <image> per image"));
+            }
+            let prompt_len = ids.len();
+            ids.extend(tok.encode(&format!("{}<|im_end|>", qa.answer))?.into_iter().map(|i| i as i64));
+            seqs.push((ids, si, prompt_len, qa.kind));
+            named.push(named_objects(&qa.question));
+        }
+    }
+    let rows = seqs.len();
+    let t = seqs.iter().map(|s| s.0.len()).max().unwrap_or(0);
+    let mut ids = vec![0i64; rows * t];
+    let mut gather: Vec<i64> = (0..(rows * t) as i64).collect();
+    let (pixels, labels, depth) = tower_inputs(samples);
+    let g2 = per_image - 1;
+    let (mut targets, mut questions, mut relevance) = (Vec::new(), Vec::new(), Vec::new());
+    for (r, (seq, si, prompt_len, kind)) in seqs.iter().enumerate() {
+        ids[r * t..r * t + seq.len()].copy_from_slice(seq);
+        let mut k = 0;
+        for (j, &id) in seq[..*prompt_len].iter().enumerate() {
+            if id == image_id {
+                gather[r * t + j] = (rows * t + si * images * per_image + k) as i64;
+                let (img, tok_in) = (si * images + k / per_image, k % per_image);
+                if !named[r].is_empty() && tok_in < g2 {
+                    let (c, s) = (labels[0][img * g2 + tok_in] as u8, labels[1][img * g2 + tok_in] as u8);
+                    let hit = c > 0 && named[r].iter().any(|&(nc, ns)| (nc == 0 || nc == c) && (ns == 0 || ns == s));
+                    relevance.push((r * t + j, if hit { 1.0 } else { 0.0 }));
+                }
+                k += 1;
+            }
+        }
+        let first = targets.len();
+        for j in prompt_len - 1..seq.len() - 1 {
+            targets.push((r * t + j, seq[j + 1]));
+        }
+        questions.push((*kind, first..targets.len()));
+    }
+    let mut mask = vec![f32::NEG_INFINITY; t * t];
+    for i in 0..t {
+        mask[i * t..=i * t + i].fill(0.0);
+    }
+    let b = samples.len();
     Ok(Packed {
         kind,
         b,
+        rows,
+        gather: Some(gather),
         images,
         ids,
         t,
-        head,
-        prefix,
-        positions,
+        head: 0,
+        prefix: 0,
+        positions: (0..t).collect(),
         mask,
         targets,
         questions,
         pixels,
         labels,
         depth,
-        label_tokens,
+        label_tokens: vec![false; b * images],
+        relevance,
     })
+}
+
+/// The (colour, shape) classes a question names (1-based as in the token labels; 0 = not
+/// named): a colour word names the shape after it, or any shape when none follows.
+pub fn named_objects(question: &str) -> Vec<(u8, u8)> {
+    use model::data::synth::scene::{Color, Shape};
+    let mut out = Vec::new();
+    let mut colour = 0u8;
+    for w in question.split(|c: char| !c.is_alphanumeric()).filter(|w| !w.is_empty()) {
+        if let Some(i) = Color::ALL.iter().position(|c| c.word() == w) {
+            if colour > 0 {
+                out.push((colour, 0));
+            }
+            colour = i as u8 + 1;
+        } else if let Some(i) = Shape::ALL.iter().position(|s| s.word() == w || s.plural() == w) {
+            out.push((colour, i as u8 + 1));
+            colour = 0;
+        }
+    }
+    if colour > 0 {
+        out.push((colour, 0));
+    }
+    out
 }
 
 /// What one forward pass gives.
@@ -223,6 +355,8 @@ pub struct Forward {
     pub aux_loss: Tensor<1>,
     /// Mean squared error of the tower's tokens against the label tokens (zero without them).
     pub label_loss: Tensor<1>,
+    /// Binary cross-entropy of [`Trainable::relevance`] (zero without relevance targets).
+    pub relevance_loss: Tensor<1>,
     /// Log-probabilities `[targets, vocab]` at the answer positions.
     pub log_probs: Tensor<2>,
 }
@@ -280,29 +414,61 @@ pub fn forward(
     let proj = vlm.projector.forward(vis); // [N, g2, Dt]
     let dt = proj.dims()[2];
     let newline = vlm.image_newline.val().reshape([1, 1, dt]).expand([n_img, 1, dt]);
-    let rows = Tensor::cat(vec![proj, newline], 1).reshape([p.b, p.images * (g2 + 1), dt]);
-    let ids = Tensor::<2, Int>::from_data(TensorData::new(p.ids.clone(), [p.b, p.t]), device);
-    let text = vlm.llm.embed.forward(ids); // [b, t, Dt]
-    let mut parts = Vec::new();
-    if p.head > 0 {
-        parts.push(text.clone().narrow(1, 0, p.head));
-    }
-    parts.push(rows);
-    if p.t > p.prefix {
-        parts.push(text.narrow(1, p.prefix, p.t - p.prefix));
-    }
-    let x = Tensor::cat(parts, 1);
+    let image_rows = Tensor::cat(vec![proj, newline], 1); // [N, g2 + 1, Dt]
+    let ids = Tensor::<2, Int>::from_data(TensorData::new(p.ids.clone(), [p.rows, p.t]), device);
+    let text = vlm.llm.embed.forward(ids); // [rows, t, Dt]
+    let x = match &p.gather {
+        Some(g) => {
+            let table =
+                Tensor::cat(vec![text.reshape([p.rows * p.t, dt]), image_rows.reshape([n_img * (g2 + 1), dt])], 0);
+            let idx = Tensor::<1, Int>::from_data(TensorData::new(g.clone(), [p.rows * p.t]), device);
+            table.select(0, idx).reshape([p.rows, p.t, dt])
+        }
+        None => {
+            let mut parts = Vec::new();
+            if p.head > 0 {
+                parts.push(text.clone().narrow(1, 0, p.head));
+            }
+            parts.push(image_rows.reshape([p.b, p.images * (g2 + 1), dt]));
+            if p.t > p.prefix {
+                parts.push(text.narrow(1, p.prefix, p.t - p.prefix));
+            }
+            Tensor::cat(parts, 1)
+        }
+    };
     let mask = Tensor::<2>::from_data(TensorData::new(p.mask.clone(), [p.t, p.t]), device);
-    let hidden = vlm.llm.forward_masked(x, &p.positions, mask); // [b, t, Dt]
+    let (hidden, relevance_loss) = if p.relevance.is_empty() {
+        (vlm.llm.forward_masked(x, &p.positions, mask), Tensor::zeros([1], device))
+    } else {
+        let tap = vlm.cfg.text.num_layers / 2;
+        let (hidden, mid) = vlm.llm.forward_masked_tapped(x, &p.positions, mask, tap);
+        let n = p.relevance.len();
+        let at: Vec<i64> = p.relevance.iter().map(|&(i, _)| i as i64).collect();
+        let at = Tensor::<1, Int>::from_data(TensorData::new(at, [n]), device);
+        let h = mid.reshape([p.rows * p.t, dt]).select(0, at);
+        let h = h.clone() / (h.powf_scalar(2.0).mean_dim(1) + 1e-6).sqrt();
+        let z = m.relevance.forward(h).reshape([n]);
+        let y: Vec<f32> = p.relevance.iter().map(|&(_, y)| y).collect();
+        let y = Tensor::<1>::from_data(TensorData::new(y, [n]), device);
+        // softplus(z) - y z: binary cross-entropy with logits
+        let loss = (activation::softplus(z.clone(), 1.0) - y * z).mean();
+        (hidden, loss)
+    };
     let idx: Vec<i64> = p.targets.iter().map(|&(i, _)| i as i64).collect();
     let n = idx.len();
     let idx = Tensor::<1, Int>::from_data(TensorData::new(idx, [n]), device);
-    let h = hidden.reshape([p.b * p.t, dt]).select(0, idx);
+    let h = hidden.reshape([p.rows * p.t, dt]).select(0, idx);
     let log_probs = activation::log_softmax(vlm.llm.logits(h), 1);
     let tgt: Vec<i64> = p.targets.iter().map(|&(_, t)| t).collect();
     let tgt = Tensor::<1, Int>::from_data(TensorData::new(tgt, [n]), device).reshape([n, 1]);
     let answer_loss = log_probs.clone().gather(1, tgt).mean().neg();
-    Forward { answer_loss, aux_loss: aux_loss.expect("three tasks") / AUX_CLASSES.len() as f32, label_loss, log_probs }
+    Forward {
+        answer_loss,
+        aux_loss: aux_loss.expect("three tasks") / AUX_CLASSES.len() as f32,
+        label_loss,
+        relevance_loss,
+        log_probs,
+    }
 }
 
 /// Per question of a packed batch: whether greedy decoding gives exactly the reference answer

@@ -19,12 +19,12 @@ use burn::module::Module;
 use burn::optim::{AdamWConfig, GradientsParams};
 use burn::tensor::Device;
 use data::{DataSpec, Sample, SampleKind, pick_questions};
-use model::data::synth::questions::{Kind, vocabulary};
+use model::data::synth::questions::{Kind, Qa, vocabulary};
 use model::error::{Error, Result};
 use model::io;
 use model::rng::Rng;
 use model::vlm::config::{Act, TextConfig, VisionConfig};
-use model::vlm::tokenizer::{CHAT_TEMPLATE_JINJA, ChatTokenizer, word_level_tokenizer_json};
+use model::vlm::tokenizer::{ChatTokenizer, PromptLayout, word_level_tokenizer_json};
 use model::vlm::{LlavaConfig, LlavaOnevision, ProcessorConfig};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -86,10 +86,20 @@ pub struct VlmTrainConfig {
     pub images_per_step: usize,
     /// Questions asked per sample (at most).
     pub questions_per_sample: usize,
+    /// Put the question before the images in the prompt (the model's chat template says so), so
+    /// that the image tokens are read knowing the question (and the relevance loss can supervise
+    /// that); else llava-hf's images-first layout, where many questions share one pass over an
+    /// image (half the time per step). Neither layout has yet taught a small LLM to look up what
+    /// a question names (BENCHMARKS.md).
+    pub text_first: bool,
+    /// Train on these question kinds only (empty: all); for curricula and ablations.
+    pub kinds: Vec<Kind>,
     /// Probability of a view, object and scene step.
     pub mix: [f32; 3],
     /// Weight of the auxiliary per-token loss.
     pub aux_weight: f32,
+    /// Weight of the relevance loss (text first: which image tokens show what the question names).
+    pub relevance_weight: f32,
     /// Std of the noise on the vision tokens, relative to their RMS.
     pub feature_noise: f32,
     /// Side of the rendered views (the synthetic datasets' resolution).
@@ -120,8 +130,11 @@ impl Default for VlmTrainConfig {
             weight_decay: 0.01,
             images_per_step: 16,
             questions_per_sample: 6,
+            text_first: false,
+            kinds: Vec::new(),
             mix: [0.45, 0.3, 0.25],
             aux_weight: 0.5,
+            relevance_weight: 1.0,
             feature_noise: 0.1,
             resolution: 96,
             margin: 0.1,
@@ -214,6 +227,16 @@ impl VlmTrainConfig {
         if self.mix.iter().any(|p| !(*p >= 0.0)) || self.mix.iter().sum::<f32>() <= 0.0 {
             return bad("mix", "must be three non-negative weights, not all zero");
         }
+        for (sample, p) in SampleKind::ALL.iter().zip(self.mix) {
+            let level = match sample {
+                SampleKind::View => model::vqa::Level::View,
+                SampleKind::Object => model::vqa::Level::Object,
+                SampleKind::Scene => model::vqa::Level::Scene,
+            };
+            if p > 0.0 && !self.kinds.is_empty() && !self.kinds.iter().any(|k| k.level() == level) {
+                return bad("kinds", "must include a question kind of every level that mix draws");
+            }
+        }
         if self.resolution < m.patch_size as u32 {
             return bad("resolution", "must be at least the patch size");
         }
@@ -247,7 +270,8 @@ const SCENE_IMAGES: usize = model::data::synth::SCENE_VIEWS;
 /// A fresh tabletop VLM of `cfg`'s shape, with its word-level tokenizer.
 pub fn init_model(cfg: &VlmTrainConfig, device: &Device) -> Result<LlavaOnevision> {
     let json = word_level_tokenizer_json(&vocabulary())?;
-    let tokenizer = ChatTokenizer::from_json(&json, 3)?;
+    let layout = if cfg.text_first { PromptLayout::TextFirst } else { PromptLayout::ImagesFirst };
+    let tokenizer = ChatTokenizer::from_json(&json, 3)?.with_layout(layout);
     let llava = cfg.llava_config(tokenizer.vocab_size());
     Ok(LlavaOnevision::init(llava, cfg.processor(), tokenizer, cfg.seed, device))
 }
@@ -266,7 +290,7 @@ pub fn save_model(vlm: &LlavaOnevision, dir: &Path) -> Result<usize> {
         "processor_class": "LlavaOnevisionProcessor", "tokenizer_class": "PreTrainedTokenizerFast",
     });
     io::write_json(&dir.join("tokenizer_config.json"), &tok_cfg)?;
-    io::write_atomic(&dir.join("chat_template.jinja"), CHAT_TEMPLATE_JINJA.as_bytes())?;
+    io::write_atomic(&dir.join("chat_template.jinja"), vlm.tokenizer.layout.jinja().as_bytes())?;
     let gen_cfg = serde_json::json!({"eos_token_id": vlm.cfg.text.eos_token_ids, "pad_token_id": 0});
     io::write_json(&dir.join("generation_config.json"), &gen_cfg)?;
     let tensors = vlm.export();
@@ -375,6 +399,9 @@ pub struct LogLine {
     pub lr: f64,
     pub answer_loss: f32,
     pub aux_loss: f32,
+    /// The relevance loss (0 without relevance targets).
+    #[serde(default)]
+    pub relevance_loss: f32,
     /// Held-out accuracy, when this step evaluated.
     pub eval: Option<Accuracy>,
     /// Held-out accuracy reading label tokens, when this step evaluated.
@@ -404,8 +431,12 @@ fn step_samples(
     while out.len() < want {
         let seed = TRAIN_SEEDS + rng.next_u64() % 1_000_000_000;
         if let Some(s) = spec.sample(kind, seed, rng) {
-            let qs = pick_questions(&s.qas, cfg.questions_per_sample, rng);
-            out.push((s, qs));
+            let asked: Vec<Qa> =
+                s.qas.iter().filter(|q| cfg.kinds.is_empty() || cfg.kinds.contains(&q.kind)).cloned().collect();
+            if !asked.is_empty() {
+                let qs = pick_questions(&asked, cfg.questions_per_sample, rng);
+                out.push((s, qs));
+            }
         }
     }
     out
@@ -434,9 +465,10 @@ impl Trainer {
         let mut rng = Rng::new(cfg.seed ^ 0xDA7A);
         let aux = model::vlm::layers::init_linear(&mut rng, vlm.cfg.vision.hidden_size, classes, true, 0.02, &ad);
         let vlm_dim = vlm.cfg.vision.hidden_size;
+        let relevance = model::vlm::layers::init_linear(&mut rng, vlm.cfg.text.hidden_size, 1, true, 0.02, &ad);
         Ok(Self {
             cfg: cfg.clone(),
-            model: Trainable { vlm, aux },
+            model: Trainable { vlm, aux, relevance },
             step: 0,
             spec,
             rng,
@@ -451,8 +483,8 @@ impl Trainer {
         &self.spec
     }
 
-    /// One optimisation step on fresh samples: (answer loss, auxiliary loss) before the update.
-    pub fn step(&mut self) -> Result<(f32, f32)> {
+    /// One optimisation step on fresh samples: (answer, auxiliary, relevance loss) before the update.
+    pub fn step(&mut self) -> Result<(f32, f32, f32)> {
         let samples = step_samples(&self.cfg, &self.spec, &mut self.rng);
         let mut p: Packed = pack(&self.model.vlm, &samples)?;
         let prob = self.cfg.label_probability(self.step);
@@ -461,9 +493,12 @@ impl Trainer {
         }
         let labels = (self.cfg.label_weight > 0.0 || prob > 0.0).then_some(&self.labels);
         let f = forward(&self.model, &p, labels, Some((self.cfg.feature_noise, &mut self.rng)), &self.device);
-        let loss =
-            f.answer_loss.clone() + f.aux_loss.clone() * self.cfg.aux_weight + f.label_loss * self.cfg.label_weight;
+        let loss = f.answer_loss.clone()
+            + f.aux_loss.clone() * self.cfg.aux_weight
+            + f.label_loss * self.cfg.label_weight
+            + f.relevance_loss.clone() * self.cfg.relevance_weight;
         let (al, xl) = (model::splats::host(f.answer_loss)[0], model::splats::host(f.aux_loss)[0]);
+        let rl = model::splats::host(f.relevance_loss)[0];
         if !(al.is_finite() && xl.is_finite()) {
             return Err(Error::Diverged { iter: self.step, loss: al + xl });
         }
@@ -471,7 +506,7 @@ impl Trainer {
         let lr = self.cfg.lr_at(self.step);
         self.model = self.optim.step(lr, self.model.clone(), grads);
         self.step += 1;
-        Ok((al, xl))
+        Ok((al, xl, rl))
     }
 }
 
@@ -492,7 +527,7 @@ pub fn train(
     let mut last = Accuracy::default();
     while t.step < cfg.steps {
         let lr = cfg.lr_at(t.step);
-        let (al, xl) = t.step()?;
+        let (al, xl, rl) = t.step()?;
         let step = t.step;
         let (eval, eval_labels) = if cfg.eval_every > 0 && step.is_multiple_of(cfg.eval_every) || step == cfg.steps {
             let valid = t.model.valid();
@@ -510,6 +545,7 @@ pub fn train(
             lr,
             answer_loss: al,
             aux_loss: xl,
+            relevance_loss: rl,
             eval,
             eval_labels,
         };

@@ -149,6 +149,16 @@ fn broken_ply_files_are_refused_with_the_file_and_the_problem() {
     for cut in [3, 20, header_len - 5, header_len + 1, header_len + 17, good.len() - 1] {
         files.push((format!("cut-{cut}"), good[..cut].to_vec(), "ply"));
     }
+    // a body longer than the header says (a count edited down, or two files concatenated)
+    let mut long = good.clone();
+    long.extend_from_slice(&good[header_len..]);
+    files.push(("body-longer".into(), long, "disagrees with the body"));
+    let ascii = b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\n";
+    files.push((
+        "ascii-longer".into(),
+        [&ascii[..], b"end_header\n0 0 0\n1 1 1\n"].concat(),
+        "disagrees with the body",
+    ));
     // a NaN position
     let mut nan = good.clone();
     nan[header_len..header_len + 4].copy_from_slice(&f32::NAN.to_le_bytes());

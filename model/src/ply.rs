@@ -94,6 +94,7 @@ pub fn parse(bytes: &[u8], src: impl AsRef<Path>) -> Result<GaussianCloud> {
     let mut props: Vec<(String, Scalar)> = vec![];
     let mut in_vertex = false;
     let mut other_elements_before = false;
+    let mut other_elements_after = false;
     for line in lines {
         let t: Vec<&str> = line.split_whitespace().collect();
         match t.as_slice() {
@@ -112,6 +113,8 @@ pub fn parse(bytes: &[u8], src: impl AsRef<Path>) -> Result<GaussianCloud> {
             ["element", name, _] => {
                 if count.is_none() {
                     other_elements_before = true;
+                } else {
+                    other_elements_after = true;
                 }
                 let _ = name;
                 in_vertex = false;
@@ -160,6 +163,11 @@ pub fn parse(bytes: &[u8], src: impl AsRef<Path>) -> Result<GaussianCloud> {
                 let tok = it.next().ok_or_else(|| err(format!("truncated: vertex {} of {n} is missing", k / width)))?;
                 *v = tok.parse::<f32>().map_err(|_| err(format!("bad number `{tok}` in vertex {}", k / width)))?;
             }
+            if !other_elements_after && it.next().is_some() {
+                return Err(err(format!(
+                    "the body holds more than the header's {n} vertices: the vertex count disagrees with the body"
+                )));
+            }
         }
         Format::BinaryLe | Format::BinaryBe => {
             let stride: usize = props.iter().map(|(_, s)| s.size()).sum();
@@ -168,6 +176,13 @@ pub fn parse(bytes: &[u8], src: impl AsRef<Path>) -> Result<GaussianCloud> {
                     "truncated: header declares {n} vertices of {stride} bytes ({} bytes) but {} bytes follow",
                     n * stride,
                     body.len()
+                )));
+            }
+            if !other_elements_after && body.len() > n * stride {
+                return Err(err(format!(
+                    "the body has {} bytes more than the header's {n} vertices of {stride} bytes: the vertex count \
+                     disagrees with the body",
+                    body.len() - n * stride
                 )));
             }
             let big = format == Format::BinaryBe;

@@ -90,6 +90,18 @@ impl Suite {
     }
 }
 
+/// Starts `c`, waits (at most 120 s) until `file` exists, then kills it (SIGKILL) half a second later.
+fn kill_after(mut c: Command, file: &Path) {
+    let mut child = c.stdout(std::process::Stdio::null()).stderr(std::process::Stdio::null()).spawn().unwrap();
+    let t0 = std::time::Instant::now();
+    while !file.is_file() && t0.elapsed().as_secs() < 120 {
+        std::thread::sleep(std::time::Duration::from_millis(200));
+    }
+    std::thread::sleep(std::time::Duration::from_millis(500));
+    child.kill().unwrap();
+    child.wait().unwrap();
+}
+
 fn name_of(p: &Path) -> String {
     p.file_name().unwrap().to_string_lossy().into_owned()
 }
@@ -454,20 +466,29 @@ fn broken_datasets_configs_and_arguments_are_refused() {
         s.check(&format!("chat REPL {what}"), err.contains(want), &format!("no \"{want}\" in: {err}"));
     }
     s.check("chat REPL: no panic", !err.contains("panicked"), &err);
-    // kill -9 during training, then --resume
+    // kill -9 during geometry training, then --resume
     let k = dir.join("run-killed");
-    let mut child =
-        chatsplat().args(["train", "--iters", "1000000", "--data"]).arg(&base).arg("--out").arg(&k).spawn().unwrap();
-    let t0 = std::time::Instant::now();
-    while !k.join("checkpoint.safetensors").is_file() && t0.elapsed().as_secs() < 120 {
-        std::thread::sleep(std::time::Duration::from_millis(200));
-    }
-    std::thread::sleep(std::time::Duration::from_millis(500));
-    child.kill().unwrap();
-    child.wait().unwrap();
+    let mut c = chatsplat();
+    c.args(["train", "--iters", "1000000", "--data"]).arg(&base).arg("--out").arg(&k);
+    kill_after(c, &k.join("checkpoint.safetensors"));
     s.check("kill -9: first checkpoint", k.join("checkpoint.safetensors").is_file(), "no checkpoint within 120 s");
     s.check("kill -9: config", k.join("config.json").is_file(), "no config.json");
     s.succeeds("kill -9 then resume", train(&base, &k, &["--resume", "--iters", "3"]));
+    // the same during language training
+    let lk = dir.join("language-killed");
+    let lang_args = |c: &mut Command| {
+        c.arg("--run").arg(&bare_run).arg("--teacher").arg(&bare_teacher).arg("--out").arg(&lk);
+    };
+    let mut c = chatsplat();
+    c.args(["train-language", "--iters", "1000000"]);
+    lang_args(&mut c);
+    kill_after(c, &lk.join("language.safetensors"));
+    s.check("language kill -9: first checkpoint", lk.join("language.safetensors").is_file(), "none within 120 s");
+    s.check("language kill -9: config", lk.join("config.json").is_file(), "no config.json");
+    let mut c = chatsplat();
+    c.args(["train-language", "--resume", "--iters", "2"]);
+    lang_args(&mut c);
+    s.succeeds("language kill -9 then resume", c.output().unwrap());
     s.finish(50);
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -416,3 +416,27 @@ fn fox_from_shared_datasets_loads_undistorted() {
     assert!(mean < 0.05, "undistortion changed the image too much (mean {mean})");
     std::fs::remove_dir_all(&dir).ok();
 }
+
+#[test]
+fn masks_given_with_the_masks_option_are_undistorted_like_the_captures_own() {
+    let dir = distorted_dir("masks-option-distorted", serde_json::json!({}));
+    let own = load_one(&dir, 1).instance_ids.unwrap();
+    assert!(own.contains(&7));
+    // the same block with id 9 in another folder, named after the image
+    let masks = temp_dir("masks-option-dir");
+    let m: Vec<u8> = (0..DH)
+        .flat_map(|j| (0..DW).map(move |i| if (24..40).contains(&i) && (16..32).contains(&j) { 9 } else { 0 }))
+        .collect();
+    model::images::write_gray8(&masks.join("rgb.png"), DW, DH, &m).unwrap();
+    let opts = LoadOptions { masks: Some(masks.clone()), holdout_every: 0, ..Default::default() };
+    for ds in [load(&dir, &opts).unwrap(), model::data::load_any(&dir, &opts).unwrap()] {
+        let given = ds.train[0].instance_ids.clone().unwrap();
+        let want: Vec<u8> = own.iter().map(|&i| if i == 7 { 9 } else { i }).collect();
+        assert_eq!(given, want, "undistorted exactly as the capture's own mask");
+    }
+    std::fs::remove_file(masks.join("rgb.png")).unwrap();
+    let e = load(&dir, &opts).unwrap_err().to_string();
+    assert!(e.contains("rgb.png") && e.contains("is missing"), "{e}");
+    std::fs::remove_dir_all(&dir).ok();
+    std::fs::remove_dir_all(&masks).ok();
+}

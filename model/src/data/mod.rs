@@ -133,21 +133,12 @@ pub(crate) fn mask_dir(dir: &Path) -> PathBuf {
 /// `DIR/<image stem>.png` must exist, the size of the full-resolution image, and is downscaled by
 /// nearest sample like the format's own masks.
 pub fn apply_masks(ds: &mut Dataset, opts: &LoadOptions) -> Result<()> {
-    let Some(dir) = &opts.masks else { return Ok(()) };
-    if !dir.is_dir() {
-        return Err(image::err(dir, "is not a directory (--masks: a folder of per-image instance-id PNGs)"));
+    if opts.masks.is_none() {
+        return Ok(());
     }
     let k = opts.downscale.max(1);
     for v in ds.train.iter_mut().chain(ds.test.iter_mut()) {
-        let mut name = v.image_path.file_stem().map(|s| s.to_os_string()).unwrap_or_default();
-        name.push(".png");
-        let path = dir.join(name);
-        if !path.is_file() {
-            return Err(image::err(
-                &path,
-                format!("is missing: every image needs a mask (image {})", v.image_path.display()),
-            ));
-        }
+        let path = given_mask(opts, &v.image_path)?.expect("--masks is set");
         let (mw, mh, mc, bytes) = crate::images::read_png8(&path)?;
         let (w, h) = (v.camera.width, v.camera.height);
         if mw / k != w || mh / k != h || mc == 0 {
@@ -160,6 +151,22 @@ pub fn apply_masks(ds: &mut Dataset, opts: &LoadOptions) -> Result<()> {
         v.instance_ids = Some(image::subsample(&ids, mw, w, h, k));
     }
     Ok(())
+}
+
+/// The `--masks` file of `image` (`DIR/<image stem>.png`), which must exist; `None` without
+/// `--masks`.
+pub(crate) fn given_mask(opts: &LoadOptions, image: &Path) -> Result<Option<PathBuf>> {
+    let Some(dir) = &opts.masks else { return Ok(None) };
+    if !dir.is_dir() {
+        return Err(image::err(dir, "is not a directory (--masks: a folder of per-image instance-id PNGs)"));
+    }
+    let mut name = image.file_stem().map(|s| s.to_os_string()).unwrap_or_default();
+    name.push(".png");
+    let path = dir.join(name);
+    if !path.is_file() {
+        return Err(image::err(&path, format!("is missing: every image needs a mask (image {})", image.display())));
+    }
+    Ok(Some(path))
 }
 
 /// Splits `views` (in order) into train and test: every `every`-th view is held out (0: none).
@@ -192,12 +199,15 @@ pub(crate) fn check_options(opts: &LoadOptions) -> Result<()> {
 /// then [`apply_masks`] (`opts.masks`).
 pub fn load_any(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
     let mut ds = load_format(dir, opts)?;
-    apply_masks(&mut ds, opts)?;
+    if !nerfstudio::is_here(dir) {
+        // nerfstudio reads `--masks` itself, undistorting them with its images
+        apply_masks(&mut ds, opts)?;
+    }
     Ok(ds)
 }
 
 fn load_format(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
-    if dir.join("transforms.json").is_file() || dir.join("transforms_train.json").is_file() {
+    if nerfstudio::is_here(dir) {
         nerfstudio::load(dir, opts)
     } else if dir.join("poses_bounds.npy").is_file() {
         llff::load(dir, opts)

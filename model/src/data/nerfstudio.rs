@@ -114,6 +114,11 @@ fn resample<T: Copy + Default>(full: Vec<T>, remap: Option<&Remap>, w: u32, h: u
 /// `; undistort the images first ...` advice for refused camera models.
 const UNDISTORT_FIRST: &str = "undistort the images first (e.g. COLMAP image_undistorter)";
 
+/// Whether `dir` holds a nerfstudio/Blender dataset (`transforms.json` or `transforms_train.json`).
+pub fn is_here(dir: &Path) -> bool {
+    dir.join("transforms.json").is_file() || dir.join("transforms_train.json").is_file()
+}
+
 /// Loads `dir/transforms.json`, or the Blender split files `transforms_train.json` (+ `_test`).
 pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
     check_options(opts)?;
@@ -228,8 +233,11 @@ fn load_file(file: &Path, dir: &Path, opts: &LoadOptions, maps: &mut Maps) -> Re
         camera.cx = cx / k as f32;
         camera.cy = cy / k as f32;
         // Masks and depth: same size as the image, undistorted and downscaled by nearest sample.
-        let instance_ids = match f.get("instance_mask_path").or_else(|| f.get("mask_path")).and_then(Value::as_str) {
-            Some(rel) => Some(resample(read_ids8_full(&dir.join(rel), w, h)?, remap, w, h, k)),
+        // `--masks` replaces the file's own
+        let own =
+            f.get("instance_mask_path").or_else(|| f.get("mask_path")).and_then(Value::as_str).map(|r| dir.join(r));
+        let instance_ids = match super::given_mask(opts, &path)?.or(own) {
+            Some(p) => Some(resample(read_ids8_full(&p, w, h)?, remap, w, h, k)),
             None => None,
         };
         let depth = match f.get("depth_file_path").and_then(Value::as_str) {

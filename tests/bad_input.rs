@@ -466,6 +466,30 @@ fn broken_datasets_configs_and_arguments_are_refused() {
         s.check(&format!("chat REPL {what}"), err.contains(want), &format!("no \"{want}\" in: {err}"));
     }
     s.check("chat REPL: no panic", !err.contains("panicked"), &err);
+    // VQA: an empty question file is refused; a question that cannot be asked fails the run
+    // unless --keep-going (documented: then it is scored 0 and the run exits 0)
+    let empty_q = dir.join("questions-empty.json");
+    std::fs::write(&empty_q, r#"{"questions": []}"#).unwrap();
+    let vqa = |q: &Path, extra: &[&str]| {
+        let mut c = chatsplat();
+        c.args(["vqa", "--max-new-tokens", "1", "--run"]).arg(&bare_run).arg("--questions").arg(q).args(extra);
+        c.output().unwrap()
+    };
+    s.fails(Case {
+        name: "vqa empty question file".into(),
+        out: vqa(&empty_q, &[]),
+        expect: vec!["questions-empty.json".into(), "holds no questions".into()],
+    });
+    let bad_q = dir.join("questions-bad-view.json");
+    let q = r#"{"questions": [{"id": "v", "level": "view", "view": 999, "question": "How many objects are there?",
+        "answer": "3"}]}"#;
+    std::fs::write(&bad_q, q).unwrap();
+    s.fails(Case {
+        name: "vqa question about view 999".into(),
+        out: vqa(&bad_q, &[]),
+        expect: vec!["questions-bad-view.json".into(), "could not be asked".into()],
+    });
+    s.succeeds("vqa view 999 with --keep-going", vqa(&bad_q, &["--keep-going"]));
     // kill -9 during geometry training, then --resume
     let k = dir.join("run-killed");
     let mut c = chatsplat();
@@ -474,6 +498,33 @@ fn broken_datasets_configs_and_arguments_are_refused() {
     s.check("kill -9: first checkpoint", k.join("checkpoint.safetensors").is_file(), "no checkpoint within 120 s");
     s.check("kill -9: config", k.join("config.json").is_file(), "no config.json");
     s.succeeds("kill -9 then resume", train(&base, &k, &["--resume", "--iters", "3"]));
+    // a NaN written into a checkpoint: export and resume refuse it, naming the file
+    let ck = k.join("checkpoint.safetensors");
+    let mut bytes = std::fs::read(&ck).unwrap();
+    let header = u64::from_le_bytes(bytes[..8].try_into().unwrap()) as usize;
+    let meta: serde_json::Value = serde_json::from_slice(&bytes[8..8 + header]).unwrap();
+    let (_, first) = meta
+        .as_object()
+        .unwrap()
+        .iter()
+        .find(|(n, t)| *n != "__metadata__" && t["dtype"] == "F32")
+        .expect("an f32 tensor");
+    let at = 8 + header + first["data_offsets"][0].as_u64().unwrap() as usize;
+    bytes[at..at + 4].copy_from_slice(&f32::NAN.to_le_bytes());
+    std::fs::write(&ck, &bytes).unwrap();
+    let kept = dir.join("kept.ply");
+    std::fs::write(&kept, b"the user's ply").unwrap();
+    s.fails(Case {
+        name: "export a checkpoint holding NaN".into(),
+        out: run(&["export-ply", "--run"], &[&k, Path::new("--out"), &kept]),
+        expect: vec!["checkpoint.safetensors".into(), "non-finite".into()],
+    });
+    s.check("NaN checkpoint: --out intact", std::fs::read(&kept).unwrap() == b"the user's ply", "--out overwritten");
+    s.fails(Case {
+        name: "resume a checkpoint holding NaN".into(),
+        out: train(&base, &k, &["--resume", "--iters", "5"]),
+        expect: vec!["checkpoint.safetensors".into(), "non-finite".into()],
+    });
     // the same during language training
     let lk = dir.join("language-killed");
     let lang_args = |c: &mut Command| {

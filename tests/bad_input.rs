@@ -490,6 +490,22 @@ fn broken_datasets_configs_and_arguments_are_refused() {
         expect: vec!["questions-bad-view.json".into(), "could not be asked".into()],
     });
     s.succeeds("vqa view 999 with --keep-going", vqa(&bad_q, &["--keep-going"]));
+    // a run made with relative paths works from any directory (paths resolve against the run)
+    let vlm = Path::new(env!("CARGO_MANIFEST_DIR")).join("checkpoints/tiny-llava-ov");
+    let rel = |args: &[&str]| chatsplat().current_dir(&dir).env("CHATSPLAT_VLM", &vlm).args(args).output().unwrap();
+    s.succeeds("relative: train", rel(&["train", "--iters", "2", "--data", "base", "--out", "rel-run"]));
+    s.succeeds("relative: extract", rel(&["extract", "--data", "base", "--out", "rel-teacher"]));
+    let lang = rel(&["train-language", "--iters", "1", "--run", "rel-run", "--teacher", "rel-teacher"]);
+    s.succeeds("relative: train-language", lang);
+    let elsewhere = chatsplat()
+        .current_dir(std::env::temp_dir())
+        .env("CHATSPLAT_VLM", &vlm)
+        .args(["ask", "--view", "0", "--max-new-tokens", "1", "--run"])
+        .arg(dir.join("rel-run"))
+        .arg("How many objects are there?")
+        .output()
+        .unwrap();
+    s.succeeds("relative: ask from another directory", elsewhere);
     // kill -9 during geometry training, then --resume
     let k = dir.join("run-killed");
     let mut c = chatsplat();

@@ -66,8 +66,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     let load = LoadOptions { downscale: a.downscale, background: bg, masks: a.masks.clone(), ..Default::default() };
     // COLMAP projects initialise from their sparse points.
     let (ds, points) = if a.data.join("sparse").is_dir() && !a.data.join("poses_bounds.npy").is_file() {
-        let (mut ds, p) = colmap::load(&a.data, &load)?;
-        model::data::apply_masks(&mut ds, &load)?;
+        let (ds, p) = colmap::load(&a.data, &load)?;
         (ds, Some(p))
     } else {
         (load_any(&a.data, &load)?, None)

@@ -158,6 +158,7 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<(Dataset, SparsePoints)> {
         let instance_ids = if mask.is_file() { Some(read_ids8(&mask, w, h, k)?) } else { None };
         views.push(View { image_path: path, camera, rgb, instance_ids, depth: None });
     }
+    super::apply_masks(&mut views, opts)?;
     Ok((split(views, opts.holdout_every), points))
 }
 

@@ -274,12 +274,18 @@ pub(crate) fn read_ids8(path: &Path, w: u32, h: u32, k: u32) -> Result<Vec<u8>> 
 
 /// [`read_ids8`] at full resolution: `[h, w]` ids.
 pub(crate) fn read_ids8_full(path: &Path, w: u32, h: u32) -> Result<Vec<u8>> {
-    let (mw, mh, mc, bytes) = crate::images::read_png8(path)?;
+    let (mw, mh, ids) = read_ids8_any(path)?;
     check_size(path, (mw, mh), (w, h))?;
+    Ok(ids)
+}
+
+/// An 8-bit instance-id PNG of any size: its width, height and `[h, w]` ids (first channel).
+pub(crate) fn read_ids8_any(path: &Path) -> Result<(u32, u32, Vec<u8>)> {
+    let (mw, mh, mc, bytes) = crate::images::read_png8(path)?;
     if mc == 0 || bytes.len() != mw as usize * mh as usize * mc {
         return Err(err(path, "mask has an unexpected pixel layout"));
     }
-    Ok(bytes.chunks_exact(mc).map(|c| c[0]).collect())
+    Ok((mw, mh, bytes.chunks_exact(mc).map(|c| c[0]).collect()))
 }
 
 /// A 16-bit grayscale PNG the size `(w, h)` of its image, times `scale`, downscaled by nearest

@@ -131,23 +131,23 @@ pub(crate) fn mask_dir(dir: &Path) -> PathBuf {
 
 /// Replaces every view's instance ids with `opts.masks`' (nothing without it): for each image
 /// `DIR/<image stem>.png` must exist, the size of the full-resolution image, and is downscaled by
-/// nearest sample like the format's own masks.
-pub fn apply_masks(ds: &mut Dataset, opts: &LoadOptions) -> Result<()> {
+/// nearest sample like the format's own masks. The loaders without lens distortion call it on
+/// their views; nerfstudio reads `--masks` through its own mask path (undistorting them).
+pub(crate) fn apply_masks(views: &mut [View], opts: &LoadOptions) -> Result<()> {
     if opts.masks.is_none() {
         return Ok(());
     }
     let k = opts.downscale.max(1);
-    for v in ds.train.iter_mut().chain(ds.test.iter_mut()) {
+    for v in views {
         let path = given_mask(opts, &v.image_path)?.expect("--masks is set");
-        let (mw, mh, mc, bytes) = crate::images::read_png8(&path)?;
+        let (mw, mh, ids) = image::read_ids8_any(&path)?;
         let (w, h) = (v.camera.width, v.camera.height);
-        if mw / k != w || mh / k != h || mc == 0 {
+        if mw / k != w || mh / k != h {
             return Err(image::err(
                 &path,
                 format!("is {mw}x{mh} but its image {} is {}x{} (after downscale {k})", v.image_path.display(), w, h),
             ));
         }
-        let ids: Vec<u8> = bytes.chunks_exact(mc).map(|c| c[0]).collect();
         v.instance_ids = Some(image::subsample(&ids, mw, w, h, k));
     }
     Ok(())
@@ -194,19 +194,10 @@ pub(crate) fn check_options(opts: &LoadOptions) -> Result<()> {
 ///    made from, with the original, distorted cameras, so this marker wins over `sparse/`);
 /// 3. a `sparse/` directory: [`colmap`] (its sparse points are dropped; call
 ///    [`colmap::load`] to keep them);
-/// 4. `traj_w_c.txt`: [`replica`];
+/// 4. `traj_w_c.txt`: [`replica`].
 ///
-/// then [`apply_masks`] (`opts.masks`).
+/// Every loader honours `opts.masks`.
 pub fn load_any(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
-    let mut ds = load_format(dir, opts)?;
-    if !nerfstudio::is_here(dir) {
-        // nerfstudio reads `--masks` itself, undistorting them with its images
-        apply_masks(&mut ds, opts)?;
-    }
-    Ok(ds)
-}
-
-fn load_format(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
     if nerfstudio::is_here(dir) {
         nerfstudio::load(dir, opts)
     } else if dir.join("poses_bounds.npy").is_file() {

@@ -89,6 +89,7 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
         };
         views.push(View { image_path: path, camera, rgb, instance_ids, depth });
     }
+    super::apply_masks(&mut views, opts)?;
     Ok(split(views, opts.holdout_every))
 }
 

@@ -120,9 +120,7 @@ fn template_layout(dir: &Path) -> Result<PromptLayout, VlmError> {
         return Ok(PromptLayout::of_template(&read(&jinja)?));
     }
     if json.exists() {
-        let v: serde_json::Value =
-            serde_json::from_str(&read(&json)?).map_err(|e| VlmError::config(&json, format!("invalid JSON: {e}")))?;
-        return match v.get("chat_template").and_then(|t| t.as_str()) {
+        return match super::config::read_json(&json)?.get("chat_template").and_then(|t| t.as_str()) {
             Some(t) => Ok(PromptLayout::of_template(t)),
             None => Err(VlmError::config(&json, "has no \"chat_template\" string")),
         };

@@ -3,6 +3,11 @@
 //! parameter counts and memory of the published 0.5B and 7B models.
 //!
 //! cargo run --release -p eval --bin vlm-bench -- [--vlm DIR] [--backend ndarray|wgpu ...]
+//!     [--random 0.5b|7b] [--reference transformers.json]
+//!
+//! `--reference` reads the timings `eval/bench/transformers_vlm.py` wrote for transformers on
+//! the same machine and prints both side by side, as ratios (`eval/bench/vlm_vs_transformers.sh`
+//! runs the two one after the other).
 #![allow(deprecated)]
 
 use burn::tensor::Tensor;
@@ -31,6 +36,82 @@ struct Args {
     /// memory instead of a directory (no download, no Python; a word-level tokenizer).
     #[arg(long)]
     random: Option<String>,
+    /// Transformers' timings of the same configuration (JSON from eval/bench/transformers_vlm.py),
+    /// printed beside this port's as ratios.
+    #[arg(long)]
+    reference: Option<PathBuf>,
+}
+
+/// One backend's figures.
+struct Timing {
+    /// Seconds: vision tower on one view, whole anyres image, prefill.
+    vision: f64,
+    anyres: f64,
+    prefill: f64,
+    prompt_tokens: usize,
+    decode_tokens_per_s: f64,
+}
+
+/// What eval/bench/transformers_vlm.py writes (the fields read here).
+#[derive(serde::Deserialize)]
+struct Reference {
+    size: String,
+    threads: usize,
+    vision_s: f64,
+    prefill_tokens: usize,
+    prefill_tokens_per_s: f64,
+    decode_tokens_per_s: f64,
+    transformers: String,
+    torch: String,
+}
+
+fn read_reference(path: &std::path::Path) -> model::Result<Reference> {
+    let text = std::fs::read_to_string(path).map_err(|e| model::Error::io(path, "cannot read", e))?;
+    let r: Reference = serde_json::from_str(&text)
+        .map_err(|e| model::Error::input(format!("{}: not a transformers_vlm.py result: {e}", path.display())))?;
+    let rates = [r.vision_s, r.prefill_tokens_per_s, r.decode_tokens_per_s];
+    if rates.iter().any(|v| !(v.is_finite() && *v > 0.0)) {
+        return Err(model::Error::input(format!("{}: timings must be positive numbers", path.display())));
+    }
+    Ok(r)
+}
+
+/// The side-by-side table: per stage transformers, this port, and this port's speed relative
+/// to transformers (> 1: faster).
+fn print_reference(r: &Reference, timings: &[(Backend, Timing)]) {
+    println!();
+    println!(
+        "Side by side with transformers {} / torch {} ({} threads, random {} of the same configuration):",
+        r.transformers, r.torch, r.threads, r.size
+    );
+    println!();
+    println!("| stage | transformers | backend | chatsplat | chatsplat / transformers |");
+    println!("|---|---|---|---|---|");
+    for (backend, t) in timings {
+        let prefill = t.prompt_tokens as f64 / t.prefill;
+        println!(
+            "| vision tower, one 384x384 view | {:.2} s | {backend} | {:.2} s | {:.2}x |",
+            r.vision_s,
+            t.vision,
+            r.vision_s / t.vision
+        );
+        println!(
+            "| prefill ({} / {} tokens) | {:.0} tokens/s | {backend} | {prefill:.0} tokens/s | {:.2}x |",
+            r.prefill_tokens,
+            t.prompt_tokens,
+            r.prefill_tokens_per_s,
+            prefill / r.prefill_tokens_per_s
+        );
+        println!(
+            "| decode with KV cache | {:.2} tokens/s | {backend} | {:.2} tokens/s | {:.2}x |",
+            r.decode_tokens_per_s,
+            t.decode_tokens_per_s,
+            t.decode_tokens_per_s / r.decode_tokens_per_s
+        );
+        if t.prompt_tokens != r.prefill_tokens {
+            println!("(prefill lengths differ: pass --prefill-tokens {} to transformers_vlm.py)", t.prompt_tokens);
+        }
+    }
 }
 
 /// A random-weight LLaVA-OneVision of the published `size` configuration.
@@ -53,6 +134,13 @@ fn random_model(size: &str, device: &burn::tensor::Device) -> model::Result<Llav
         pinpoints: cfg.pinpoints.clone(),
     };
     Ok(LlavaOnevision::init(cfg, processor, tokenizer, 0, device))
+}
+
+/// The greedy next token after the last row of `logits` `[T, vocab]`.
+fn argmax_last(logits: Tensor<2>) -> u32 {
+    let [t, v] = logits.dims();
+    let row = logits.narrow(0, t - 1, 1).reshape([v]).into_data().to_vec::<f32>().unwrap_or_default();
+    row.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1)).map_or(0, |(i, _)| i as u32)
 }
 
 fn sync(t: Tensor<2>) {
@@ -84,6 +172,13 @@ fn memory_table(name: &str, cfg: &LlavaConfig) {
 
 fn main() -> std::process::ExitCode {
     let a = Args::parse();
+    let reference = match a.reference.as_deref().map(read_reference).transpose() {
+        Ok(r) => r,
+        Err(e) => {
+            eprintln!("error: {e}");
+            return std::process::ExitCode::FAILURE;
+        }
+    };
     let dir = match a.vlm.clone().map(Ok).unwrap_or_else(model::vlm::default_model_dir) {
         Ok(d) => d,
         Err(e) => {
@@ -101,8 +196,9 @@ fn main() -> std::process::ExitCode {
             prefill tokens/s | decode tokens/s |"
     );
     println!("|---|---|---|---|---|---|---|");
+    let mut timings = Vec::new();
     for backend in &a.backend {
-        let r = catch_backend("benchmark", || -> model::Result<String> {
+        let r = catch_backend("benchmark", || -> model::Result<Timing> {
             let device = backend.device();
             let m = match &a.random {
                 Some(size) => random_model(size, &device)?,
@@ -139,28 +235,40 @@ fn main() -> std::process::ExitCode {
                 m.generate(embeds.clone(), &opts, |_| {})?;
             }
             let prefill = t0.elapsed().as_secs_f64() / a.reps as f64;
-            let opts = GenerateOptions { max_new_tokens: a.decode + 1, ignore_stop: true, ..Default::default() };
-            m.generate(embeds.clone(), &opts, |_| {})?;
-            let t0 = Instant::now();
+            // Decode timed on its own (not total minus prefill, whose jitter would swamp it):
+            // the prompt fills a KV cache, then greedy steps of one token each.
+            let mut decode = f64::INFINITY;
             for _ in 0..a.reps {
-                m.generate(embeds.clone(), &opts, |_| {})?;
+                let mut cache = model::vlm::qwen2::KvCache::default();
+                let h = m.llm.forward(embeds.clone(), &mut cache);
+                let mut next = argmax_last(m.llm.logits(h));
+                let t0 = Instant::now();
+                for _ in 0..a.decode {
+                    let h = m.llm.forward(m.llm.embed(&[next]), &mut cache);
+                    next = argmax_last(m.llm.logits(h));
+                }
+                decode = decode.min(t0.elapsed().as_secs_f64());
             }
-            let total = t0.elapsed().as_secs_f64() / a.reps as f64;
-            let decode = (total - prefill).max(1e-9);
-            Ok(format!(
-                "| {backend} | {:.1} ms | {:.1} | {:.1} ms | {} | {:.0} | {:.1} |",
-                vis * 1e3,
-                1.0 / vis,
-                anyres * 1e3,
-                prompt_tokens,
-                prompt_tokens as f64 / prefill,
-                a.decode as f64 / decode
-            ))
+            Ok(Timing { vision: vis, anyres, prefill, prompt_tokens, decode_tokens_per_s: a.decode as f64 / decode })
         });
         match r {
-            Ok(Ok(line)) => println!("{line}"),
+            Ok(Ok(t)) => {
+                println!(
+                    "| {backend} | {:.1} ms | {:.1} | {:.1} ms | {} | {:.0} | {:.1} |",
+                    t.vision * 1e3,
+                    1.0 / t.vision,
+                    t.anyres * 1e3,
+                    t.prompt_tokens,
+                    t.prompt_tokens as f64 / t.prefill,
+                    t.decode_tokens_per_s
+                );
+                timings.push((*backend, t));
+            }
             Ok(Err(e)) | Err(e) => println!("| {backend} | n/a: {e} | | | | | |"),
         }
+    }
+    if let Some(r) = &reference {
+        print_reference(r, &timings);
     }
     println!();
     println!(

@@ -202,6 +202,8 @@ impl Qwen2 {
             Tensor::cat(vec![ra, rb], 3)
         };
         let rep = h / kvh;
+        // the mask of every query row of a grouped block (`rep` copies of `[T, past + T]`)
+        let mask = mask.map(|m| if rep > 1 { m.repeat_dim(0, rep) } else { m });
         let mut x = x;
         let mut tapped = None;
         for (li, l) in self.layers.iter().enumerate() {
@@ -225,9 +227,11 @@ impl Qwen2 {
                 }
             }
             let total = k.dims()[2];
-            // grouped-query attention: query head i uses kv head i / (h / kvh)
-            let expand = |y: Tensor<4>| y.unsqueeze_dim::<5>(2).repeat_dim(2, rep).reshape([b * h, total, hd]);
-            let o = attention(q.reshape([b * h, t, hd]), expand(k), expand(v), mask.clone());
+            // grouped-query attention: query head i uses kv head i / rep, so the rep query heads
+            // of a kv head attend as one block of rep * t rows (no copy of the keys and values
+            // per query head: at decode the cache would be copied rep times per layer and token)
+            let q = q.reshape([b * kvh, rep * t, hd]);
+            let o = attention(q, k.reshape([b * kvh, total, hd]), v.reshape([b * kvh, total, hd]), mask.clone());
             let o = o.reshape([b, h, t, hd]).swap_dims(1, 2).reshape([b, t, h * hd]);
             x = x + l.o.forward(o);
             let hs = l.ln2.forward(x.clone());

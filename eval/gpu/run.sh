@@ -1,0 +1,109 @@
+#!/usr/bin/env bash
+# GPU figures in one `device` call (issue 12, item 6). Two steps:
+#
+#   bash eval/gpu/run.sh pack            # here: release binaries, stripped and xz-compressed
+#                                        # (~40 MB for the four; a carry takes 64 MiB) into
+#                                        # .gpu/bin; the Vulkan loader .debs into .gl/ (both
+#                                        # git-excluded)
+#   bash eval/gpu/run.sh bench [OUTDIR]  # there (carry .gpu and .gl), or here on the CPU
+#
+# `bench` unpacks the carried Vulkan loaders when the machine has none, then times, each with the
+# command line printed above its output (into OUTDIR, default $OUT or ./gpu-out):
+#   1. splat-bench: the splatting op on wgpu and ndarray, N = 1e5 and 1e6, C = 3 and 32;
+#   2. vlm-bench: the published 0.5B configuration (random weights), wgpu and ndarray;
+#   3. geometry and language training s/iter on a built-in synthetic scene (wgpu), and
+#      lang-bench's views/s and objects/s (real-size encoder too) on it.
+# CHATSPLAT_GPU_QUICK=1 shrinks every size and trains on ndarray (a smoke run of the script on
+# the CPU: on lavapipe, 5 language iterations took over 25 minutes of kernel compilation).
+# Never part of CI.
+set -euo pipefail
+cd "$(dirname "$0")/../.."
+bins=(chatsplat splat-bench vlm-bench lang-bench)
+unpacked=""
+
+pack() {
+    cargo build --release -p chatsplat -p eval --bin chatsplat --bin splat-bench --bin vlm-bench --bin lang-bench
+    rm -rf .gpu/bin
+    mkdir -p .gpu/bin
+    for b in "${bins[@]}"; do
+        strip -o ".gpu/bin/$b" "target/release/$b"
+        xz -T0 -6 ".gpu/bin/$b"
+    done
+    du -sh .gpu/bin
+    grep -qx '/.gpu/' .git/info/exclude || echo '/.gpu/' >>.git/info/exclude
+    grep -qx '/.gl/' .git/info/exclude || echo '/.gl/' >>.git/info/exclude
+    if ! ls .gl/libvulkan1_*.deb >/dev/null 2>&1; then
+        local o='-oAPT::Architecture=amd64 -oAPT::Architectures=amd64 -oDir::State::Lists=/tmp/amd64'
+        mkdir -p .gl /tmp/amd64/partial
+        # shellcheck disable=SC2086
+        apt-get $o update -qq && (cd .gl && apt-get $o download libvulkan1 libegl1 libglvnd0 libgl1 libglx0)
+    fi
+    echo "carry: .gpu .gl; command: bash eval/gpu/run.sh bench"
+}
+
+step() {
+    echo
+    echo "\$ $*"
+    local t0 t1
+    t0=$(date +%s.%N)
+    "$@"
+    t1=$(date +%s.%N)
+    echo "(wall $(awk "BEGIN{printf \"%.1f\", $t1 - $t0}") s)"
+}
+
+bench() {
+    local out=${1:-${OUT:-gpu-out}}
+    mkdir -p "$out"
+    local bin=target/release
+    if [ -f .gpu/bin/chatsplat.xz ]; then
+        unpacked=$(mktemp -d /tmp/chatsplat-gpu.XXXX)
+        trap 'rm -rf "$unpacked"' EXIT
+        bin=$unpacked
+        for b in "${bins[@]}"; do
+            [ -f ".gpu/bin/$b.xz" ] || { echo "error: .gpu/bin/$b.xz is missing: run \`bash eval/gpu/run.sh pack\`" >&2; exit 1; }
+            if command -v xz >/dev/null; then
+                xz -dc ".gpu/bin/$b.xz" >"$bin/$b"
+            else
+                python3 -c 'import lzma, sys; sys.stdout.buffer.write(lzma.open(sys.argv[1]).read())' ".gpu/bin/$b.xz" >"$bin/$b"
+            fi
+            chmod +x "$bin/$b"
+        done
+    fi
+    for b in "${bins[@]}"; do
+        [ -x "$bin/$b" ] || { echo "error: $bin/$b is missing: run \`bash eval/gpu/run.sh pack\` first" >&2; exit 1; }
+    done
+    if ! ldconfig -p 2>/dev/null | grep -q libvulkan && ls .gl/*.deb >/dev/null 2>&1; then
+        for f in .gl/*.deb; do dpkg -x "$f" /; done
+        ldconfig
+    fi
+    if [ -f /usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json ]; then
+        export VK_DRIVER_FILES=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json
+    fi
+    command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv
+    local quick=${CHATSPLAT_GPU_QUICK:-0}
+    local n=100000,1000000 c=3,32 res=384x384,1280x720 vlm=0.5b views=32 side=96 geo=1000 lang=300 be=wgpu
+    if [ "$quick" = 1 ]; then
+        n=10000 c=3 res=384x384 views=8 side=64 geo=20 lang=5 be=ndarray
+    fi
+    {
+        step "$bin/splat-bench" --n "$n" --c "$c" --res "$res" --impls wgpu,ndarray --max-secs 20
+        if [ "$quick" = 1 ]; then
+            step "$bin/vlm-bench" --backend wgpu ndarray --reps 1 --decode 4
+        else
+            step "$bin/vlm-bench" --random "$vlm" --backend wgpu ndarray --reps 2 --decode 16
+        fi
+        local scene=$out/scene run=$out/run
+        rm -rf "$scene" "$run"
+        step "$bin/chatsplat" synth --out "$scene" --views "$views" --width "$side" --height "$side"
+        step "$bin/chatsplat" train --data "$scene" --out "$run" --iters "$geo" --backend "$be"
+        step "$bin/chatsplat" extract --data "$scene" --out "$scene/teacher" --backend "$be"
+        step "$bin/chatsplat" train-language --run "$run" --teacher "$scene/teacher" --iters "$lang" --backend "$be"
+        step "$bin/lang-bench" --run "$run" --backend "$be" --sweep-iters 0 --reps 3 --full-size
+    } 2>&1 | tee "$out/gpu_bench.log"
+}
+
+case "${1:-}" in
+    pack) pack ;;
+    bench) shift; bench "$@" ;;
+    *) echo "usage: bash eval/gpu/run.sh pack | bench [OUTDIR]" >&2; exit 2 ;;
+esac

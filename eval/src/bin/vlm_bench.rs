@@ -13,6 +13,7 @@
 use burn::tensor::Tensor;
 use clap::Parser;
 use model::vlm::config::LlavaConfig;
+use model::vlm::generate::{last_row, pick};
 use model::vlm::{GenerateOptions, LlavaOnevision, RgbImage};
 use model::{Backend, catch_backend};
 use std::path::PathBuf;
@@ -136,13 +137,6 @@ fn random_model(size: &str, device: &burn::tensor::Device) -> model::Result<Llav
     Ok(LlavaOnevision::init(cfg, processor, tokenizer, 0, device))
 }
 
-/// The greedy next token after the last row of `logits` `[T, vocab]`.
-fn argmax_last(logits: Tensor<2>) -> u32 {
-    let [t, v] = logits.dims();
-    let row = logits.narrow(0, t - 1, 1).reshape([v]).into_data().to_vec::<f32>().unwrap_or_default();
-    row.iter().enumerate().max_by(|a, b| a.1.total_cmp(b.1)).map_or(0, |(i, _)| i as u32)
-}
-
 fn sync(t: Tensor<2>) {
     let _ = t.into_data();
 }
@@ -238,14 +232,16 @@ fn main() -> std::process::ExitCode {
             // Decode timed on its own (not total minus prefill, whose jitter would swamp it):
             // the prompt fills a KV cache, then greedy steps of one token each.
             let mut decode = f64::INFINITY;
+            let greedy = GenerateOptions { temperature: 0.0, ..Default::default() };
+            let mut rng = model::rng::Rng::new(0);
             for _ in 0..a.reps {
                 let mut cache = model::vlm::qwen2::KvCache::default();
                 let h = m.llm.forward(embeds.clone(), &mut cache);
-                let mut next = argmax_last(m.llm.logits(h));
+                let mut next = pick(&last_row(m.llm.logits(h)), &greedy, &mut rng);
                 let t0 = Instant::now();
                 for _ in 0..a.decode {
                     let h = m.llm.forward(m.llm.embed(&[next]), &mut cache);
-                    next = argmax_last(m.llm.logits(h));
+                    next = pick(&last_row(m.llm.logits(h)), &greedy, &mut rng);
                 }
                 decode = decode.min(t0.elapsed().as_secs_f64());
             }

@@ -72,7 +72,8 @@ pub fn pick(logits: &[f32], opts: &GenerateOptions, rng: &mut Rng) -> u32 {
     kept.last().map(|k| k.0 as u32).unwrap_or(0)
 }
 
-fn last_row(t: Tensor<2>) -> Vec<f32> {
+/// The last row of `t` `[T, V]` on the host (the next-token logits).
+pub fn last_row(t: Tensor<2>) -> Vec<f32> {
     let [n, v] = t.dims();
     t.narrow(0, n - 1, 1).reshape([v]).into_data().convert::<f32>().try_to_vec::<f32>().unwrap_or_default()
 }

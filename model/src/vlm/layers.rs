@@ -97,14 +97,22 @@ pub fn on_cpu_threads<const D: usize>(
     if parts < 2 || x.dims().iter().product::<usize>() < 1 << 16 {
         return f(x);
     }
-    let slices: Vec<Tensor<D>> =
-        (0..parts).map(|i| x.clone().narrow(dim, i * n / parts, (i + 1) * n / parts - i * n / parts)).collect();
-    let f = &f;
-    let out = std::thread::scope(|s| {
-        let handles: Vec<_> = slices.into_iter().map(|t| s.spawn(move || f(t))).collect();
-        handles.into_iter().map(|h| h.join().expect("a CPU worker thread panicked")).collect::<Vec<_>>()
-    });
+    let out = on_threads(parts, |i| x.clone().narrow(dim, i * n / parts, (i + 1) * n / parts - i * n / parts), f);
     Tensor::cat(out, dim)
+}
+
+/// `run(input(i))` for `i` in `0..parts`, each on its own scoped thread, in order.
+fn on_threads<I: Send, O: Send>(parts: usize, input: impl Fn(usize) -> I, run: impl Fn(I) -> O + Sync) -> Vec<O> {
+    let run = &run;
+    std::thread::scope(|s| {
+        let handles: Vec<_> = (0..parts)
+            .map(|i| {
+                let x = input(i);
+                s.spawn(move || run(x))
+            })
+            .collect();
+        handles.into_iter().map(|h| h.join().expect("a CPU worker thread panicked")).collect()
+    })
 }
 
 /// Softmax attention: `q` `[B, Tq, d]`, `k`/`v` `[B, Tk, d]`, optional additive mask `[Tq, Tk]`.
@@ -116,15 +124,11 @@ pub fn attention(q: Tensor<3>, k: Tensor<3>, v: Tensor<3>, mask: Option<Tensor<2
         return attention_one(q, k, v, mask);
     }
     let part = |t: &Tensor<3>, i: usize| t.clone().narrow(0, i * b / parts, (i + 1) * b / parts - i * b / parts);
-    let out = std::thread::scope(|s| {
-        let handles: Vec<_> = (0..parts)
-            .map(|i| {
-                let (q, k, v, m) = (part(&q, i), part(&k, i), part(&v, i), mask.clone());
-                s.spawn(move || attention_one(q, k, v, m))
-            })
-            .collect();
-        handles.into_iter().map(|h| h.join().expect("a CPU worker thread panicked")).collect::<Vec<_>>()
-    });
+    let out = on_threads(
+        parts,
+        |i| (part(&q, i), part(&k, i), part(&v, i), mask.clone()),
+        |(q, k, v, m)| attention_one(q, k, v, m),
+    );
     Tensor::cat(out, 0)
 }
 

@@ -17,11 +17,18 @@ objects (rectangles of 1-3 patches), 6 questions each (`kinds=exists,count,color
 answer token; `sup=1` adds a loss on layer `sup_layer`'s heads 0/1 at the answer position: put the
 attention on the tokens of the colour / shape the question names. Prints the training loss and the
 held-out loss and accuracy every `eval_every` steps.
+
+Further knobs: `init_std` (all matrices, default 0.02), `qk_std` (query/key maps only), `out_scale=0`
+(no 1/sqrt(2L) on the output maps), `maxobj` (objects per scene), and with `text_first=1`
+`minimal=1` (a row is only the image tokens and the two attribute words; the answer is read at
+the last word) or `minimal=2` (the image tokens, then the whole question, answer read at `?`):
+
+    python3 eval/bench/lookup_probe.py steps=1000 grid=4 text_first=1 wordimg=1 minimal=1 lr=0.001
 """
 import torch, torch.nn as nn, torch.nn.functional as F, math, random, sys, time, json
 torch.set_num_threads(1)
 A = dict(steps=600, lr=2e-3, emb_std=0.02, proj_l2=None, img_scale=1.0, layout='images_first', D=128, L=4, H=4, KV=2,
-         grid=8, nq=6, nimg=16, seed=0, warm=100, kinds='exists', normimg=False, eval_every=100, sup=0.0, sup_layer=2, text_first=0, wordimg=0, tiedqk=0)
+         grid=8, nq=6, nimg=16, seed=0, warm=100, kinds='exists', normimg=False, eval_every=100, sup=0.0, sup_layer=2, text_first=0, wordimg=0, tiedqk=0, init_std=0.02, qk_std=0.0, maxobj=6, out_scale=1, minimal=0)
 for a in sys.argv[1:]:
     k, v = a.split('='); A[k] = type(A[k])(v) if A[k] is not None and not isinstance(A[k], bool) else (v=='1' if isinstance(A[k], bool) else float(v))
 torch.manual_seed(A['seed']); random.seed(A['seed'])
@@ -34,7 +41,7 @@ g = torch.Generator().manual_seed(123)
 Ccls = torch.randn(NC+1, DV, generator=g); Scls = torch.randn(NS+1, DV, generator=g); Zcls = torch.randn(NZ+1, DV, generator=g)
 XY = torch.randn(2, DV, generator=g)
 def scene():
-    n = random.randint(1, 6); occ = torch.zeros(G, G, dtype=torch.long); objs = []
+    n = random.randint(1, A['maxobj']); occ = torch.zeros(G, G, dtype=torch.long); objs = []
     for _ in range(50):
         if len(objs) == n: break
         z = random.randint(0, 1); w = h = 1 + z + random.randint(0, 1)
@@ -92,7 +99,8 @@ class M(nn.Module):
         s.emb = nn.Embedding(len(words), D); s.layers = nn.ModuleList([Layer() for _ in range(A['L'])]); s.norm = rms(D)
         s.p1 = nn.Linear(DV, D); s.p2 = nn.Linear(D, D); s.nl = nn.Parameter(torch.randn(D)*0.02); s.bgv = nn.Parameter(torch.randn(D)*A['emb_std']); s.posv = nn.Parameter(torch.randn(G*G, D)*A['emb_std']*0.3)
         for n, p in s.named_parameters():
-            if p.dim() == 2: nn.init.normal_(p, 0, 0.02 / (math.sqrt(2*A['L']) if ('o.' in n or 'down' in n) else 1))
+            if p.dim() == 2: nn.init.normal_(p, 0, A['init_std'] / (math.sqrt(2*A['L']) if (A['out_scale'] and ('o.' in n or 'down' in n)) else 1))
+            if p.dim() == 2 and A['qk_std'] > 0 and (n.endswith('q.weight') or n.endswith('k.weight')): nn.init.normal_(p, 0, A['qk_std'])
             elif n.endswith('bias'): nn.init.zeros_(p)
         nn.init.normal_(s.emb.weight, 0, A['emb_std'])
         if A['tiedqk']:
@@ -134,6 +142,11 @@ def build(m, batch):
         if not A['text_first']:
             rows.append((torch.cat(seq_emb), pos, seg_id, tgt)); continue
         for (qw, a) in qs:
+            if A['minimal']:
+                imm = im.view(G, G+1, D)[:, :G].reshape(-1, D)
+                qq = qw[3:5] if A['minimal'] == 1 else qw
+                e = torch.cat([imm, m.emb(torch.tensor([W[w] for w in qq]))]); n = e.shape[0]
+                rows.append((e, list(range(n)), [0]*n, [(n - 1, W[a], a, [], [])])); continue
             qids = [W[w] for w in qw]
             tail = [W['<im_end>'], W['<nl>'], W['<im_start>'], W['assistant'], W['<nl>'], W[a]]
             e = torch.cat([m.emb(torch.tensor(head + qids)), im, m.emb(torch.tensor(tail))])

@@ -129,7 +129,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         views: 3,
         max_new_tokens: 16,
         show: true,
-        keep_going: false,
+        keep_going: true, // a click the reconstruction misses is scored 0 and listed, not fatal
     })?;
 
     step(7, "encoder export");

@@ -120,6 +120,9 @@ pub fn run_scored(a: &Args) -> anyhow::Result<Summary> {
             invalid.join("; ")
         );
     }
+    if !invalid.is_empty() {
+        eprintln!("warning: {} question(s) could not be asked (scored 0): {}", invalid.len(), invalid.join("; "));
+    }
     Ok(so)
 }
 

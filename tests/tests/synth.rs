@@ -332,3 +332,37 @@ fn gaussian_tabletop_covers_the_same_pixels_as_the_analytic_scene() {
     let frac = agree as f32 / total as f32;
     assert!(frac > 0.93, "coverage agrees on only {:.1}% of pixels", 100.0 * frac);
 }
+
+#[test]
+fn clicks_land_deep_inside_the_object() {
+    // an 11x7 ring of id 5 (4 pixels wide on the left) around a hole of id 0; a 2-pixel bar of id 6
+    let (w, h) = (11usize, 7usize);
+    let mut ids = vec![0u8; w * h];
+    for y in 1..6 {
+        for x in 1..10 {
+            let ring = !(5..=7).contains(&x) || !(2..=4).contains(&y);
+            ids[y * w + x] = if ring { 5 } else { 0 };
+        }
+    }
+    ids[0] = 6;
+    ids[1] = 6;
+    let [x, y] = synth::click_pixel(&ids, w, 5).expect("id 5 has pixels");
+    assert_eq!(ids[y * w + x], 5, "the click is on the object");
+    // every neighbour is on the object too: the click is not on an edge pixel
+    for (dx, dy) in [(-1isize, 0isize), (1, 0), (0, -1), (0, 1)] {
+        let (nx, ny) = ((x as isize + dx) as usize, (y as isize + dy) as usize);
+        assert_eq!(ids[ny * w + nx], 5, "neighbour ({nx}, {ny}) of the click ({x}, {y}) is off the object");
+    }
+    // the centroid of a ring is the hole: the old median-pixel rule would not be robust here
+    assert_eq!(synth::click_pixel(&ids, w, 6), Some([0, 0]));
+    assert_eq!(synth::click_pixel(&ids, w, 7), None);
+    // deterministic on a real view: every clicked object's pixel carries its id
+    let opts = SynthOptions { views: 2, width: 48, height: 48, ..Default::default() };
+    let scene = Scene::from_seed(opts.seed);
+    let v = render_view(&synth::view_camera(0, &opts), &scene);
+    for o in &scene.objects {
+        if let Some([x, y]) = synth::click_pixel(&v.ids, 48, o.id) {
+            assert_eq!(v.ids[y * 48 + x], o.id);
+        }
+    }
+}

@@ -131,10 +131,43 @@ pub fn held_out(i: usize) -> bool {
     every > 0 && i % every == every - 1
 }
 
-/// A pixel of object `id` near its mask centroid (the median of its pixels in reading order).
+/// The pixel of object `id` deepest inside its mask: the largest city-block distance to a pixel
+/// of another id or to the image border (first in reading order among equals). A click there
+/// still lands on the object when a reconstruction's identity map is a pixel or two off at the
+/// edges, where a centroid of a ring, a cone seen edge-on or a partly hidden object may not be
+/// on the object at all. `ids` `[H, W]` row-major.
 pub fn click_pixel(ids: &[u8], width: usize, id: u8) -> Option<[usize; 2]> {
-    let px: Vec<usize> = (0..ids.len()).filter(|&p| ids[p] == id).collect();
-    px.get(px.len() / 2).map(|&p| [p % width, p / width])
+    if width == 0 {
+        return None;
+    }
+    let height = ids.len() / width;
+    // two-pass distance transform: d = 1 on the mask's outer pixels, growing inwards
+    let mut d: Vec<u32> = ids.iter().map(|&v| if v == id { u32::MAX } else { 0 }).collect();
+    let at = |d: &[u32], x: isize, y: isize| -> u32 {
+        if x < 0 || y < 0 || x >= width as isize || y >= height as isize {
+            0
+        } else {
+            d[y as usize * width + x as usize]
+        }
+    };
+    for y in 0..height as isize {
+        for x in 0..width as isize {
+            let i = y as usize * width + x as usize;
+            if d[i] > 0 {
+                d[i] = d[i].min(at(&d, x - 1, y).saturating_add(1)).min(at(&d, x, y - 1).saturating_add(1));
+            }
+        }
+    }
+    for y in (0..height as isize).rev() {
+        for x in (0..width as isize).rev() {
+            let i = y as usize * width + x as usize;
+            if d[i] > 0 {
+                d[i] = d[i].min(at(&d, x + 1, y) + 1).min(at(&d, x, y + 1) + 1);
+            }
+        }
+    }
+    let (best, depth) = d.iter().enumerate().fold((0, 0), |(b, bd), (i, &v)| if v > bd { (i, v) } else { (b, bd) });
+    (depth > 0).then_some([best % width, best / width])
 }
 
 /// Writes the dataset to `dir`, calling `progress(done, total)` after each view.

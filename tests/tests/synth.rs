@@ -348,21 +348,32 @@ fn clicks_land_deep_inside_the_object() {
     ids[1] = 6;
     let [x, y] = synth::click_pixel(&ids, w, 5).expect("id 5 has pixels");
     assert_eq!(ids[y * w + x], 5, "the click is on the object");
-    // every neighbour is on the object too: the click is not on an edge pixel
-    for (dx, dy) in [(-1isize, 0isize), (1, 0), (0, -1), (0, 1)] {
-        let (nx, ny) = ((x as isize + dx) as usize, (y as isize + dy) as usize);
-        assert_eq!(ids[ny * w + nx], 5, "neighbour ({nx}, {ny}) of the click ({x}, {y}) is off the object");
-    }
-    // the centroid of a ring is the hole: the old median-pixel rule would not be robust here
+    // every neighbour is on the object too: the click is not on an edge pixel (the old rule, the
+    // median pixel in reading order, picked (4, 3), next to the hole)
+    assert!(interior(&ids, w, x, y), "the click ({x}, {y}) is on the ring's edge");
+    // a mask with no interior pixel: its first pixel; an absent id: none
     assert_eq!(synth::click_pixel(&ids, w, 6), Some([0, 0]));
     assert_eq!(synth::click_pixel(&ids, w, 7), None);
-    // deterministic on a real view: every clicked object's pixel carries its id
-    let opts = SynthOptions { views: 2, width: 48, height: 48, ..Default::default() };
+    // a rendered view: each click is on its object, and inside it whenever the mask has an interior
+    let s = 48usize;
+    let opts = SynthOptions { views: 2, width: s as u32, height: s as u32, ..Default::default() };
     let scene = Scene::from_seed(opts.seed);
     let v = render_view(&synth::view_camera(0, &opts), &scene);
     for o in &scene.objects {
-        if let Some([x, y]) = synth::click_pixel(&v.ids, 48, o.id) {
-            assert_eq!(v.ids[y * 48 + x], o.id);
-        }
+        let Some([x, y]) = synth::click_pixel(&v.ids, s, o.id) else { continue };
+        assert_eq!(v.ids[y * s + x], o.id, "object {} clicked at ({x}, {y}) off its mask", o.id);
+        let has_interior = (0..s * s).any(|p| v.ids[p] == o.id && interior(&v.ids, s, p % s, p / s));
+        assert!(!has_interior || interior(&v.ids, s, x, y), "object {} clicked on its edge ({x}, {y})", o.id);
     }
+}
+
+/// Whether the pixel and its four neighbours (all inside the image) carry the same id.
+fn interior(ids: &[u8], w: usize, x: usize, y: usize) -> bool {
+    let h = ids.len() / w;
+    let id = ids[y * w + x];
+    x > 0
+        && y > 0
+        && x + 1 < w
+        && y + 1 < h
+        && [(x - 1, y), (x + 1, y), (x, y - 1), (x, y + 1)].iter().all(|&(nx, ny)| ids[ny * w + nx] == id)
 }

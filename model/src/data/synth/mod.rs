@@ -154,7 +154,7 @@ pub fn click_pixel(ids: &[u8], width: usize, id: u8) -> Option<[usize; 2]> {
         for x in 0..width as isize {
             let i = y as usize * width + x as usize;
             if d[i] > 0 {
-                d[i] = d[i].min(at(&d, x - 1, y).saturating_add(1)).min(at(&d, x, y - 1).saturating_add(1));
+                d[i] = d[i].min(at(&d, x - 1, y) + 1).min(at(&d, x, y - 1) + 1); // finite: left and up came first
             }
         }
     }

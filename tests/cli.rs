@@ -7,10 +7,9 @@ fn chatsplat() -> Command {
     Command::new(env!("CARGO_BIN_EXE_chatsplat"))
 }
 
-fn tmp(name: &str) -> std::path::PathBuf {
-    let d = std::env::temp_dir().join(format!("chatsplat-cli-{}", std::process::id()));
-    std::fs::create_dir_all(&d).unwrap();
-    d.join(name)
+/// A scratch path (file or directory), removed when the test passes.
+fn tmp(name: &str) -> chatsplat_tests::Scratch {
+    chatsplat_tests::temp_dir(&format!("cli-{name}"))
 }
 
 #[test]

@@ -87,7 +87,8 @@ fn short_training_raises_psnr_and_learns_identity() {
 fn checkpoint_resume_gives_the_same_parameters() {
     let ds = tiny_scene("geo-resume", 6);
     let dev = Device::ndarray();
-    let run = GeometryRun::new(temp_dir("geo-resume-run"));
+    let run_dir = temp_dir("geo-resume-run");
+    let run = GeometryRun::new(&run_dir);
     let data = data_ref(&ds, std::path::Path::new("scene"), &LoadOptions::default(), &run);
     let mut a = GeometryTrainer::new(&ds, cfg(80), &dev).unwrap();
     train(&mut a, &ds, 25);
@@ -170,7 +171,7 @@ fn ply_export_import_round_trips_bit_exactly() {
     let mut t = GeometryTrainer::new(&ds, cfg(10), &dev).unwrap();
     train(&mut t, &ds, 3);
     let (cloud, cls) = t.model.to_cloud();
-    let path = temp_dir("geo-ply-out").with_extension("ply");
+    let path = temp_dir("geo-ply-out.ply");
     model::ply::write(&path, &cloud).unwrap();
     let back = model::ply::read(&path).unwrap();
     assert_eq!(back, cloud);

@@ -5,7 +5,7 @@
 #![allow(deprecated)]
 
 use burn::tensor::{Device, Tensor, TensorData};
-use chatsplat_tests::{host, temp_dir};
+use chatsplat_tests::{Scratch, host, temp_dir};
 use glam::{Vec3, Vec4};
 use model::language::{Encoder, LanguageConfig, LanguageField, object_box};
 use model::rng::Rng;
@@ -155,7 +155,7 @@ fn encoder_export_round_trips_bit_exactly_in_conv_layout() {
         ..Default::default()
     };
     let field = LanguageField::new(&cfg, 4, 11, &dev);
-    let path = temp_dir("enc-export").with_extension("safetensors");
+    let path = temp_dir("enc-export.safetensors");
     let params = model::language::export::write_encoder(&path, &field.encoder, &cfg, "tiny").unwrap();
     assert_eq!(params, 3 * 5 + 5 + 5 * 6 + 6 + 2 * 2 * 6 * 6 + 6 + 4 * 9 * 6); // lift, patch, two (a, b) pairs
     let (back, cfg2) = model::language::export::read_encoder(&path, &dev).unwrap();
@@ -173,14 +173,15 @@ fn encoder_export_round_trips_bit_exactly_in_conv_layout() {
     for (o, c, py, px) in [(0, 0, 0, 0), (5, 2, 1, 0), (3, 4, 0, 1), (1, 5, 1, 1)] {
         assert_eq!(conv[((o * 6 + c) * 2 + py) * 2 + px], w[((py * 2 + px) * 6 + c) * 6 + o]);
     }
-    let bad = temp_dir("enc-export-bad").with_extension("safetensors");
+    let bad = temp_dir("enc-export-bad.safetensors");
     std::fs::write(&bad, b"garbage").unwrap();
     let e = model::language::export::read_encoder(&bad, &dev).err().unwrap().to_string();
     assert!(e.contains(&bad.display().to_string()), "{e}");
 }
 
 /// Geometry run + teacher tokens of a tiny synthetic scene (shared by the end-to-end test).
-fn scene_with_teacher(tag: &str) -> (PathBuf, PathBuf, LlavaOnevision) {
+/// Returns the scratch directories (data, geometry run, teacher) and the fixture VLM.
+fn scene_with_teacher(tag: &str) -> (Scratch, Scratch, Scratch, LlavaOnevision) {
     use model::data::nerfstudio::{LoadOptions, load};
     use train::geometry::{GeometryConfig, GeometryTrainer, data_ref, view_at, write_cameras};
     let data = temp_dir(&format!("{tag}-data"));
@@ -213,7 +214,7 @@ fn scene_with_teacher(tag: &str) -> (PathBuf, PathBuf, LlavaOnevision) {
     let vlm = LlavaOnevision::load(&fixture(), &dev).unwrap();
     let teacher = temp_dir(&format!("{tag}-teacher"));
     train::teacher::extract(&vlm, &data, &TeacherDir::new(&teacher), &Default::default(), |_| {}, |_, _| {}).unwrap();
-    (run_dir, teacher, vlm)
+    (data, run_dir, teacher, vlm)
 }
 
 fn lang_cfg(iters: usize) -> LanguageTrainConfig {
@@ -229,7 +230,7 @@ fn lang_cfg(iters: usize) -> LanguageTrainConfig {
 #[test]
 fn end_to_end_language_field_chat_and_export() {
     let dev = Device::ndarray();
-    let (run_dir, teacher_dir, vlm) = scene_with_teacher("lang-e2e");
+    let (_data, run_dir, teacher_dir, vlm) = scene_with_teacher("lang-e2e");
     let teacher = TeacherSet::open(&teacher_dir).unwrap();
     assert_eq!(teacher.index.grid, 27);
     let geometry = GeometryRun::new(&run_dir);
@@ -256,7 +257,8 @@ fn end_to_end_language_field_chat_and_export() {
     for &v in &order[..40] {
         a.step(v).unwrap();
     }
-    let ck = LanguageRun::new(temp_dir("lang-e2e-resume"));
+    let ck_dir = temp_dir("lang-e2e-resume");
+    let ck = LanguageRun::new(&ck_dir);
     a.save(&ck).unwrap();
     for &v in &order[40..] {
         a.step(v).unwrap();

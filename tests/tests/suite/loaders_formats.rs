@@ -4,12 +4,12 @@
 
 #![allow(deprecated)]
 
-use chatsplat_tests::temp_dir;
+use chatsplat_tests::{Scratch, temp_dir};
 use glam::Vec3;
 use model::data::{LoadOptions, colmap, llff, load_any, replica};
 use model::images::{write_gray8, write_gray16, write_rgb};
 use splat_kernels::Camera;
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
 const W: u32 = 8;
 const H: u32 = 6;
@@ -315,7 +315,7 @@ fn colmap_images(dir: &Path) -> Vec<u8> {
     ids
 }
 
-fn colmap_dir(tag: &str, bin: bool) -> (PathBuf, Colmap) {
+fn colmap_dir(tag: &str, bin: bool) -> (Scratch, Colmap) {
     let dir = temp_dir(tag);
     let fx = colmap_fixture();
     fx.write(&dir.join("sparse/0"), bin);
@@ -570,7 +570,7 @@ fn llff_rows() -> Vec<Vec<f64>> {
     ]
 }
 
-fn llff_dir(tag: &str) -> PathBuf {
+fn llff_dir(tag: &str) -> Scratch {
     let dir = temp_dir(tag);
     for (i, n) in ["a.png", "b.jpg.png", "c.png"].iter().enumerate() {
         write_rgb(&dir.join("images").join(n), W, H, &gradient(i as f32 / 4.0, W, H)).unwrap();
@@ -717,7 +717,7 @@ fn replica_labels(i: usize) -> Vec<u16> {
     (0..W * H).map(|p| if p < W { 0 } else { pal[i][(p as usize) % pal[i].len()] }).collect()
 }
 
-fn replica_dir(tag: &str, frames: usize) -> PathBuf {
+fn replica_dir(tag: &str, frames: usize) -> Scratch {
     let dir = temp_dir(tag);
     let mut traj = String::new();
     for i in 0..frames {
@@ -895,9 +895,6 @@ fn load_any_detects_each_format() {
         ],
     );
     expect_err(load_any(&empty.join("nope"), &o), &["nope: not a directory"]);
-    for d in [c, l, r, n, empty] {
-        std::fs::remove_dir_all(d).ok();
-    }
 }
 
 /// The teacher stage reads every format through the same detection as `train` (not only
@@ -961,7 +958,7 @@ fn masks_from_another_tool_replace_any_formats_own() {
         for (i, stem) in images.iter().enumerate() {
             write_gray8(&masks.join(format!("{stem}.png")), W, H, &ids(i)).unwrap();
         }
-        let with = |k: u32| LoadOptions { masks: Some(masks.clone()), ..opts(k, 0) };
+        let with = |k: u32| LoadOptions { masks: Some(masks.to_path_buf()), ..opts(k, 0) };
         let ds = load_any(&dir, &with(1)).unwrap();
         assert_eq!(ds.train.len(), images.len(), "{tag}");
         for (i, v) in ds.train.iter().enumerate() {

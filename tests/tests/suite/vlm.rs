@@ -187,7 +187,7 @@ fn wgpu_matches_transformers() {
     parity(&dev);
 }
 
-fn copy_fixture(name: &str) -> PathBuf {
+fn copy_fixture(name: &str) -> chatsplat_tests::Scratch {
     let dir = temp_dir(name);
     std::fs::create_dir_all(&dir).unwrap();
     for e in std::fs::read_dir(fixture()).unwrap() {

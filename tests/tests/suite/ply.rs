@@ -16,7 +16,7 @@ fn sample() -> GaussianCloud {
 #[test]
 fn round_trip_is_bit_exact() {
     let cloud = sample();
-    let path = std::env::temp_dir().join(format!("rt-{}.ply", std::process::id()));
+    let path = chatsplat_tests::temp_dir("rt.ply");
     ply::write(&path, &cloud).unwrap();
     let back = ply::read(&path).unwrap();
     assert_eq!(back, cloud);

@@ -4,12 +4,12 @@
 
 #![allow(deprecated)]
 
-use chatsplat_tests::temp_dir;
+use chatsplat_tests::{Scratch, temp_dir};
 use model::data::nerfstudio::{LoadOptions, load};
 use model::data::synth::{self, SynthOptions};
-use std::path::{Path, PathBuf};
+use std::path::Path;
 
-fn synth_dir(tag: &str) -> (PathBuf, SynthOptions) {
+fn synth_dir(tag: &str) -> (Scratch, SynthOptions) {
     let o = SynthOptions { seed: 5, views: 6, width: 48, height: 40, ..Default::default() };
     let d = temp_dir(tag);
     synth::write_dataset(&d, &o, |_, _| {}).unwrap();
@@ -213,7 +213,7 @@ fn pinhole_image() -> Vec<f32> {
 /// A one-frame dataset whose image is [`pattern`] seen through the distortion [`DIST`]: each
 /// distorted pixel shows the pattern at its undistorted position. Also writes a mask (a block of
 /// id 7) and a depth map (1000 mm everywhere). `extra` is merged into the top level.
-fn distorted_dir(tag: &str, extra: serde_json::Value) -> PathBuf {
+fn distorted_dir(tag: &str, extra: serde_json::Value) -> Scratch {
     let dir = temp_dir(tag);
     std::fs::create_dir_all(&dir).unwrap();
     let rgb: Vec<f32> = (0..DH)
@@ -428,7 +428,7 @@ fn masks_given_with_the_masks_option_are_undistorted_like_the_captures_own() {
         .flat_map(|j| (0..DW).map(move |i| if (24..40).contains(&i) && (16..32).contains(&j) { 9 } else { 0 }))
         .collect();
     model::images::write_gray8(&masks.join("rgb.png"), DW, DH, &m).unwrap();
-    let opts = LoadOptions { masks: Some(masks.clone()), holdout_every: 0, ..Default::default() };
+    let opts = LoadOptions { masks: Some(masks.to_path_buf()), holdout_every: 0, ..Default::default() };
     for ds in [load(&dir, &opts).unwrap(), model::data::load_any(&dir, &opts).unwrap()] {
         let given = ds.train[0].instance_ids.clone().unwrap();
         let want: Vec<u8> = own.iter().map(|&i| if i == 7 { 9 } else { i }).collect();

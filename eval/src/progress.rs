@@ -1,13 +1,26 @@
 //! A progress bar on stderr (indicatif): `label [#####     ] done/total unit, rate, eta, extra`.
-//! Hidden automatically when stderr is not a terminal.
+//! When stderr is not a terminal (a log file, CI), a plain line every 30 seconds and at the end
+//! instead, so that long runs under `nohup` still show where they are.
+
+use std::io::IsTerminal;
+use std::sync::Mutex;
+use std::time::{Duration, Instant};
+
+/// How often the plain-line form prints.
+const LOG_EVERY: Duration = Duration::from_secs(30);
 
 /// A progress bar.
 pub struct Progress {
     bar: indicatif::ProgressBar,
+    label: String,
+    unit: &'static str,
+    /// Plain lines (stderr is not a terminal): the start and the last line's time.
+    log: Option<Mutex<(Instant, Instant)>>,
 }
 
 impl Progress {
     pub fn new(label: impl Into<String>, unit: &'static str) -> Self {
+        let label = label.into();
         let bar = indicatif::ProgressBar::new(1);
         let style = indicatif::ProgressStyle::with_template(&format!(
             "{{prefix}} [{{bar:30}}] {{pos}}/{{len}} {unit} ({{per_sec}}, eta {{eta}}) {{msg}}"
@@ -15,8 +28,10 @@ impl Progress {
         .expect("valid template")
         .progress_chars("#> ");
         bar.set_style(style);
-        bar.set_prefix(label.into());
-        Self { bar }
+        bar.set_prefix(label.clone());
+        let now = Instant::now();
+        let log = (!std::io::stderr().is_terminal()).then(|| Mutex::new((now, now)));
+        Self { bar, label, unit, log }
     }
 
     pub fn update(&self, done: usize, total: usize) {
@@ -31,5 +46,34 @@ impl Progress {
         if done >= total {
             self.bar.finish();
         }
+        if let Some(log) = &self.log {
+            let mut times = log.lock().unwrap_or_else(|e| e.into_inner());
+            let now = Instant::now();
+            if now - times.1 >= LOG_EVERY || (done >= total && done > 0) {
+                times.1 = now;
+                eprintln!("{}", plain_line(&self.label, self.unit, done, total, now - times.0, extra));
+            }
+        }
+    }
+}
+
+/// `label: done/total unit (rate unit/s, eta) extra`.
+fn plain_line(label: &str, unit: &str, done: usize, total: usize, elapsed: Duration, extra: &str) -> String {
+    let secs = elapsed.as_secs_f64();
+    let rate = if secs > 0.0 { done as f64 / secs } else { 0.0 };
+    let eta =
+        if rate > 0.0 && total > done { format!(", eta {:.0} s", (total - done) as f64 / rate) } else { String::new() };
+    format!("{label}: {done}/{total} {unit} ({rate:.2} {unit}/s{eta}) {extra}").trim_end().to_string()
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn plain_line_reports_rate_and_eta() {
+        let l = plain_line("train", "iters", 30, 90, Duration::from_secs(60), "loss 0.5");
+        assert_eq!(l, "train: 30/90 iters (0.50 iters/s, eta 120 s) loss 0.5");
+        assert_eq!(plain_line("x", "steps", 5, 5, Duration::from_secs(2), ""), "x: 5/5 steps (2.50 steps/s)");
     }
 }

@@ -23,6 +23,18 @@ impl Rng {
     pub fn range(&mut self, lo: f32, hi: f32) -> f32 {
         lo + (hi - lo) * self.f()
     }
+    /// An index drawn with probability proportional to `weights` (non-negative, not all zero;
+    /// the last index when rounding runs past the end).
+    pub fn weighted(&mut self, weights: &[f32]) -> usize {
+        let mut u = self.f() * weights.iter().sum::<f32>();
+        for (i, w) in weights.iter().enumerate() {
+            if u < *w {
+                return i;
+            }
+            u -= w;
+        }
+        weights.len().saturating_sub(1)
+    }
     /// Standard normal (Box-Muller).
     pub fn normal(&mut self) -> f32 {
         let u1 = self.f().max(1e-7);

@@ -90,7 +90,7 @@ impl LanguageScene {
     pub fn object_crop(&self, cam: &Camera, id: u8, bbox: [usize; 4]) -> Result<(Camera, Vec<f32>)> {
         let crop = ObjectCrop::from_box(bbox, cam.width as usize, cam.height as usize);
         let oc = self.cfg.object_camera(cam, bbox);
-        let r = self.render(&oc)?;
+        let ids = self.splats.render_ids(&oc)?;
         let size = oc.width as usize;
         let mut mask = vec![0f32; size * size];
         for y in 0..size {
@@ -98,7 +98,7 @@ impl LanguageScene {
                 // pixel centre back in view pixels
                 let vx = (x as f32 + 0.5 - oc.cx) / oc.fx * cam.fx + cam.cx;
                 let vy = (y as f32 + 0.5 - oc.cy) / oc.fy * cam.fy + cam.cy;
-                if crop.contains(vx, vy) && r.ids[y * size + x] == id {
+                if crop.contains(vx, vy) && ids[y * size + x] == id {
                     mask[y * size + x] = 1.0;
                 }
             }
@@ -130,7 +130,7 @@ impl LanguageScene {
                  again; view and scene level work without",
             ));
         }
-        let ids = self.render(cam)?.ids;
+        let ids = self.splats.render_ids(cam)?;
         let id = ids[y * w + x];
         if id == 0 {
             return Ok(None);

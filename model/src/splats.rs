@@ -328,6 +328,27 @@ impl SplatModel {
         feat.matmul(self.classifier_w.val()) + self.classifier_b.val()
     }
 
+    /// The identity class of each pixel seen from `cam` (`[H * W]`, 0 = background): what
+    /// [`render`](Self::render) gives as `ids`, from the identity channels alone (no SH colours, 16
+    /// channels instead of 19; object masks need nothing else).
+    pub fn render_ids(&self, cam: &Camera) -> Result<Vec<u8>> {
+        let n = self.len();
+        let dev = self.means.val().device();
+        let g = Gaussians {
+            means: self.means.val(),
+            log_scales: self.log_scales.val(),
+            quats: self.quats.val(),
+            opacity_logits: self.opacity_logits.val().reshape([n]),
+            features: self.identity.val(),
+        };
+        let opts = SplatOptions { validate: false, ..Default::default() };
+        let out = splat(&g, cam, Tensor::zeros([IDENTITY_DIM], &dev), &opts)?;
+        let [h, w, _] = out.features.dims();
+        let logits =
+            out.features.reshape([h * w, IDENTITY_DIM]).matmul(self.classifier_w.val()) + self.classifier_b.val();
+        Ok(class_ids(logits))
+    }
+
     /// Renders RGB, the identity class of each pixel and alpha from `cam` at SH degree `degree`
     /// over the RGB `background`.
     pub fn render(&self, cam: &Camera, degree: usize, background_rgb: [f32; 3]) -> Result<ViewRender> {
@@ -335,13 +356,14 @@ impl SplatModel {
         let opts = SplatOptions { validate: false, ..Default::default() };
         let out = splat(&self.gaussians(cam, degree), cam, bg, &opts)?;
         let logits = self.identity_logits(out.features.clone());
-        let ids = logits.argmax(1).into_data().convert::<i64>().to_vec::<i64>().expect("i64 ids");
-        Ok(ViewRender {
-            rgb: host(out.features.narrow(2, 0, 3)),
-            ids: ids.into_iter().map(|i| i.clamp(0, 255) as u8).collect(),
-            alpha: host(out.alpha),
-        })
+        Ok(ViewRender { rgb: host(out.features.narrow(2, 0, 3)), ids: class_ids(logits), alpha: host(out.alpha) })
     }
+}
+
+/// The most likely class of each row of `[P, K]` logits, as `u8` (classes past 255 clamp).
+fn class_ids(logits: Tensor<2>) -> Vec<u8> {
+    let ids = logits.argmax(1).into_data().convert::<i64>().to_vec::<i64>().expect("i64 ids");
+    ids.into_iter().map(|i| i.clamp(0, 255) as u8).collect()
 }
 
 /// Reads a tensor to the host as f32.
@@ -350,40 +372,125 @@ pub fn host<const D: usize>(t: Tensor<D>) -> Vec<f32> {
 }
 
 /// Evaluates real SH (3DGS convention, `0.5 + ...`, clamped at 0) for each Gaussian's viewing direction.
-/// `sh_dc` `[N,3]`, `sh_rest` `[N,45]` (k-major), result `[N,3]`.
+/// `sh_dc` `[N,3]`, `sh_rest` `[N,45]` (k-major), result `[N,3]`: the basis of each Gaussian's
+/// direction as one `[N, K]` tensor, then one broadcast product with `sh_rest` as `[N, K, 3]`
+/// summed over `K` (a few large ops instead of one slice, product and sum per coefficient).
 pub fn sh_colors(means: Tensor<2>, sh_dc: Tensor<2>, sh_rest: Tensor<2>, camera: &Camera, degree: usize) -> Tensor<2> {
-    let mut c = sh_dc * SH_C0;
-    if degree > 0 {
-        let center = camera.world_to_cam.inverse().w_axis.truncate();
-        let device = means.device();
-        let eye = Tensor::<2>::from_data(TensorData::new(center.to_array().to_vec(), [1, 3]), &device);
-        let d = means - eye;
-        let d = d.clone() / (d.powf_scalar(2.0).sum_dim(1).sqrt() + 1e-12);
-        let x = d.clone().narrow(1, 0, 1);
-        let y = d.clone().narrow(1, 1, 1);
-        let z = d.narrow(1, 2, 1);
-        let k = |i: usize| sh_rest.clone().narrow(1, (i - 1) * 3, 3);
-        c = c - k(1) * y.clone() * C1 + k(2) * z.clone() * C1 - k(3) * x.clone() * C1;
-        if degree > 1 {
-            let (xx, yy, zz) = (x.clone() * x.clone(), y.clone() * y.clone(), z.clone() * z.clone());
-            let (xy, yz, xz) = (x.clone() * y.clone(), y.clone() * z.clone(), x.clone() * z.clone());
-            c = c
-                + k(4) * xy.clone() * C2[0]
-                + k(5) * yz * C2[1]
-                + k(6) * (zz.clone() * 2.0 - xx.clone() - yy.clone()) * C2[2]
-                + k(7) * xz * C2[3]
-                + k(8) * (xx.clone() - yy.clone()) * C2[4];
-            if degree > 2 {
-                c = c
-                    + k(9) * y.clone() * (xx.clone() * 3.0 - yy.clone()) * C3[0]
-                    + k(10) * xy * z.clone() * C3[1]
-                    + k(11) * y.clone() * (zz.clone() * 4.0 - xx.clone() - yy.clone()) * C3[2]
-                    + k(12) * z.clone() * (zz.clone() * 2.0 - xx.clone() * 3.0 - yy.clone() * 3.0) * C3[3]
-                    + k(13) * x.clone() * (zz.clone() * 4.0 - xx.clone() - yy.clone()) * C3[4]
-                    + k(14) * z * (xx.clone() - yy.clone()) * C3[5]
-                    + k(15) * x * (xx - yy * 3.0) * C3[6];
-            }
+    let c = sh_dc * SH_C0;
+    if degree == 0 {
+        return (c + 0.5).clamp_min(0.0);
+    }
+    let n = means.dims()[0];
+    let center = camera.world_to_cam.inverse().w_axis.truncate();
+    let eye = Tensor::<2>::from_data(TensorData::new(center.to_array().to_vec(), [1, 3]), &means.device());
+    let d = means - eye;
+    let d = d.clone() / (d.powf_scalar(2.0).sum_dim(1).sqrt() + 1e-12);
+    let basis = sh_basis(d, degree.min(3));
+    let k = basis.dims()[1];
+    let rest = if k == SH_REST { sh_rest } else { sh_rest.narrow(1, 0, 3 * k) };
+    let c = c + (rest.reshape([n, k, 3]) * basis.reshape([n, k, 1])).sum_dim(1).reshape([n, 3]);
+    (c + 0.5).clamp_min(0.0)
+}
+
+/// The real SH basis without the constant term, `[N, 3 | 8 | 15]` for degree 1 | 2 | 3, of unit
+/// directions `d` `[N, 3]` (3DGS's signs and constants).
+fn sh_basis(d: Tensor<2>, degree: usize) -> Tensor<2> {
+    let x = d.clone().narrow(1, 0, 1);
+    let y = d.clone().narrow(1, 1, 1);
+    let z = d.narrow(1, 2, 1);
+    let mut b = vec![y.clone() * (-C1), z.clone() * C1, x.clone() * (-C1)];
+    if degree > 1 {
+        let (xx, yy, zz) = (x.clone() * x.clone(), y.clone() * y.clone(), z.clone() * z.clone());
+        let xy = x.clone() * y.clone();
+        b.extend([
+            xy.clone() * C2[0],
+            y.clone() * z.clone() * C2[1],
+            (zz.clone() * 2.0 - xx.clone() - yy.clone()) * C2[2],
+            x.clone() * z.clone() * C2[3],
+            (xx.clone() - yy.clone()) * C2[4],
+        ]);
+        if degree > 2 {
+            let zz4 = zz.clone() * 4.0 - xx.clone() - yy.clone();
+            b.extend([
+                y.clone() * (xx.clone() * 3.0 - yy.clone()) * C3[0],
+                xy * z.clone() * C3[1],
+                y * zz4.clone() * C3[2],
+                z.clone() * (zz * 2.0 - xx.clone() * 3.0 - yy.clone() * 3.0) * C3[3],
+                x.clone() * zz4 * C3[4],
+                z * (xx.clone() - yy.clone()) * C3[5],
+                x * (xx - yy * 3.0) * C3[6],
+            ]);
         }
     }
-    (c + 0.5).clamp_min(0.0)
+    Tensor::cat(b, 1)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use glam::Vec3;
+
+    /// The plain twin of [`sh_colors`]: one Gaussian at a time in f64, the 3DGS polynomials
+    /// written out term by term.
+    fn sh_oracle(m: [f32; 3], eye: Vec3, dc: &[f32], rest: &[f32], degree: usize) -> [f32; 3] {
+        let v = [m[0] as f64 - eye.x as f64, m[1] as f64 - eye.y as f64, m[2] as f64 - eye.z as f64];
+        let len = (v[0] * v[0] + v[1] * v[1] + v[2] * v[2]).sqrt();
+        let (x, y, z) = (v[0] / len, v[1] / len, v[2] / len);
+        let (c1, c2, c3) = (C1 as f64, C2.map(|c| c as f64), C3.map(|c| c as f64));
+        let basis = [
+            -c1 * y,
+            c1 * z,
+            -c1 * x,
+            c2[0] * x * y,
+            c2[1] * y * z,
+            c2[2] * (2.0 * z * z - x * x - y * y),
+            c2[3] * x * z,
+            c2[4] * (x * x - y * y),
+            c3[0] * y * (3.0 * x * x - y * y),
+            c3[1] * x * y * z,
+            c3[2] * y * (4.0 * z * z - x * x - y * y),
+            c3[3] * z * (2.0 * z * z - 3.0 * x * x - 3.0 * y * y),
+            c3[4] * x * (4.0 * z * z - x * x - y * y),
+            c3[5] * z * (x * x - y * y),
+            c3[6] * x * (x * x - 3.0 * y * y),
+        ];
+        let used = [0, 3, 8, 15][degree];
+        std::array::from_fn(|ch| {
+            let mut c = SH_C0 as f64 * dc[ch] as f64;
+            for k in 0..used {
+                c += basis[k] * rest[k * 3 + ch] as f64;
+            }
+            (c + 0.5).max(0.0) as f32
+        })
+    }
+
+    #[test]
+    fn sh_colors_match_the_per_gaussian_formula_at_every_degree() {
+        let dev = Device::ndarray();
+        let mut r = crate::rng::Rng::new(11);
+        let n = 64;
+        let mut vals = |k: usize, s: f32| -> Vec<f32> { (0..n * k).map(|_| (r.f() - 0.5) * s).collect() };
+        let (means, dc, rest) = (vals(3, 4.0), vals(3, 2.0), vals(45, 1.0));
+        let eye = Vec3::new(0.3, -2.5, 1.7);
+        let cam = Camera::look_at(eye, Vec3::ZERO, Vec3::Z, 50.0, 32, 24);
+        let t = |v: &Vec<f32>, k: usize| Tensor::<2>::from_data(TensorData::new(v.clone(), [n, k]), &dev);
+        for degree in 0..=3 {
+            let got = host(sh_colors(t(&means, 3), t(&dc, 3), t(&rest, 45), &cam, degree));
+            let mut clamped = 0;
+            for i in 0..n {
+                let m = [means[3 * i], means[3 * i + 1], means[3 * i + 2]];
+                let want = sh_oracle(m, eye, &dc[3 * i..3 * i + 3], &rest[45 * i..45 * i + 45], degree);
+                for ch in 0..3 {
+                    let g = got[3 * i + ch];
+                    assert!(
+                        (g - want[ch]).abs() < 1e-5,
+                        "degree {degree}, Gaussian {i}, channel {ch}: {g} vs {}",
+                        want[ch]
+                    );
+                    clamped += usize::from(want[ch] == 0.0);
+                }
+            }
+            assert!(clamped < n * 3 / 2, "degree {degree}: most colours clamped, the test would say little");
+        }
+    }
 }

@@ -3,7 +3,7 @@
 use eval::progress::Progress;
 use model::Backend;
 use std::path::PathBuf;
-use train::vlm::{VlmTrainConfig, train};
+use train::vlm::{EVAL_SEEDS, VlmTrainConfig, evaluate_model, train};
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -22,9 +22,42 @@ pub struct Args {
     pub seed: Option<u64>,
     #[arg(long, default_value_t = Backend::Ndarray)]
     pub backend: Backend,
+    /// Instead of training: score the model in this directory on ground-truth images of held-out
+    /// seeds (exact match per level and question type).
+    #[arg(long)]
+    pub evaluate: Option<PathBuf>,
+    /// Held-out seeds for --evaluate (seeds `10000..10000 + n`).
+    #[arg(long, default_value_t = 50)]
+    pub eval_seeds: u64,
+}
+
+/// `--evaluate DIR`: exact match of a saved model on ground-truth images of held-out seeds.
+fn evaluate(dir: &std::path::Path, a: &Args) -> anyhow::Result<()> {
+    let cfg_path = dir.join("train_config.json");
+    let cfg =
+        if cfg_path.is_file() { model::io::read_config::<VlmTrainConfig>(&cfg_path)? } else { Default::default() };
+    let device = a.backend.device();
+    let t0 = std::time::Instant::now();
+    let seeds = EVAL_SEEDS..EVAL_SEEDS + a.eval_seeds;
+    let acc = model::catch_backend("VLM evaluation", || {
+        let vlm = model::vlm::LlavaOnevision::load(dir, &device)?;
+        evaluate_model(vlm, seeds.clone(), (2, 2), &cfg, &device)
+    })??;
+    let n: usize = acc.by_kind.values().map(|v| v.1).sum();
+    println!(
+        "{}: {n} questions on ground-truth images of held-out seeds {seeds:?} in {:.0} s",
+        dir.display(),
+        t0.elapsed().as_secs_f64()
+    );
+    println!("exact match {}", acc.summary());
+    println!("by type: {}", acc.by_kind_line());
+    Ok(())
 }
 
 pub fn run(a: Args) -> anyhow::Result<()> {
+    if let Some(dir) = &a.evaluate {
+        return evaluate(dir, &a);
+    }
     let mut cfg = match &a.config {
         Some(p) => model::io::read_config::<VlmTrainConfig>(p)?,
         None => VlmTrainConfig::default(),
@@ -44,9 +77,15 @@ pub fn run(a: Args) -> anyhow::Result<()> {
             if let Some(e) = &p.eval {
                 let labels = p.eval_labels.as_ref().map(|l| format!(" (reading label tokens: {})", l.summary()));
                 eprintln!("\nstep {}: held-out exact match {}{}", p.step, e.summary(), labels.unwrap_or_default());
+                eprintln!("  {}", e.by_kind_line());
             }
-            let loss = p.answer_loss + cfg.aux_weight * p.aux_loss;
-            let msg = format!("loss {loss:.4} answer {:.4} aux {:.4}", p.answer_loss, p.aux_loss);
+            let [d, w, f] = p.hop_loss;
+            let [c, s, z] = p.tower_accuracy.map(|a| (100.0 * a).round());
+            let (answer, aux, slots) = (p.answer_loss, p.aux_loss, p.slot_loss);
+            let msg = format!(
+                "answer {answer:.3} aux {aux:.3} (tower sees colour {c}% shape {s}% size {z}%) \
+                 hops {d:.2}/{w:.2}/{f:.2} slots {slots:.2}"
+            );
             bar.update_with(p.step, cfg.steps, &msg);
         })
     })??;

@@ -132,12 +132,18 @@ pub fn attention(q: Tensor<3>, k: Tensor<3>, v: Tensor<3>, mask: Option<Tensor<2
     Tensor::cat(out, 0)
 }
 
-fn attention_one(q: Tensor<3>, k: Tensor<3>, v: Tensor<3>, mask: Option<Tensor<2>>) -> Tensor<3> {
+/// [`attention`] on one thread, also returning the attention weights `[B, Tq, Tk]`.
+pub fn attention_probs(q: Tensor<3>, k: Tensor<3>, v: Tensor<3>, mask: Option<Tensor<2>>) -> (Tensor<3>, Tensor<3>) {
     let d = q.dims()[2];
     let scores = q.matmul(k.swap_dims(1, 2)) * (1.0 / (d as f64).sqrt());
     let scores = match mask {
         Some(m) => scores + m.unsqueeze_dim::<3>(0),
         None => scores,
     };
-    activation::softmax(scores, 2).matmul(v)
+    let probs = activation::softmax(scores, 2);
+    (probs.clone().matmul(v), probs)
+}
+
+fn attention_one(q: Tensor<3>, k: Tensor<3>, v: Tensor<3>, mask: Option<Tensor<2>>) -> Tensor<3> {
+    attention_probs(q, k, v, mask).0
 }

@@ -6,7 +6,7 @@
 
 use super::VlmError;
 use super::config::TextConfig;
-use super::layers::{act, attention, init_linear, init_rms_norm, load_linear, load_rms_norm, normal};
+use super::layers::{act, attention, attention_probs, init_linear, init_rms_norm, load_linear, load_rms_norm, normal};
 use super::weights::{HfTensors, WeightStore};
 use crate::rng::Rng;
 use burn::module::{Module, Param};
@@ -42,6 +42,18 @@ impl KvCache {
     pub fn is_empty(&self) -> bool {
         self.len == 0
     }
+}
+
+/// What a training pass records besides its output.
+#[derive(Debug, Default)]
+pub struct Probe {
+    /// Record the attention weights of these layers ...
+    pub layers: Vec<usize>,
+    /// ... as `(layer, [B * heads * T, T])`, row `(b * heads + head) * T + query`.
+    pub probs: Vec<(usize, Tensor<2>)>,
+    /// Record the residual stream entering this layer (`[B, T, D]`).
+    pub residual_at: Option<usize>,
+    pub residual: Option<Tensor<3>>,
 }
 
 /// Qwen2 causal LM.
@@ -185,8 +197,8 @@ impl Qwen2 {
         positions: &[usize],
         mask: Option<Tensor<2>>,
         mut cache: Option<&mut KvCache>,
-        tap: Option<usize>,
-    ) -> (Tensor<3>, Option<Tensor<3>>) {
+        mut probe: Option<&mut Probe>,
+    ) -> Tensor<3> {
         let [b, t, _] = x.dims();
         let (h, kvh, hd) = (self.cfg.num_heads, self.cfg.num_kv_heads, self.cfg.head_dim);
         let (cos, sin) = self.rope(positions);
@@ -205,10 +217,11 @@ impl Qwen2 {
         // the mask of every query row of a grouped block (`rep` copies of `[T, past + T]`)
         let mask = mask.map(|m| if rep > 1 { m.repeat_dim(0, rep) } else { m });
         let mut x = x;
-        let mut tapped = None;
         for (li, l) in self.layers.iter().enumerate() {
-            if tap == Some(li) {
-                tapped = Some(x.clone());
+            if let Some(p) = probe.as_deref_mut()
+                && p.residual_at == Some(li)
+            {
+                p.residual = Some(x.clone());
             }
             let hs = l.ln1.forward(x.clone());
             let heads = |y: Tensor<3>, n: usize| y.reshape([b, t, n, hd]).swap_dims(1, 2);
@@ -231,13 +244,21 @@ impl Qwen2 {
             // of a kv head attend as one block of rep * t rows (no copy of the keys and values
             // per query head: at decode the cache would be copied rep times per layer and token)
             let q = q.reshape([b * kvh, rep * t, hd]);
-            let o = attention(q, k.reshape([b * kvh, total, hd]), v.reshape([b * kvh, total, hd]), mask.clone());
+            let (k, v) = (k.reshape([b * kvh, total, hd]), v.reshape([b * kvh, total, hd]));
+            let o = match probe.as_deref_mut() {
+                Some(p) if p.layers.contains(&li) => {
+                    let (o, probs) = attention_probs(q, k, v, mask.clone());
+                    p.probs.push((li, probs.reshape([b * h * t, total])));
+                    o
+                }
+                _ => attention(q, k, v, mask.clone()),
+            };
             let o = o.reshape([b, h, t, hd]).swap_dims(1, 2).reshape([b, t, h * hd]);
             x = x + l.o.forward(o);
             let hs = l.ln2.forward(x.clone());
             x = x + l.down.forward(act(self.cfg.act, l.gate.forward(hs.clone())) * l.up.forward(hs));
         }
-        (self.norm.forward(x), tapped)
+        self.norm.forward(x)
     }
 
     /// Inference: runs `x` (`[T, D]` input embeddings) after the cached tokens, causally; returns
@@ -253,27 +274,22 @@ impl Qwen2 {
             Tensor::<2>::from_data(TensorData::new(m, [t, total]), &self.device())
         });
         let positions: Vec<usize> = (start..total).collect();
-        let (out, _) = self.run(x.unsqueeze_dim::<3>(0), &positions, mask, Some(cache), None);
+        let out = self.run(x.unsqueeze_dim::<3>(0), &positions, mask, Some(cache), None);
         cache.len = total;
         out.reshape([t, d])
     }
 
     /// Training: `x` `[B, T, D]` with each token at `positions[i]`, attending where `mask`
     /// (`[T, T]`, additive: 0 or -inf) allows; returns the final-norm hidden states `[B, T, D]`.
-    pub fn forward_masked(&self, x: Tensor<3>, positions: &[usize], mask: Tensor<2>) -> Tensor<3> {
-        self.run(x, positions, Some(mask), None, None).0
-    }
-
-    /// [`Self::forward_masked`], also returning the residual stream entering layer `tap` `[B, T, D]`.
-    pub fn forward_masked_tapped(
+    /// With `probe`, also what it asks for: attention weights of some layers, a residual stream.
+    pub fn forward_masked(
         &self,
         x: Tensor<3>,
         positions: &[usize],
         mask: Tensor<2>,
-        tap: usize,
-    ) -> (Tensor<3>, Tensor<3>) {
-        let (out, tapped) = self.run(x, positions, Some(mask), None, Some(tap));
-        (out, tapped.expect("tap is a layer index"))
+        probe: Option<&mut Probe>,
+    ) -> Tensor<3> {
+        self.run(x, positions, Some(mask), None, probe)
     }
 
     /// Logits `[..., vocab]` of final hidden states `[..., D]`.

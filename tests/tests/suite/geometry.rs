@@ -81,6 +81,12 @@ fn short_training_raises_psnr_and_learns_identity() {
     assert!(after.miou.unwrap() > 0.6, "mIoU {:?}", after.miou);
     assert!(held.psnr > before.psnr + 3.0, "held-out PSNR {}", held.psnr);
     assert_ne!(t.model.len(), n0, "densification changed the Gaussian count");
+    // Object masks come from the identity channels alone: the same ids as the full render's.
+    for v in &ds.test {
+        let full = t.render(&v.camera).unwrap().ids;
+        assert!(full.iter().any(|&i| i != 0), "an object is in view");
+        assert_eq!(t.model.render_ids(&v.camera).unwrap(), full);
+    }
 }
 
 #[test]

@@ -1,15 +1,16 @@
 //! Training the tabletop LLaVA-OneVision with burn (`chatsplat train-vlm`): a few steps lower the
 //! loss equally on ndarray and wgpu; a trained model directory round-trips through the llava-hf
-//! loader; packed training batches (either prompt layout) score answers exactly as single-turn
-//! inference does.
+//! loader; packed training batches score answers exactly as single-turn inference does; the
+//! supervised hops of a packed batch point at the tokens of the objects the questions name.
 #![allow(deprecated)]
 
 use burn::module::Module;
 use burn::tensor::{Device, Tensor, TensorData, activation};
 use chatsplat_tests::{host, max_abs_diff, temp_dir};
-use model::vlm::{LlavaOnevision, PromptLayout};
-use train::vlm::batch::{forward, named_objects, pack};
+use model::vlm::LlavaOnevision;
+use train::vlm::batch::{forward, pack};
 use train::vlm::data::SampleKind;
+use train::vlm::hops::{HopKind, SINK};
 use train::vlm::{Shape, Trainer, VlmTrainConfig, eval_samples, save_model};
 
 fn tiny_config() -> VlmTrainConfig {
@@ -23,9 +24,9 @@ fn tiny_config() -> VlmTrainConfig {
             vision_heads: 2,
             vision_mlp: 64,
             text_width: 32,
-            text_layers: 2,
-            text_heads: 2,
-            text_kv_heads: 1,
+            text_layers: 3,
+            text_heads: 4,
+            text_kv_heads: 2,
             text_mlp: 64,
         },
         images_per_step: 4,
@@ -42,7 +43,7 @@ fn training_lowers_the_loss_equally_on_ndarray_and_wgpu() {
     let cfg = tiny_config();
     let run = |dev: &Device| {
         let mut t = Trainer::new(&cfg, dev).unwrap();
-        (0..5).map(|_| t.step().unwrap().0).collect::<Vec<f32>>()
+        (0..5).map(|_| t.step().unwrap().answer).collect::<Vec<f32>>()
     };
     let cpu = run(&Device::ndarray());
     eprintln!("ndarray answer losses {cpu:?}");
@@ -87,96 +88,123 @@ fn a_trained_model_directory_round_trips_through_the_loader() {
 #[test]
 fn packed_batches_score_answers_as_single_turn_inference_does() {
     let dev = Device::ndarray();
-    for layout in [PromptLayout::ImagesFirst, PromptLayout::TextFirst] {
-        let cfg = VlmTrainConfig { text_first: layout == PromptLayout::TextFirst, ..tiny_config() };
-        let t = Trainer::new(&cfg, &dev).unwrap();
-        let m = t.model.valid();
-        assert_eq!(m.vlm.tokenizer.layout, layout);
-        let samples = eval_samples(t.spec(), 77..79, 1, 1);
-        let (s, g2, dv) = (cfg.model.image_size, m.vlm.cfg.vision.tokens(), cfg.model.vision_width);
-        for kind in SampleKind::ALL {
-            let batch: Vec<_> = samples
+    let cfg = tiny_config();
+    let t = Trainer::new(&cfg, &dev).unwrap();
+    let m = t.model.valid();
+    let samples = eval_samples(t.spec(), 77..79, 1, 1);
+    let (s, g2, dv) = (cfg.model.image_size, m.vlm.cfg.vision.tokens(), cfg.model.vision_width);
+    for kind in SampleKind::ALL {
+        let batch: Vec<_> = samples
+            .iter()
+            .filter(|x| x.kind == kind)
+            .map(|x| (x.clone(), x.qas.iter().take(3).cloned().collect::<Vec<_>>()))
+            .collect();
+        assert!(batch.len() == 2 && batch.iter().all(|b| !b.1.is_empty()), "{kind:?} samples");
+        let p = pack(&m.vlm, &batch).unwrap();
+        let packed = host(forward(&m, &p, None, None, false, &dev).log_probs);
+        let vocab = m.vlm.cfg.text.vocab_size;
+        let mut q = 0;
+        for (sample, qas) in &batch {
+            let embeds: Vec<Tensor<2>> = sample
+                .images
                 .iter()
-                .filter(|x| x.kind == kind)
-                .map(|x| (x.clone(), x.qas.iter().take(3).cloned().collect::<Vec<_>>()))
+                .map(|img| {
+                    let px = Tensor::<4>::from_data(TensorData::new(img.pixels.clone(), [1, 3, s, s]), &dev);
+                    m.vlm.token_embeds(m.vlm.vision.forward(px).reshape([g2, dv]))
+                })
                 .collect();
-            assert!(batch.len() == 2 && batch.iter().all(|b| !b.1.is_empty()), "{kind:?} samples");
-            let p = pack(&m.vlm, &batch).unwrap();
-            let packed = host(forward(&m, &p, None, None, &dev).log_probs);
-            let vocab = m.vlm.cfg.text.vocab_size;
-            let mut q = 0;
-            for (sample, qas) in &batch {
-                let embeds: Vec<Tensor<2>> = sample
-                    .images
-                    .iter()
-                    .map(|img| {
-                        let px = Tensor::<4>::from_data(TensorData::new(img.pixels.clone(), [1, 3, s, s]), &dev);
-                        m.vlm.token_embeds(m.vlm.vision.forward(px).reshape([g2, dv]))
-                    })
-                    .collect();
-                for qa in qas {
-                    let e = m.vlm.prompt_embeds(&qa.question, &embeds).unwrap();
-                    let n = e.dims()[0];
-                    let last = activation::log_softmax(m.vlm.logits(e).narrow(0, n - 1, 1), 1);
-                    let want = host(last);
-                    let row = p.questions[q].1.start;
-                    let got = &packed[row * vocab..(row + 1) * vocab];
-                    let err = max_abs_diff(got, &want);
-                    assert!(
-                        err < 1e-4,
-                        "{layout:?} {kind:?} {:?}: first answer token log-probs differ by {err}",
-                        qa.kind
-                    );
-                    q += 1;
-                }
+            for qa in qas {
+                let e = m.vlm.prompt_embeds(&qa.question, &embeds).unwrap();
+                let n = e.dims()[0];
+                let last = activation::log_softmax(m.vlm.logits(e).narrow(0, n - 1, 1), 1);
+                let want = host(last);
+                let row = p.questions[q].1.start;
+                let got = &packed[row * vocab..(row + 1) * vocab];
+                let err = max_abs_diff(got, &want);
+                assert!(err < 1e-4, "{kind:?} {:?}: first answer token log-probs differ by {err}", qa.kind);
+                q += 1;
             }
-            assert_eq!(q, p.questions.len());
         }
+        assert_eq!(q, p.questions.len());
     }
 }
 
 #[test]
-fn questions_name_the_objects_the_relevance_loss_looks_for() {
-    // (colour, shape) classes, 1-based in Color::ALL / Shape::ALL order as in the token labels
-    let (red, blue) = (1, 6);
-    let (cube, cone, torus) = (2, 4, 6);
-    assert_eq!(named_objects("Is there a red cube?"), [(red, cube)]);
-    assert_eq!(named_objects("Is the red cube left of the blue torus?"), [(red, cube), (blue, torus)]);
-    assert_eq!(named_objects("What color is the cone?"), [(0, cone)]);
-    assert_eq!(named_objects("What shape is the red object?"), [(red, 0)]);
-    assert_eq!(named_objects("How many cubes are in the scene?"), [(0, cube)]);
-    assert_eq!(named_objects("How many blue objects are in the scene?"), [(blue, 0)]);
-    assert!(named_objects("How many objects are there?").is_empty());
-    // text first, the relevance targets of a batch mark exactly the tokens labelled with what
-    // the question names
+fn supervised_hops_point_at_the_objects_the_questions_name() {
+    use model::data::synth::questions::Kind;
+    use model::data::synth::scene::{Color, Shape};
     let dev = Device::ndarray();
-    let cfg = VlmTrainConfig { text_first: true, ..tiny_config() };
-    let t = Trainer::new(&cfg, &dev).unwrap();
+    let t = Trainer::new(&tiny_config(), &dev).unwrap();
     let m = t.model.valid();
     let samples = eval_samples(t.spec(), 90..96, 1, 0);
     let batch: Vec<_> =
         samples.iter().filter(|x| x.kind == SampleKind::View).map(|x| (x.clone(), x.qas.clone())).collect();
     let p = pack(&m.vlm, &batch).unwrap();
-    let hits = p.relevance.iter().filter(|r| r.1 == 1.0).count();
-    assert!(hits > 0 && hits < p.relevance.len(), "{hits} of {} tokens relevant", p.relevance.len());
     let g2 = m.vlm.cfg.vision.tokens();
-    let (mut row, mut want) = (0, 0);
-    for (s, qas) in &batch {
-        let labels = &s.images[0].labels;
+    // the object a position of a row shows: its (colour, shape) label, for image token positions
+    let shows = |b: usize, pos: usize| -> Option<(u8, u8)> {
+        let i = pos.checked_sub(p.head).filter(|&i| i < g2)?;
+        let l = batch[b].0.images[0].labels[i];
+        (l[0] > 0).then_some((l[0], l[1]))
+    };
+    let (mut yes, mut no) = (0, 0);
+    let mut q = 0;
+    for (b, (_, qas)) in batch.iter().enumerate() {
         for qa in qas {
-            let named = named_objects(&qa.question);
-            if !named.is_empty() {
-                want += labels
-                    .iter()
-                    .filter(|l| {
-                        l[0] > 0 && named.iter().any(|&(c, sh)| (c == 0 || c == l[0]) && (sh == 0 || sh == l[1]))
-                    })
-                    .count();
+            let first = p.targets[p.questions[q].1.start].0 - b * p.t;
+            q += 1;
+            if qa.kind != Kind::Exists {
+                continue;
             }
-            row += 1;
+            let w: Vec<&str> = qa.question.trim_end_matches('?').split(' ').collect();
+            let c = Color::ALL.iter().position(|c| c.word() == w[w.len() - 2]).unwrap() as u8 + 1;
+            let sh = Shape::ALL.iter().position(|s| s.word() == w[w.len() - 1]).unwrap() as u8 + 1;
+            let find: Vec<_> =
+                p.hops[b].iter().filter(|h| h.kind == HopKind::Find && h.query == first && h.head == 0).collect();
+            assert_eq!(find.len(), 1, "{}", qa.question);
+            if qa.answer == "yes" {
+                yes += 1;
+                assert!(find[0].targets.iter().all(|&j| shows(b, j) == Some((c, sh))), "{}", qa.question);
+            } else {
+                no += 1;
+                assert_eq!(find[0].targets, vec![SINK], "{}: nothing to find", qa.question);
+            }
+            // the words hop gathers exactly the colour and shape words of the question
+            let words = p.hops[b].iter().find(|h| h.kind == HopKind::Words && h.query == first).unwrap();
+            let named: Vec<i64> = words.targets.iter().map(|&j| p.ids[b * p.t + j]).collect();
+            let want = m.vlm.tokenizer.encode(&format!("{} {}", w[w.len() - 2], w[w.len() - 1])).unwrap();
+            assert_eq!(named, want.iter().map(|&i| i as i64).collect::<Vec<_>>());
         }
     }
-    assert_eq!(row, p.rows);
-    assert_eq!(hits, want);
-    assert_eq!(p.relevance.len() % g2, 0);
+    assert!(yes > 0 && no > 0, "both answers asked ({yes} yes, {no} no)");
+    // dedupe: every object token looks at earlier tokens of its own object, or the sink
+    for (b, hops) in p.hops.iter().enumerate() {
+        for h in hops.iter().filter(|h| h.kind == HopKind::Dedupe) {
+            let me = shows(b, h.query).expect("an object token");
+            assert!(h.targets == vec![SINK] || h.targets.iter().all(|&j| j < h.query && shows(b, j) == Some(me)));
+        }
+    }
+}
+
+/// Exact match the committed model must keep on ground-truth images of two held-out seeds (it
+/// scored [`COMMITTED_MEASURED`] when committed; BENCHMARKS.md has the 50-seed figures).
+const COMMITTED_FLOOR: f64 = 0.0;
+const COMMITTED_MEASURED: f64 = 0.0;
+
+#[test]
+fn the_committed_model_answers_questions_on_held_out_scenes() {
+    let dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../checkpoints/tabletop-llava-ov");
+    let cfg = model::io::read_config::<VlmTrainConfig>(&dir.join("train_config.json")).unwrap();
+    let dev = Device::ndarray();
+    let vlm = LlavaOnevision::load(&dir, &dev).unwrap();
+    let seeds = train::vlm::EVAL_SEEDS + 500..train::vlm::EVAL_SEEDS + 502;
+    let acc = train::vlm::evaluate_model(vlm, seeds, (2, 2), &cfg, &dev).unwrap();
+    let n: usize = acc.by_kind.values().map(|v| v.1).sum();
+    eprintln!("committed model on 2 held-out seeds ({n} questions): {}\n  {}", acc.summary(), acc.by_kind_line());
+    assert!(n >= 40, "two seeds ask every kind of question ({n} asked)");
+    let all = acc.level(None);
+    assert!(
+        all >= COMMITTED_FLOOR,
+        "exact match {all:.3} < {COMMITTED_FLOOR} (measured {COMMITTED_MEASURED} when committed)"
+    );
 }

@@ -1,31 +1,44 @@
-//! Packing samples into one forward pass. Images first (llava-hf's layout): every sample is its
+//! Packing samples into one forward pass, in llava-hf's images-first layout: every sample is its
 //! prompt prefix (`<|im_start|> user` and its image tokens) followed by its questions as separate
 //! segments; each segment sees the prefix and itself only, at the positions it would have alone,
-//! so one pass answers many questions exactly as single-turn inference would. Text first: one row
-//! per question (the image tokens depend on the question before them), the tower's tokens of an
-//! image gathered into every row that asks about it. The loss is cross-entropy on the answer
-//! tokens (and the closing `<|im_end|>`), plus an auxiliary per-token classification of colour,
-//! shape and size on the vision tokens.
+//! so one pass answers many questions exactly as single-turn inference would. The loss is
+//! cross-entropy on the answer tokens (and the closing `<|im_end|>`), plus an auxiliary per-token
+//! classification of colour, shape and size on the vision tokens, and the supervised reasoning
+//! hops of [`super::hops`] (where the LLM's attention should go while it answers).
 
 use super::data::{Sample, SampleKind};
+use super::hops::{Hop, HopKind, Ident, SLOT_LAYER, Tokens, Word, question_hops};
 use burn::module::Module;
 use burn::nn::Linear;
 use burn::tensor::{Device, Int, Tensor, TensorData, activation};
 use model::data::synth::questions::{Kind, Qa};
 use model::error::{Error, Result};
 use model::rng::Rng;
-use model::vlm::{LlavaOnevision, PromptLayout, Turn};
+use model::vlm::qwen2::Probe;
+use model::vlm::{LlavaOnevision, Turn};
 
-/// The model being trained: the VLM and the auxiliary per-token head.
+/// The model being trained: the VLM, the auxiliary per-token head and the slot head.
 #[derive(Module, Debug)]
 pub struct Trainable {
     pub vlm: LlavaOnevision,
     /// `[vision D, 8 + 1 + 6 + 1 + 2 + 1]`: colour, shape and size logits per vision token.
     pub aux: Linear,
-    /// `[text D, 1]`: text first, whether an image token shows an object the question names, read
-    /// off the LLM's residual stream halfway up (the first hop of every look-up question,
-    /// supervised so that a small LLM learns it).
-    pub relevance: Linear,
+    /// `[text D, 2 x (9 + 7)]`: the colour and shape of the first two objects a question names,
+    /// read off the answer position's residual stream after layer 1 ([`super::hops`]).
+    pub slots: Linear,
+}
+
+impl Trainable {
+    /// A loaded model wrapped for [`forward`] and evaluation: zero auxiliary and slot heads (neither
+    /// is part of the llava-hf files; evaluation reads only the answers).
+    pub fn reading(vlm: LlavaOnevision, device: &Device) -> Self {
+        let zeros = |d_in: usize, d_out: usize| {
+            model::vlm::layers::init_linear(&mut Rng::new(0), d_in, d_out, true, 0.0, device)
+        };
+        let classes = AUX_CLASSES.iter().sum();
+        let (dv, dt) = (vlm.cfg.vision.hidden_size, vlm.cfg.text.hidden_size);
+        Self { aux: zeros(dv, classes), slots: zeros(dt, SLOT_CLASSES.iter().sum()), vlm }
+    }
 }
 
 /// Class counts of the auxiliary head (none + each value).
@@ -36,11 +49,6 @@ pub struct Packed {
     pub kind: SampleKind,
     /// Samples in the batch.
     pub b: usize,
-    /// Rows of the LLM batch (`b` images first, one per question text first).
-    pub rows: usize,
-    /// Text first: per position of the `[rows, t]` batch, the row of `[text embeddings of ids
-    /// (rows * t); image rows (b * images * (tokens + 1))]` it reads.
-    pub gather: Option<Vec<i64>>,
     /// Images per sample.
     pub images: usize,
     /// Token ids `[b, t]` (the image rows hold a placeholder).
@@ -64,9 +72,10 @@ pub struct Packed {
     pub depth: Vec<f32>,
     /// Per image: whether the LLM reads its label tokens instead of the tower's.
     pub label_tokens: Vec<bool>,
-    /// Text first: flat `row * t + i` of every image token (not the newline rows) of a question
-    /// that names objects, and whether the token shows one of them.
-    pub relevance: Vec<(usize, f32)>,
+    /// Supervised attention rows, per sample (`hops[b]`): see [`super::hops`].
+    pub hops: Vec<Vec<Hop>>,
+    /// Flat `b * t + i` of every first answer position and the slot classes of its question.
+    pub slots: Vec<(usize, [i64; 4])>,
 }
 
 /// The symbolic stand-in for the tower's output: per token a fixed random vector per colour,
@@ -127,16 +136,14 @@ pub fn pack(vlm: &LlavaOnevision, samples: &[(Sample, Vec<Qa>)]) -> Result<Packe
     if samples.iter().any(|(s, _)| s.images.len() != images || s.kind != kind) {
         return Err(Error::input("a batch mixes sample kinds"));
     }
-    if vlm.tokenizer.layout == PromptLayout::TextFirst {
-        return pack_text_first(vlm, samples);
-    }
     let g2 = vlm.cfg.vision.tokens();
     let rows = images * (g2 + 1);
     let tok = &vlm.tokenizer;
     let image_id = tok.image_token_id as i64;
+    let word = |id: i64| -> Result<Word> { Ok(Word::of(&tok.decode(&[id as u32], false)?)) };
     // head: the template's tokens before the first <image>; segments: after the last one
     let mut head_ids: Option<Vec<i64>> = None;
-    let mut segments: Vec<Vec<(Vec<i64>, usize, Kind)>> = Vec::with_capacity(samples.len());
+    let mut segments: Vec<Vec<Segment>> = Vec::with_capacity(samples.len());
     for (_, qas) in samples {
         let mut segs = Vec::new();
         for qa in qas {
@@ -152,10 +159,11 @@ pub fn pack(vlm: &LlavaOnevision, samples: &[(Sample, Vec<Qa>)]) -> Result<Packe
                 Some(prev) if *prev != h => return Err(Error::input("prompts differ before the image")),
                 _ => {}
             }
-            let mut seg = p[last_img + 1..].to_vec();
-            let prompt_len = seg.len();
-            seg.extend(a);
-            segs.push((seg, prompt_len, qa.kind));
+            let mut ids = p[last_img + 1..].to_vec();
+            let prompt_len = ids.len();
+            ids.extend(a);
+            let words = ids.iter().map(|&i| word(i)).collect::<Result<Vec<_>>>()?;
+            segs.push(Segment { ids, words, prompt_len, kind: qa.kind });
         }
         segments.push(segs);
     }
@@ -163,26 +171,34 @@ pub fn pack(vlm: &LlavaOnevision, samples: &[(Sample, Vec<Qa>)]) -> Result<Packe
     let head = head_ids.len();
     let prefix = head + rows;
     let k = segments.iter().map(|s| s.len()).max().unwrap_or(0);
-    let l = segments.iter().flatten().map(|s| s.0.len()).max().unwrap_or(0);
+    let l = segments.iter().flatten().map(|s| s.ids.len()).max().unwrap_or(0);
     let t = prefix + k * l;
     let b = samples.len();
     let pad = 0i64;
     let mut ids = vec![pad; b * t];
-    let mut targets = Vec::new();
-    let mut questions = Vec::new();
+    let (mut targets, mut questions, mut hops, mut slots) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
     for (bi, segs) in segments.iter().enumerate() {
         let row = &mut ids[bi * t..(bi + 1) * t];
         row[..head].copy_from_slice(&head_ids);
-        for (si, (seg, prompt_len, kind)) in segs.iter().enumerate() {
+        let ident = prefix_identities(&samples[bi].0, head, g2);
+        let tokens = Tokens::new(&ident);
+        let mut sample_hops = tokens.dedupe();
+        for (si, seg) in segs.iter().enumerate() {
             let start = prefix + si * l;
-            row[start..start + seg.len()].copy_from_slice(seg);
+            row[start..start + seg.ids.len()].copy_from_slice(&seg.ids);
             let first = targets.len();
             // the token at offset j predicts offset j + 1; answers start at prompt_len
-            for j in prompt_len - 1..seg.len() - 1 {
-                targets.push((bi * t + start + j, seg[j + 1]));
+            for j in seg.prompt_len - 1..seg.ids.len() - 1 {
+                targets.push((bi * t + start + j, seg.ids[j + 1]));
             }
-            questions.push((*kind, first..targets.len()));
+            questions.push((seg.kind, first..targets.len()));
+            let (q, a) = seg.words.split_at(seg.prompt_len);
+            let answer_at = start + seg.prompt_len - 1;
+            let (h, classes) = question_hops(seg.kind, q, start, a, answer_at, &tokens);
+            sample_hops.extend(h);
+            slots.push((bi * t + answer_at, classes));
         }
+        hops.push(sample_hops);
     }
     let mut positions: Vec<usize> = (0..prefix).collect();
     for _ in 0..k {
@@ -203,8 +219,6 @@ pub fn pack(vlm: &LlavaOnevision, samples: &[(Sample, Vec<Qa>)]) -> Result<Packe
     Ok(Packed {
         kind,
         b,
-        rows: b,
-        gather: None,
         images,
         ids,
         t,
@@ -218,8 +232,29 @@ pub fn pack(vlm: &LlavaOnevision, samples: &[(Sample, Vec<Qa>)]) -> Result<Packe
         labels,
         depth,
         label_tokens,
-        relevance: Vec::new(),
+        hops,
+        slots,
     })
+}
+
+/// One question's part of a packed row: its prompt after the images, then the answer.
+struct Segment {
+    ids: Vec<i64>,
+    words: Vec<Word>,
+    prompt_len: usize,
+    kind: Kind,
+}
+
+/// The object each position of a sample's prompt prefix shows (`head` text tokens, then per image
+/// `g2` tokens and a newline row): its (colour, shape) label, `None` for anything else.
+fn prefix_identities(sample: &Sample, head: usize, g2: usize) -> Vec<Option<Ident>> {
+    let mut ident = vec![None; head];
+    for img in &sample.images {
+        ident.extend(img.labels.iter().map(|l| (l[0] > 0 && l[1] > 0).then_some((l[0], l[1]))));
+        debug_assert_eq!(img.labels.len(), g2);
+        ident.push(None);
+    }
+    ident
 }
 
 /// Pixels, auxiliary labels and depths of every image of `samples`, in order.
@@ -242,121 +277,21 @@ fn tower_inputs(samples: &[(Sample, Vec<Qa>)]) -> (Vec<f32>, [Vec<i64>; 3], Vec<
     (pixels, labels, depth)
 }
 
-/// [`pack`] for a text-first model: one causal row per question, `prompt + answer`, its
-/// `<image>` placeholders expanded to the image's tokens and newline row.
-fn pack_text_first(vlm: &LlavaOnevision, samples: &[(Sample, Vec<Qa>)]) -> Result<Packed> {
-    let (kind, images) = (samples[0].0.kind, samples[0].0.images.len());
-    let per_image = vlm.cfg.vision.tokens() + 1;
-    let tok = &vlm.tokenizer;
-    let image_id = tok.image_token_id as i64;
-    // per row: the ids (image rows as `image_id`), which image each image run is, the prompt length, the kind
-    let mut seqs: Vec<(Vec<i64>, usize, usize, Kind)> = Vec::new();
-    let mut named: Vec<Vec<(u8, u8)>> = Vec::new();
-    for (si, (_, qas)) in samples.iter().enumerate() {
-        for qa in qas {
-            let prompt = tok.prompt(&[Turn::user(images, qa.question.clone())], true);
-            let mut ids = Vec::new();
-            for id in tok.encode(&prompt)? {
-                let n = if id as i64 == image_id { per_image } else { 1 };
-                ids.extend(std::iter::repeat_n(id as i64, n));
-            }
-            if ids.iter().filter(|&&i| i == image_id).count() != images * per_image {
-                return Err(Error::input("the prompt does not hold one <image> per image"));
-            }
-            let prompt_len = ids.len();
-            ids.extend(tok.encode(&format!("{}<|im_end|>", qa.answer))?.into_iter().map(|i| i as i64));
-            seqs.push((ids, si, prompt_len, qa.kind));
-            named.push(named_objects(&qa.question));
-        }
-    }
-    let rows = seqs.len();
-    let t = seqs.iter().map(|s| s.0.len()).max().unwrap_or(0);
-    let mut ids = vec![0i64; rows * t];
-    let mut gather: Vec<i64> = (0..(rows * t) as i64).collect();
-    let (pixels, labels, depth) = tower_inputs(samples);
-    let g2 = per_image - 1;
-    let (mut targets, mut questions, mut relevance) = (Vec::new(), Vec::new(), Vec::new());
-    for (r, (seq, si, prompt_len, kind)) in seqs.iter().enumerate() {
-        ids[r * t..r * t + seq.len()].copy_from_slice(seq);
-        let mut k = 0;
-        for (j, &id) in seq[..*prompt_len].iter().enumerate() {
-            if id == image_id {
-                gather[r * t + j] = (rows * t + si * images * per_image + k) as i64;
-                let (img, tok_in) = (si * images + k / per_image, k % per_image);
-                if !named[r].is_empty() && tok_in < g2 {
-                    let (c, s) = (labels[0][img * g2 + tok_in] as u8, labels[1][img * g2 + tok_in] as u8);
-                    let hit = c > 0 && named[r].iter().any(|&(nc, ns)| (nc == 0 || nc == c) && (ns == 0 || ns == s));
-                    relevance.push((r * t + j, if hit { 1.0 } else { 0.0 }));
-                }
-                k += 1;
-            }
-        }
-        let first = targets.len();
-        for j in prompt_len - 1..seq.len() - 1 {
-            targets.push((r * t + j, seq[j + 1]));
-        }
-        questions.push((*kind, first..targets.len()));
-    }
-    let mut mask = vec![f32::NEG_INFINITY; t * t];
-    for i in 0..t {
-        mask[i * t..=i * t + i].fill(0.0);
-    }
-    let b = samples.len();
-    Ok(Packed {
-        kind,
-        b,
-        rows,
-        gather: Some(gather),
-        images,
-        ids,
-        t,
-        head: 0,
-        prefix: 0,
-        positions: (0..t).collect(),
-        mask,
-        targets,
-        questions,
-        pixels,
-        labels,
-        depth,
-        label_tokens: vec![false; b * images],
-        relevance,
-    })
-}
-
-/// The (colour, shape) classes a question names (1-based as in the token labels; 0 = not
-/// named): a colour word names the shape after it, or any shape when none follows.
-pub fn named_objects(question: &str) -> Vec<(u8, u8)> {
-    use model::data::synth::scene::{Color, Shape};
-    let mut out = Vec::new();
-    let mut colour = 0u8;
-    for w in question.split(|c: char| !c.is_alphanumeric()).filter(|w| !w.is_empty()) {
-        if let Some(i) = Color::ALL.iter().position(|c| c.word() == w) {
-            if colour > 0 {
-                out.push((colour, 0));
-            }
-            colour = i as u8 + 1;
-        } else if let Some(i) = Shape::ALL.iter().position(|s| s.word() == w || s.plural() == w) {
-            out.push((colour, i as u8 + 1));
-            colour = 0;
-        }
-    }
-    if colour > 0 {
-        out.push((colour, 0));
-    }
-    out
-}
-
 /// What one forward pass gives.
 pub struct Forward {
     /// Mean cross-entropy of the answer tokens.
     pub answer_loss: Tensor<1>,
     /// Mean cross-entropy of the auxiliary classes.
     pub aux_loss: Tensor<1>,
+    /// The auxiliary head's logits `[images * tokens, 18]`.
+    pub aux_logits: Tensor<2>,
     /// Mean squared error of the tower's tokens against the label tokens (zero without them).
     pub label_loss: Tensor<1>,
-    /// Binary cross-entropy of [`Trainable::relevance`] (zero without relevance targets).
-    pub relevance_loss: Tensor<1>,
+    /// Per [`HopKind`] (in `HopKind::ALL` order): mean cross-entropy of the supervised attention
+    /// rows (zero when not supervised).
+    pub hop_loss: [Tensor<1>; 3],
+    /// Mean cross-entropy of the slot head (zero when not supervised).
+    pub slot_loss: Tensor<1>,
     /// Log-probabilities `[targets, vocab]` at the answer positions.
     pub log_probs: Tensor<2>,
 }
@@ -364,12 +299,13 @@ pub struct Forward {
 /// Runs the packed batch through the model. `noise` (with its generator): the std of Gaussian
 /// noise added to the vision tokens before the projector, relative to their RMS (training the LLM
 /// to read tokens that are close to, not equal to, the tower's: what ChatSplat's encoder gives);
-/// `None` at evaluation.
+/// `None` at evaluation. `supervise`: compute the hop and slot losses.
 pub fn forward(
     m: &Trainable,
     p: &Packed,
     label_tokens: Option<&LabelTokens>,
     noise: Option<(f32, &mut Rng)>,
+    supervise: bool,
     device: &Device,
 ) -> Forward {
     let vlm = &m.vlm;
@@ -380,16 +316,12 @@ pub fn forward(
     let [_, g2, dv] = vis.dims();
     // auxiliary per-token classification
     let aux_logits = m.aux.forward(vis.clone().reshape([n_img * g2, dv]));
-    let mut aux_loss: Option<Tensor<1>> = None;
+    let aux_logits_out = aux_logits.clone().detach();
+    let mut aux_loss = Tensor::zeros([1], device);
     let mut off = 0;
     for (k, &c) in AUX_CLASSES.iter().enumerate() {
-        let lp = activation::log_softmax(aux_logits.clone().narrow(1, off, c), 1);
         let lab = Tensor::<1, Int>::from_data(TensorData::new(p.labels[k].clone(), [n_img * g2]), device);
-        let l = lp.gather(1, lab.reshape([n_img * g2, 1])).mean().neg();
-        aux_loss = Some(match aux_loss {
-            Some(a) => a + l,
-            None => l,
-        });
+        aux_loss = aux_loss + cross_entropy(aux_logits.clone().narrow(1, off, c), lab);
         off += c;
     }
     let (vis, label_loss) = match label_tokens {
@@ -415,60 +347,136 @@ pub fn forward(
     let dt = proj.dims()[2];
     let newline = vlm.image_newline.val().reshape([1, 1, dt]).expand([n_img, 1, dt]);
     let image_rows = Tensor::cat(vec![proj, newline], 1); // [N, g2 + 1, Dt]
-    let ids = Tensor::<2, Int>::from_data(TensorData::new(p.ids.clone(), [p.rows, p.t]), device);
-    let text = vlm.llm.embed.forward(ids); // [rows, t, Dt]
-    let x = match &p.gather {
-        Some(g) => {
-            let table =
-                Tensor::cat(vec![text.reshape([p.rows * p.t, dt]), image_rows.reshape([n_img * (g2 + 1), dt])], 0);
-            let idx = Tensor::<1, Int>::from_data(TensorData::new(g.clone(), [p.rows * p.t]), device);
-            table.select(0, idx).reshape([p.rows, p.t, dt])
-        }
-        None => {
-            let mut parts = Vec::new();
-            if p.head > 0 {
-                parts.push(text.clone().narrow(1, 0, p.head));
-            }
-            parts.push(image_rows.reshape([p.b, p.images * (g2 + 1), dt]));
-            if p.t > p.prefix {
-                parts.push(text.narrow(1, p.prefix, p.t - p.prefix));
-            }
-            Tensor::cat(parts, 1)
-        }
-    };
+    let ids = Tensor::<2, Int>::from_data(TensorData::new(p.ids.clone(), [p.b, p.t]), device);
+    let text = vlm.llm.embed.forward(ids); // [b, t, Dt]
+    let mut parts = Vec::new();
+    if p.head > 0 {
+        parts.push(text.clone().narrow(1, 0, p.head));
+    }
+    parts.push(image_rows.reshape([p.b, p.images * (g2 + 1), dt]));
+    if p.t > p.prefix {
+        parts.push(text.narrow(1, p.prefix, p.t - p.prefix));
+    }
+    let x = Tensor::cat(parts, 1);
     let mask = Tensor::<2>::from_data(TensorData::new(p.mask.clone(), [p.t, p.t]), device);
-    let (hidden, relevance_loss) = if p.relevance.is_empty() {
-        (vlm.llm.forward_masked(x, &p.positions, mask), Tensor::zeros([1], device))
-    } else {
-        let tap = vlm.cfg.text.num_layers / 2;
-        let (hidden, mid) = vlm.llm.forward_masked_tapped(x, &p.positions, mask, tap);
-        let n = p.relevance.len();
-        let at: Vec<i64> = p.relevance.iter().map(|&(i, _)| i as i64).collect();
-        let at = Tensor::<1, Int>::from_data(TensorData::new(at, [n]), device);
-        let h = mid.reshape([p.rows * p.t, dt]).select(0, at);
-        let h = h.clone() / (h.powf_scalar(2.0).mean_dim(1) + 1e-6).sqrt();
-        let z = m.relevance.forward(h).reshape([n]);
-        let y: Vec<f32> = p.relevance.iter().map(|&(_, y)| y).collect();
-        let y = Tensor::<1>::from_data(TensorData::new(y, [n]), device);
-        // softplus(z) - y z: binary cross-entropy with logits
-        let loss = (activation::softplus(z.clone(), 1.0) - y * z).mean();
-        (hidden, loss)
-    };
+    let mut probe = Probe::default();
+    if supervise {
+        probe.layers = vec![0, HopKind::Find.layer()];
+        probe.residual_at = Some(SLOT_LAYER + 1);
+    }
+    let hidden = vlm.llm.forward_masked(x, &p.positions, mask, supervise.then_some(&mut probe));
+    let zero = || Tensor::<1>::zeros([1], device);
+    let mut hop_loss = [zero(), zero(), zero()];
+    let mut slot_loss = zero();
+    if supervise {
+        let heads = vlm.cfg.text.num_heads;
+        for (i, kind) in HopKind::ALL.into_iter().enumerate() {
+            let probs = probe.probs.iter().find(|(l, _)| *l == kind.layer()).map(|(_, t)| t.clone());
+            if let Some(probs) = probs {
+                hop_loss[i] = hop_cross_entropy(probs, p, kind, heads, device);
+            }
+        }
+        if let Some(r) = probe.residual.take()
+            && !p.slots.is_empty()
+        {
+            slot_loss = slot_cross_entropy(m, r.reshape([p.b * p.t, dt]), &p.slots, device);
+        }
+    }
     let idx: Vec<i64> = p.targets.iter().map(|&(i, _)| i as i64).collect();
     let n = idx.len();
     let idx = Tensor::<1, Int>::from_data(TensorData::new(idx, [n]), device);
-    let h = hidden.reshape([p.rows * p.t, dt]).select(0, idx);
+    let h = hidden.reshape([p.b * p.t, dt]).select(0, idx);
     let log_probs = activation::log_softmax(vlm.llm.logits(h), 1);
     let tgt: Vec<i64> = p.targets.iter().map(|&(_, t)| t).collect();
     let tgt = Tensor::<1, Int>::from_data(TensorData::new(tgt, [n]), device).reshape([n, 1]);
     let answer_loss = log_probs.clone().gather(1, tgt).mean().neg();
     Forward {
         answer_loss,
-        aux_loss: aux_loss.expect("three tasks") / AUX_CLASSES.len() as f32,
+        aux_loss: aux_loss / AUX_CLASSES.len() as f32,
+        aux_logits: aux_logits_out,
         label_loss,
-        relevance_loss,
+        hop_loss,
+        slot_loss,
         log_probs,
     }
+}
+
+/// Mean cross-entropy of `logits` `[n, c]` against the classes `labels` `[n]`.
+fn cross_entropy(logits: Tensor<2>, labels: Tensor<1, Int>) -> Tensor<1> {
+    let n = labels.dims()[0];
+    activation::log_softmax(logits, 1).gather(1, labels.reshape([n, 1])).mean().neg()
+}
+
+/// The hops of `kind` against the attention weights `probs` (`[B * heads * T, T]`, from
+/// [`Probe`]): `-log` of the weight on the targets, or (uniform hops) the cross-entropy against an
+/// even spread over them; the mean over rows. Zero when the batch has none.
+fn hop_cross_entropy(probs: Tensor<2>, p: &Packed, kind: HopKind, heads: usize, device: &Device) -> Tensor<1> {
+    let t = p.t;
+    let (mut rows, mut weights, mut uniform) = (Vec::new(), Vec::new(), Vec::new());
+    for (b, hops) in p.hops.iter().enumerate() {
+        for h in hops.iter().filter(|h| h.kind == kind && h.head < heads) {
+            rows.push(((b * heads + h.head) * t + h.query) as i64);
+            let mut w = vec![0f32; t];
+            let share = if h.uniform { 1.0 / h.targets.len() as f32 } else { 1.0 };
+            for &j in &h.targets {
+                w[j] = share;
+            }
+            weights.extend(w);
+            uniform.push(if h.uniform { 1f32 } else { 0.0 });
+        }
+    }
+    let n = rows.len();
+    if n == 0 {
+        return Tensor::zeros([1], device);
+    }
+    let rows = Tensor::<1, Int>::from_data(TensorData::new(rows, [n]), device);
+    let w = Tensor::<2>::from_data(TensorData::new(weights, [n, t]), device);
+    let u = Tensor::<1>::from_data(TensorData::new(uniform, [n]), device);
+    let a = probs.select(0, rows); // [n, T]
+    let eps = 1e-6;
+    // on the targets: -log(sum of weights); spread evenly: -sum(share * log weight)
+    let on = (a.clone() * w.clone()).sum_dim(1).reshape([n]).add_scalar(eps).log().neg();
+    let even = (a.add_scalar(eps).log() * w).sum_dim(1).reshape([n]).neg();
+    (on * (u.clone().neg() + 1.0) + even * u).mean()
+}
+
+/// The slot head's cross-entropy at the first answer positions (`residual` `[B * T, D]`, the
+/// stream after layer [`SLOT_LAYER`]): colour and shape of the first two named objects.
+fn slot_cross_entropy(m: &Trainable, residual: Tensor<2>, slots: &[(usize, [i64; 4])], device: &Device) -> Tensor<1> {
+    let n = slots.len();
+    let at: Vec<i64> = slots.iter().map(|s| s.0 as i64).collect();
+    let h = residual.select(0, Tensor::<1, Int>::from_data(TensorData::new(at, [n]), device));
+    let h = h.clone() / (h.powf_scalar(2.0).mean_dim(1) + 1e-6).sqrt();
+    let logits = m.slots.forward(h);
+    let mut loss = Tensor::zeros([1], device);
+    let mut off = 0;
+    for (k, c) in SLOT_CLASSES.into_iter().enumerate() {
+        let lab: Vec<i64> = slots.iter().map(|s| s.1[k]).collect();
+        let lab = Tensor::<1, Int>::from_data(TensorData::new(lab, [n]), device);
+        loss = loss + cross_entropy(logits.clone().narrow(1, off, c), lab);
+        off += c;
+    }
+    loss / SLOT_CLASSES.len() as f32
+}
+
+/// Class counts of the slot head: colour (none + 8) and shape (none + 6) of two objects.
+pub const SLOT_CLASSES: [usize; 4] = [9, 7, 9, 7];
+
+/// How often the auxiliary head names the colour, shape and size of the tokens that show an
+/// object (`aux_logits` from [`Forward`]): what the tower has learned to see.
+pub fn tower_accuracy(p: &Packed, aux_logits: Tensor<2>) -> [f32; 3] {
+    let [n, _] = aux_logits.dims();
+    let mut out = [0f32; 3];
+    let objects: Vec<usize> = (0..n).filter(|&i| p.labels[0][i] > 0).collect();
+    let mut off = 0;
+    for (k, c) in AUX_CLASSES.into_iter().enumerate() {
+        let best = aux_logits.clone().narrow(1, off, c).argmax(1).into_data().convert::<i64>().to_vec::<i64>();
+        let best = best.expect("i64 argmax");
+        let right = objects.iter().filter(|&&i| best[i] == p.labels[k][i]).count();
+        out[k] = right as f32 / objects.len().max(1) as f32;
+        off += c;
+    }
+    out
 }
 
 /// Per question of a packed batch: whether greedy decoding gives exactly the reference answer

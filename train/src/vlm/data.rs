@@ -5,7 +5,8 @@
 //! (`model::data::synth::questions`).
 
 use model::data::synth::questions::{
-    CLICK_FRACTION, Qa, ViewFacts, covering_views, object_questions, scene_questions, view_questions,
+    CLICK_FRACTION, Kind, Qa, VISIBLE_FRACTION, ViewFacts, covering_views, object_questions, scene_questions,
+    view_questions,
 };
 use model::data::synth::raycast::{SynthView, render_view};
 use model::data::synth::scene::Scene;
@@ -15,6 +16,7 @@ use model::rng::Rng;
 use model::vlm::preprocess::ImagePatches;
 use model::vlm::preprocess::{RgbImage, resize};
 use model::vlm::{LlavaConfig, ProcessorConfig};
+use model::vqa::Level;
 use serde::{Deserialize, Serialize};
 
 /// What a sample shows.
@@ -28,6 +30,15 @@ pub enum SampleKind {
 
 impl SampleKind {
     pub const ALL: [SampleKind; 3] = [SampleKind::View, SampleKind::Object, SampleKind::Scene];
+
+    /// The level of the questions asked about such a sample.
+    pub fn level(self) -> Level {
+        match self {
+            SampleKind::View => Level::View,
+            SampleKind::Object => Level::Object,
+            SampleKind::Scene => Level::Scene,
+        }
+    }
 }
 
 /// One image as the vision tower sees it, and what each of its tokens shows: the labels of the
@@ -43,6 +54,19 @@ pub struct TowerImage {
     pub labels: Vec<[u8; 3]>,
     /// Per token: camera-space depth of that object's pixels in the patch (0 for none).
     pub depth: Vec<f32>,
+}
+
+/// The (colour, shape, size) classes (1-based) of object `id` of `scene`; zeros for anything else.
+fn token_label(scene: &Scene, id: u8) -> [u8; 3] {
+    use model::data::synth::scene::{Color, Shape, Size};
+    match scene.object(id) {
+        Some(o) => [
+            1 + Color::ALL.iter().position(|c| *c == o.color).unwrap_or(0) as u8,
+            1 + Shape::ALL.iter().position(|c| *c == o.shape).unwrap_or(0) as u8,
+            1 + Size::ALL.iter().position(|c| *c == o.size).unwrap_or(0) as u8,
+        ],
+        None => [0; 3],
+    }
 }
 
 /// Fraction of a token's patch an object must cover to label the token.
@@ -94,6 +118,8 @@ impl DataSpec {
         let (g, p) = (self.grid, self.patch);
         let mut labels = Vec::with_capacity(g * g);
         let mut depths = Vec::with_capacity(g * g);
+        // per object id: (its pixels in each token, depth sums), for the visibility pass below
+        let mut per_object: std::collections::BTreeMap<u8, Vec<(usize, f32)>> = Default::default();
         for ty in 0..g {
             for tx in 0..g {
                 let mut count = [0usize; 256];
@@ -107,20 +133,29 @@ impl DataSpec {
                         dsum[i] += depth[sy * img.width + sx];
                     }
                 }
+                for (i, &n) in count.iter().enumerate().skip(2) {
+                    if n > 0 {
+                        per_object.entry(i as u8).or_insert_with(|| vec![(0, 0.0); g * g])[ty * g + tx] = (n, dsum[i]);
+                    }
+                }
                 let (best, n) =
                     (2..256).map(|i| (i, count[i])).max_by_key(|&(i, n)| (n, usize::MAX - i)).unwrap_or((0, 0));
                 let enough = n as f32 >= MIN_TOKEN_PIXELS * (p * p) as f32;
                 depths.push(if enough { dsum[best] / n as f32 } else { 0.0 });
-                let label = match scene.object(best as u8) {
-                    Some(o) if enough => [
-                        1 + model::data::synth::scene::Color::ALL.iter().position(|c| *c == o.color).unwrap_or(0) as u8,
-                        1 + model::data::synth::scene::Shape::ALL.iter().position(|c| *c == o.shape).unwrap_or(0) as u8,
-                        1 + model::data::synth::scene::Size::ALL.iter().position(|c| *c == o.size).unwrap_or(0) as u8,
-                    ],
-                    _ => [0; 3],
-                };
-                labels.push(label);
+                labels.push(if enough { token_label(scene, best as u8) } else { [0; 3] });
             }
+        }
+        // every object the questions count as seen shows in at least one token: one that no
+        // patch is mostly made of takes the token where it has most pixels
+        for (id, tokens) in per_object {
+            let total: usize = tokens.iter().map(|t| t.0).sum();
+            let label = token_label(scene, id);
+            if (total as f32) < VISIBLE_FRACTION * (s * s) as f32 || label == [0; 3] || labels.contains(&label) {
+                continue;
+            }
+            let (at, &(n, d)) = tokens.iter().enumerate().max_by_key(|(i, t)| (t.0, usize::MAX - i)).expect("tokens");
+            labels[at] = label;
+            depths[at] = d / n as f32;
         }
         TowerImage { pixels, labels, depth: depths }
     }
@@ -199,16 +234,17 @@ impl DataSpec {
     }
 }
 
-/// Picks up to `k` questions of a sample, spread over kinds (a kind at random, then a question of
-/// it), without repeats.
-pub fn pick_questions(qas: &[Qa], k: usize, rng: &mut Rng) -> Vec<Qa> {
+/// Picks up to `k` questions of a sample, spread over kinds (a kind drawn with probability
+/// proportional to `weight`, then a question of it), without repeats.
+pub fn pick_questions(qas: &[Qa], k: usize, weight: impl Fn(Kind) -> f32, rng: &mut Rng) -> Vec<Qa> {
     let mut left: Vec<Qa> = qas.to_vec();
     let mut out = Vec::with_capacity(k);
     while out.len() < k && !left.is_empty() {
         let mut kinds: Vec<_> = left.iter().map(|q| q.kind).collect();
         kinds.sort();
         kinds.dedup();
-        let kind = kinds[(rng.next_u64() % kinds.len() as u64) as usize];
+        let w: Vec<f32> = kinds.iter().map(|&k| weight(k).max(1e-6)).collect();
+        let kind = kinds[rng.weighted(&w)];
         let of: Vec<usize> = (0..left.len()).filter(|&i| left[i].kind == kind).collect();
         let i = of[(rng.next_u64() % of.len() as u64) as usize];
         out.push(left.swap_remove(i));

@@ -13,6 +13,7 @@
 
 pub mod batch;
 pub mod data;
+pub mod hops;
 
 use batch::{AUX_CLASSES, LabelTokens, Packed, Trainable, exact, forward, pack};
 use burn::module::Module;
@@ -24,7 +25,7 @@ use model::error::{Error, Result};
 use model::io;
 use model::rng::Rng;
 use model::vlm::config::{Act, TextConfig, VisionConfig};
-use model::vlm::tokenizer::{ChatTokenizer, PromptLayout, word_level_tokenizer_json};
+use model::vlm::tokenizer::{ChatTokenizer, word_level_tokenizer_json};
 use model::vlm::{LlavaConfig, LlavaOnevision, ProcessorConfig};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
@@ -86,20 +87,20 @@ pub struct VlmTrainConfig {
     pub images_per_step: usize,
     /// Questions asked per sample (at most).
     pub questions_per_sample: usize,
-    /// Put the question before the images in the prompt (the model's chat template says so), so
-    /// that the image tokens are read knowing the question (and the relevance loss can supervise
-    /// that); else llava-hf's images-first layout, where many questions share one pass over an
-    /// image (half the time per step). Neither layout has yet taught a small LLM to look up what
-    /// a question names (BENCHMARKS.md).
-    pub text_first: bool,
     /// Train on these question kinds only (empty: all); for curricula and ablations.
     pub kinds: Vec<Kind>,
     /// Probability of a view, object and scene step.
     pub mix: [f32; 3],
     /// Weight of the auxiliary per-token loss.
     pub aux_weight: f32,
-    /// Weight of the relevance loss (text first: which image tokens show what the question names).
-    pub relevance_weight: f32,
+    /// Weights of the supervised hops ([`hops`]): dedupe, words, find (in `HopKind::ALL` order),
+    /// and of the slot head; all zero: the answers alone teach the LLM.
+    pub hop_weights: [f32; 3],
+    pub slot_weight: f32,
+    /// Draw question kinds (and the level of each step) in proportion to their recent training
+    /// error (plus `adaptive_floor`) instead of uniformly: steps go where answers are still wrong.
+    pub adaptive: bool,
+    pub adaptive_floor: f32,
     /// Std of the noise on the vision tokens, relative to their RMS.
     pub feature_noise: f32,
     /// Side of the rendered views (the synthetic datasets' resolution).
@@ -130,11 +131,13 @@ impl Default for VlmTrainConfig {
             weight_decay: 0.01,
             images_per_step: 16,
             questions_per_sample: 6,
-            text_first: false,
             kinds: Vec::new(),
             mix: [0.45, 0.3, 0.25],
             aux_weight: 0.5,
-            relevance_weight: 1.0,
+            hop_weights: [0.3, 0.5, 0.5],
+            slot_weight: 0.3,
+            adaptive: true,
+            adaptive_floor: 0.05,
             feature_noise: 0.1,
             resolution: 96,
             margin: 0.1,
@@ -228,17 +231,30 @@ impl VlmTrainConfig {
             return bad("mix", "must be three non-negative weights, not all zero");
         }
         for (sample, p) in SampleKind::ALL.iter().zip(self.mix) {
-            let level = match sample {
-                SampleKind::View => model::vqa::Level::View,
-                SampleKind::Object => model::vqa::Level::Object,
-                SampleKind::Scene => model::vqa::Level::Scene,
-            };
+            let level = sample.level();
             if p > 0.0 && !self.kinds.is_empty() && !self.kinds.iter().any(|k| k.level() == level) {
                 return bad("kinds", "must include a question kind of every level that mix draws");
             }
         }
         if self.resolution < m.patch_size as u32 {
             return bad("resolution", "must be at least the patch size");
+        }
+        if self.hop_weights.iter().chain([&self.slot_weight]).any(|w| !(*w >= 0.0 && w.is_finite())) {
+            return bad("hop_weights", "must be finite and non-negative (and slot_weight too)");
+        }
+        let supervised = self.hop_weights.iter().chain([&self.slot_weight]).any(|w| *w > 0.0);
+        if supervised && (m.text_layers < hops::MIN_LAYERS || m.text_heads < hops::MIN_HEADS) {
+            return bad(
+                "hop_weights",
+                &format!(
+                    "need model.text_layers >= {} and model.text_heads >= {} (or all weights 0)",
+                    hops::MIN_LAYERS,
+                    hops::MIN_HEADS
+                ),
+            );
+        }
+        if !(self.adaptive_floor > 0.0 && self.adaptive_floor.is_finite()) {
+            return bad("adaptive_floor", "must be > 0");
         }
         Ok(())
     }
@@ -270,8 +286,7 @@ const SCENE_IMAGES: usize = model::data::synth::SCENE_VIEWS;
 /// A fresh tabletop VLM of `cfg`'s shape, with its word-level tokenizer.
 pub fn init_model(cfg: &VlmTrainConfig, device: &Device) -> Result<LlavaOnevision> {
     let json = word_level_tokenizer_json(&vocabulary())?;
-    let layout = if cfg.text_first { PromptLayout::TextFirst } else { PromptLayout::ImagesFirst };
-    let tokenizer = ChatTokenizer::from_json(&json, 3)?.with_layout(layout);
+    let tokenizer = ChatTokenizer::from_json(&json, 3)?;
     let llava = cfg.llava_config(tokenizer.vocab_size());
     Ok(LlavaOnevision::init(llava, cfg.processor(), tokenizer, cfg.seed, device))
 }
@@ -323,6 +338,17 @@ impl Accuracy {
             }
         }
         r as f64 / n.max(1) as f64
+    }
+
+    /// "count 90 colors 100 ...": percent right per kind, in `Kind::ALL` order.
+    pub fn by_kind_line(&self) -> String {
+        let mut parts = Vec::new();
+        for k in Kind::ALL {
+            if let Some(&(r, n)) = self.by_kind.get(k.as_str()) {
+                parts.push(format!("{} {:.0}", k.as_str(), 100.0 * r as f64 / n.max(1) as f64));
+            }
+        }
+        parts.join(" ")
     }
 
     /// "view 97.1% object 99.0% scene 93.8%".
@@ -381,13 +407,31 @@ pub fn evaluate_with(
         for chunk in of.chunks(8) {
             let mut p = pack(&m.vlm, chunk)?;
             p.label_tokens.iter_mut().for_each(|f| *f = labels.is_some());
-            let f = forward(m, &p, labels, None, device);
+            let f = forward(m, &p, labels, None, false, device);
             for (k, right) in exact(&p, f.log_probs) {
                 acc.add(k, right);
             }
         }
     }
     Ok(acc)
+}
+
+/// Exact match of a trained (or loaded) model on ground-truth images of the held-out `seeds`:
+/// per seed `views` view samples, `objects` object samples and one scene sample, every question of
+/// each; `resolution` and `margin` as the model was trained with (its `train_config.json`).
+pub fn evaluate_model(
+    vlm: LlavaOnevision,
+    seeds: std::ops::Range<u64>,
+    (views, objects): (usize, usize),
+    cfg: &VlmTrainConfig,
+    device: &Device,
+) -> Result<Accuracy> {
+    if seeds.end > TRAIN_SEEDS {
+        return Err(Error::Input(format!("evaluation seeds must be held out (below {TRAIN_SEEDS}), got {seeds:?}")));
+    }
+    let spec = DataSpec::new(&vlm.cfg, &vlm.processor, cfg.resolution, cfg.margin);
+    let samples = eval_samples(&spec, seeds, views, objects);
+    evaluate(&Trainable::reading(vlm, device), &samples, device)
 }
 
 /// One line of `training_log.json`, also what [`train`]'s progress callback sees after every step.
@@ -399,47 +443,91 @@ pub struct LogLine {
     pub lr: f64,
     pub answer_loss: f32,
     pub aux_loss: f32,
-    /// The relevance loss (0 without relevance targets).
+    /// The supervised hops' losses (dedupe, words, find) and the slot head's.
     #[serde(default)]
-    pub relevance_loss: f32,
+    pub hop_loss: [f32; 3],
+    #[serde(default)]
+    pub slot_loss: f32,
+    /// The auxiliary head's accuracy on the step's object tokens: colour, shape, size.
+    #[serde(default)]
+    pub tower_accuracy: [f32; 3],
     /// Held-out accuracy, when this step evaluated.
     pub eval: Option<Accuracy>,
     /// Held-out accuracy reading label tokens, when this step evaluated.
     pub eval_labels: Option<Accuracy>,
 }
 
-/// The samples of one step: a kind drawn by `cfg.mix`, fresh scenes until the step's images are
-/// filled, questions picked per sample.
+/// Recent training accuracy per question kind (exponential moving average of exact match over
+/// training batches), what adaptive sampling draws by.
+#[derive(Clone, Debug, Default)]
+pub struct RunningAccuracy {
+    acc: BTreeMap<Kind, f32>,
+}
+
+impl RunningAccuracy {
+    const DECAY: f32 = 0.95;
+
+    pub fn add(&mut self, kind: Kind, right: bool) {
+        let a = self.acc.entry(kind).or_insert(0.0);
+        *a = Self::DECAY * *a + (1.0 - Self::DECAY) * right as u8 as f32;
+    }
+
+    /// How much a kind is still worth drawing: its error plus `floor`.
+    pub fn need(&self, kind: Kind, floor: f32) -> f32 {
+        1.0 - self.acc.get(&kind).copied().unwrap_or(0.0) + floor
+    }
+}
+
+/// The samples of one step: a level drawn by `cfg.mix` (adaptive: weighted by how much its kinds
+/// still need), fresh scenes until the step's images are filled, questions picked per sample.
 fn step_samples(
     cfg: &VlmTrainConfig,
     spec: &DataSpec,
+    running: &RunningAccuracy,
     rng: &mut Rng,
-) -> Vec<(Sample, Vec<model::data::synth::questions::Qa>)> {
-    let total: f32 = cfg.mix.iter().sum();
-    let mut u = rng.f() * total;
-    let mut kind = SampleKind::Scene;
-    for (k, p) in SampleKind::ALL.iter().zip(cfg.mix) {
-        if u < p {
-            kind = *k;
-            break;
-        }
-        u -= p;
-    }
+) -> Vec<(Sample, Vec<Qa>)> {
+    let allowed = |k: Kind| cfg.kinds.is_empty() || cfg.kinds.contains(&k);
+    let weights: Vec<f32> = SampleKind::ALL
+        .iter()
+        .zip(cfg.mix)
+        .map(|(sample, p)| {
+            if !cfg.adaptive || p <= 0.0 {
+                return p;
+            }
+            let kinds: Vec<Kind> =
+                Kind::ALL.into_iter().filter(|k| sample.level() == k.level() && allowed(*k)).collect();
+            let need: f32 = kinds.iter().map(|k| running.need(*k, cfg.adaptive_floor)).sum::<f32>();
+            p * need / kinds.len().max(1) as f32
+        })
+        .collect();
+    let kind = SampleKind::ALL[rng.weighted(&weights)];
     let per = if kind == SampleKind::Scene { SCENE_IMAGES } else { 1 };
     let want = (cfg.images_per_step / per).max(1);
     let mut out = Vec::with_capacity(want);
     while out.len() < want {
         let seed = TRAIN_SEEDS + rng.next_u64() % 1_000_000_000;
         if let Some(s) = spec.sample(kind, seed, rng) {
-            let asked: Vec<Qa> =
-                s.qas.iter().filter(|q| cfg.kinds.is_empty() || cfg.kinds.contains(&q.kind)).cloned().collect();
+            let asked: Vec<Qa> = s.qas.iter().filter(|q| allowed(q.kind)).cloned().collect();
             if !asked.is_empty() {
-                let qs = pick_questions(&asked, cfg.questions_per_sample, rng);
+                let need = |k: Kind| if cfg.adaptive { running.need(k, cfg.adaptive_floor) } else { 1.0 };
+                let qs = pick_questions(&asked, cfg.questions_per_sample, need, rng);
                 out.push((s, qs));
             }
         }
     }
     out
+}
+
+/// The losses of one training step (before its update).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct StepLosses {
+    pub answer: f32,
+    pub aux: f32,
+    /// dedupe, words, find ([`hops::HopKind::ALL`] order)
+    pub hops: [f32; 3],
+    pub slots: f32,
+    /// The auxiliary head's accuracy on object tokens: colour, shape, size.
+    pub tower: [f32; 3],
 }
 
 /// The training state: the model (on the autodiff device), AdamW, the data generator.
@@ -452,6 +540,7 @@ pub struct Trainer {
     optim: burn::optim::ModuleOptimizer,
     device: Device,
     pub labels: LabelTokens,
+    pub running: RunningAccuracy,
 }
 
 impl Trainer {
@@ -465,16 +554,18 @@ impl Trainer {
         let mut rng = Rng::new(cfg.seed ^ 0xDA7A);
         let aux = model::vlm::layers::init_linear(&mut rng, vlm.cfg.vision.hidden_size, classes, true, 0.02, &ad);
         let vlm_dim = vlm.cfg.vision.hidden_size;
-        let relevance = model::vlm::layers::init_linear(&mut rng, vlm.cfg.text.hidden_size, 1, true, 0.02, &ad);
+        let slot_classes = batch::SLOT_CLASSES.iter().sum();
+        let slots = model::vlm::layers::init_linear(&mut rng, vlm.cfg.text.hidden_size, slot_classes, true, 0.02, &ad);
         Ok(Self {
             cfg: cfg.clone(),
-            model: Trainable { vlm, aux, relevance },
+            model: Trainable { vlm, aux, slots },
             step: 0,
             spec,
             rng,
             optim: AdamWConfig::new().with_weight_decay(cfg.weight_decay).init(),
             labels: LabelTokens::new(vlm_dim, cfg.seed),
             device: ad,
+            running: RunningAccuracy::default(),
         })
     }
 
@@ -483,30 +574,45 @@ impl Trainer {
         &self.spec
     }
 
-    /// One optimisation step on fresh samples: (answer, auxiliary, relevance loss) before the update.
-    pub fn step(&mut self) -> Result<(f32, f32, f32)> {
-        let samples = step_samples(&self.cfg, &self.spec, &mut self.rng);
+    /// One optimisation step on fresh samples; the losses before the update.
+    pub fn step(&mut self) -> Result<StepLosses> {
+        let samples = step_samples(&self.cfg, &self.spec, &self.running, &mut self.rng);
         let mut p: Packed = pack(&self.model.vlm, &samples)?;
         let prob = self.cfg.label_probability(self.step);
         for f in p.label_tokens.iter_mut() {
             *f = self.rng.f() < prob;
         }
         let labels = (self.cfg.label_weight > 0.0 || prob > 0.0).then_some(&self.labels);
-        let f = forward(&self.model, &p, labels, Some((self.cfg.feature_noise, &mut self.rng)), &self.device);
-        let loss = f.answer_loss.clone()
-            + f.aux_loss.clone() * self.cfg.aux_weight
-            + f.label_loss * self.cfg.label_weight
-            + f.relevance_loss.clone() * self.cfg.relevance_weight;
-        let (al, xl) = (model::splats::host(f.answer_loss)[0], model::splats::host(f.aux_loss)[0]);
-        let rl = model::splats::host(f.relevance_loss)[0];
-        if !(al.is_finite() && xl.is_finite()) {
-            return Err(Error::Diverged { iter: self.step, loss: al + xl });
+        let cfg = &self.cfg;
+        let supervise = cfg.hop_weights.iter().chain([&cfg.slot_weight]).any(|w| *w > 0.0);
+        let noise = Some((cfg.feature_noise, &mut self.rng));
+        let f = forward(&self.model, &p, labels, noise, supervise, &self.device);
+        let mut loss = f.answer_loss.clone()
+            + f.aux_loss.clone() * cfg.aux_weight
+            + f.label_loss * cfg.label_weight
+            + f.slot_loss.clone() * cfg.slot_weight;
+        for (h, w) in f.hop_loss.iter().zip(cfg.hop_weights) {
+            loss = loss + h.clone() * w;
+        }
+        let one = |t: &burn::tensor::Tensor<1>| model::splats::host(t.clone())[0];
+        let losses = StepLosses {
+            answer: one(&f.answer_loss),
+            aux: one(&f.aux_loss),
+            hops: [one(&f.hop_loss[0]), one(&f.hop_loss[1]), one(&f.hop_loss[2])],
+            slots: one(&f.slot_loss),
+            tower: batch::tower_accuracy(&p, f.aux_logits.clone()),
+        };
+        if !(losses.answer.is_finite() && losses.aux.is_finite() && losses.hops.iter().all(|h| h.is_finite())) {
+            return Err(Error::Diverged { iter: self.step, loss: losses.answer + losses.aux });
+        }
+        for (kind, right) in exact(&p, f.log_probs.clone()) {
+            self.running.add(kind, right);
         }
         let grads = GradientsParams::from_grads(loss.backward(), &self.model);
         let lr = self.cfg.lr_at(self.step);
         self.model = self.optim.step(lr, self.model.clone(), grads);
         self.step += 1;
-        Ok((al, xl, rl))
+        Ok(losses)
     }
 }
 
@@ -527,7 +633,7 @@ pub fn train(
     let mut last = Accuracy::default();
     while t.step < cfg.steps {
         let lr = cfg.lr_at(t.step);
-        let (al, xl, rl) = t.step()?;
+        let losses = t.step()?;
         let step = t.step;
         let (eval, eval_labels) = if cfg.eval_every > 0 && step.is_multiple_of(cfg.eval_every) || step == cfg.steps {
             let valid = t.model.valid();
@@ -543,9 +649,11 @@ pub fn train(
             step,
             seconds: start.elapsed().as_secs_f64(),
             lr,
-            answer_loss: al,
-            aux_loss: xl,
-            relevance_loss: rl,
+            answer_loss: losses.answer,
+            aux_loss: losses.aux,
+            hop_loss: losses.hops,
+            slot_loss: losses.slots,
+            tower_accuracy: losses.tower,
             eval,
             eval_labels,
         };

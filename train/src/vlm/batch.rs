@@ -41,6 +41,12 @@ impl Trainable {
     }
 }
 
+/// Weights of the auxiliary tasks (colour, shape, size) in the auxiliary loss (their weighted
+/// mean). Shape weighs more: it is the one the tower must look across tokens for, and with equal
+/// weights the colour and size gradients drown it (per-token shape accuracy stayed near chance;
+/// BENCHMARKS.md).
+pub const AUX_TASK_WEIGHTS: [f32; 3] = [1.0, 4.0, 1.0];
+
 /// Class counts of the auxiliary head (none + each value).
 pub const AUX_CLASSES: [usize; 3] = [9, 7, 3];
 
@@ -384,7 +390,7 @@ pub fn forward(
 
 /// The vision tower and the auxiliary head on `n_img` images (`pixels` `[n_img, 3, S, S]`
 /// flattened, `labels` per token of each auxiliary task): the tokens `[n_img, g2, Dv]`, the
-/// auxiliary logits `[n_img * g2, 19]` and their mean cross-entropy over the tasks.
+/// auxiliary logits `[n_img * g2, 19]` and their cross-entropy, weighted over the tasks.
 fn tower(
     m: &Trainable,
     pixels: &[f32],
@@ -401,10 +407,10 @@ fn tower(
     let mut off = 0;
     for (k, &c) in AUX_CLASSES.iter().enumerate() {
         let lab = Tensor::<1, Int>::from_data(TensorData::new(labels[k].clone(), [n_img * g2]), device);
-        aux_loss = aux_loss + cross_entropy(aux_logits.clone().narrow(1, off, c), lab);
+        aux_loss = aux_loss + cross_entropy(aux_logits.clone().narrow(1, off, c), lab) * AUX_TASK_WEIGHTS[k];
         off += c;
     }
-    (vis, aux_logits, aux_loss / AUX_CLASSES.len() as f32)
+    (vis, aux_logits, aux_loss / AUX_TASK_WEIGHTS.iter().sum::<f32>())
 }
 
 /// The tower's pre-training step (no LLM): the auxiliary loss on every image of `samples` and

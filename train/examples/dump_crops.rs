@@ -3,6 +3,7 @@
 //! `cargo run --release -p train --example dump_crops -- 8000 /tmp/crops.bin`.
 //! Each record: the crop as `[3, S, S]` u8 (S = the tower's input side), then per token the
 //! (colour, shape, size) classes as u8 (0: no object).
+#![allow(deprecated)]
 use model::rng::Rng;
 use std::io::Write;
 use train::vlm::data::{DataSpec, SampleKind};

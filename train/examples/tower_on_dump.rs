@@ -3,8 +3,9 @@
 //! per-token shape cross-entropy; `MULTI=1`: the colour, shape and size losses with shape weighted
 //! `SW`, default 1), printing the per-token shape accuracy on object tokens every 100 steps:
 //! `cargo run --release -p train --example tower_on_dump -- /tmp/crops.bin 400` (BENCHMARKS.md).
+#![allow(deprecated)]
 use burn::module::Module;
-use burn::optim::{AdamWConfig, GradientsParams, Optimizer};
+use burn::optim::{AdamWConfig, GradientsParams};
 use burn::tensor::{Device, Int, Tensor, TensorData, activation};
 use model::rng::Rng;
 use train::vlm::{VlmTrainConfig, init_model};

@@ -188,10 +188,11 @@ fn supervised_hops_point_at_the_objects_the_questions_name() {
     }
 }
 
-/// Exact match the committed model must keep on ground-truth images of two held-out seeds (it
-/// scored [`COMMITTED_MEASURED`] when committed; BENCHMARKS.md has the 50-seed figures).
-const COMMITTED_FLOOR: f64 = 0.0;
-const COMMITTED_MEASURED: f64 = 0.0;
+/// Exact match the committed model must keep on ground-truth images of two held-out seeds: it
+/// scored [`COMMITTED_MEASURED`] (109 of 168) when committed; the target is 0.90, not yet
+/// reached (BENCHMARKS.md has the 50-seed figures per question type).
+const COMMITTED_FLOOR: f64 = 0.60;
+const COMMITTED_MEASURED: f64 = 0.649;
 
 #[test]
 fn the_committed_model_answers_questions_on_held_out_scenes() {
@@ -202,9 +203,13 @@ fn the_committed_model_answers_questions_on_held_out_scenes() {
     let seeds = train::vlm::EVAL_SEEDS + 500..train::vlm::EVAL_SEEDS + 502;
     let acc = train::vlm::evaluate_model(vlm, seeds, (2, 2), &cfg, &dev).unwrap();
     let n: usize = acc.by_kind.values().map(|v| v.1).sum();
-    eprintln!("committed model on 2 held-out seeds ({n} questions): {}\n  {}", acc.summary(), acc.by_kind_line());
-    assert!(n >= 40, "two seeds ask every kind of question ({n} asked)");
     let all = acc.level(None);
+    eprintln!(
+        "committed model on 2 held-out seeds ({n} questions, {all:.3} right): {}\n  {}",
+        acc.summary(),
+        acc.by_kind_line()
+    );
+    assert!(n >= 40, "two seeds ask every kind of question ({n} asked)");
     assert!(
         all >= COMMITTED_FLOOR,
         "exact match {all:.3} < {COMMITTED_FLOOR} (measured {COMMITTED_MEASURED} when committed)"
@@ -255,6 +260,7 @@ fn chatsplat_tokens_answer_a_held_out_scene_nearly_as_well_as_ground_truth_image
 
 const E2E_GEOMETRY_ITERS: usize = 300;
 const E2E_LANGUAGE_ITERS: usize = 60;
-/// Floors of the end-to-end test (measured when the model was committed, minus a margin).
-const E2E_FLOOR: f64 = 0.0;
-const E2E_GAP: f64 = 1.0;
+/// Floors of the end-to-end test: when the model was committed, 67 questions, ground-truth images
+/// 0.672, ChatSplat tokens 0.642 (dev profile, ndarray).
+const E2E_FLOOR: f64 = 0.55;
+const E2E_GAP: f64 = 0.10;

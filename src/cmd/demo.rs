@@ -91,12 +91,12 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     })?;
 
     step(5, "chat: view, object (click) and scene level");
-    let ask = |object: Option<Vec<usize>>, scene: bool, q: &str| super::ask::Args {
+    let ask = |view: usize, object: Option<Vec<usize>>, scene: bool, q: &str| super::ask::Args {
         vlm: Some(vlm.clone()),
         image: vec![],
         run: Some(run.dir.clone()),
         language: None,
-        view: 0,
+        view,
         object,
         scene,
         views: 3,
@@ -104,21 +104,25 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         sampling: SamplingArgs { max_new_tokens: 16, temperature: 0.0, top_p: 1.0, seed: 0 },
         backend: a.backend,
     };
+    // the questions the built-in model knows, on the first view the question file asks about
+    // and at the first object it clicks (a held-out view: what the user sees from a new angle)
     let qf = load_questions(&data.join("questions.json"))?;
-    let click = qf
-        .questions
-        .iter()
-        .find(|q| q.level == Level::Object && q.view == Some(0))
-        .and_then(|q| q.object)
-        .map(|[x, y]| vec![x as usize, y as usize]);
-    eprintln!("[view 0] What is on the table?");
-    super::ask::run(ask(None, false, "What is on the table?"))?;
-    if let Some(xy) = click {
-        eprintln!("[view 0, click ({}, {})] What is this object?", xy[0], xy[1]);
-        super::ask::run(ask(Some(xy), false, "What is this object?"))?;
+    let session = model::chat::ChatSession::open(&run, None, &vlm, &a.backend.device())?;
+    let in_run = |v: Option<usize>| model::vqa::scene_view(&qf, &session, v.unwrap_or(0));
+    let view = in_run(qf.questions.iter().find(|q| q.level == Level::View).and_then(|q| q.view))?;
+    let click = match qf.questions.iter().find(|q| q.level == Level::Object) {
+        Some(q) => q.object.map(|xy| in_run(q.view).map(|v| (v, xy))).transpose()?,
+        None => None,
+    };
+    drop(session);
+    eprintln!("[view {view}] What objects are there?");
+    super::ask::run(ask(view, None, false, "What objects are there?"))?;
+    if let Some((v, [x, y])) = click {
+        eprintln!("[view {v}, click ({x}, {y})] What is this?");
+        super::ask::run(ask(v, Some(vec![x as usize, y as usize]), false, "What is this?"))?;
     }
-    eprintln!("[scene, 3 views] List the objects on the table.");
-    super::ask::run(ask(None, true, "List the objects on the table."))?;
+    eprintln!("[scene, 3 views] What objects are in the scene?");
+    super::ask::run(ask(0, None, true, "What objects are in the scene?"))?;
 
     step(6, "VQA on the generated question file (offline scorer)");
     let scene = SceneArgs { run: run.dir.clone(), language: None, vlm: Some(vlm.clone()), backend: a.backend };

@@ -296,6 +296,11 @@ impl VlmTrainConfig {
     }
 }
 
+/// A fresh training scene's seed (never a held-out one).
+fn train_seed(rng: &mut Rng) -> u64 {
+    TRAIN_SEEDS + rng.next_u64() % 1_000_000_000
+}
+
 const SCENE_IMAGES: usize = model::data::synth::SCENE_VIEWS;
 
 /// A fresh tabletop VLM of `cfg`'s shape, with its word-level tokenizer.
@@ -520,7 +525,7 @@ fn step_samples(
     let want = (cfg.images_per_step / per).max(1);
     let mut out = Vec::with_capacity(want);
     while out.len() < want {
-        let seed = TRAIN_SEEDS + rng.next_u64() % 1_000_000_000;
+        let seed = train_seed(rng);
         if let Some(s) = spec.sample(kind, seed, rng) {
             let asked: Vec<Qa> = s.qas.iter().filter(|q| allowed(q.kind)).cloned().collect();
             if !asked.is_empty() {
@@ -626,10 +631,7 @@ impl Trainer {
         for (kind, right) in exact(&p, f.log_probs.clone()) {
             self.running.add(kind, right);
         }
-        let grads = GradientsParams::from_grads(loss.backward(), &self.model);
-        let lr = self.cfg.lr_at(self.step);
-        self.model = self.optim.step(lr, self.model.clone(), grads);
-        self.step += 1;
+        self.update(loss);
         Ok(losses)
     }
 }
@@ -640,7 +642,7 @@ impl Trainer {
         let (mut samples, mut images) = (Vec::new(), 0);
         while images < self.cfg.tower_images {
             let kind = if self.rng.f() < 0.5 { SampleKind::Object } else { SampleKind::View };
-            let seed = TRAIN_SEEDS + self.rng.next_u64() % 1_000_000_000;
+            let seed = train_seed(&mut self.rng);
             if let Some(s) = self.spec.sample(kind, seed, &mut self.rng) {
                 images += s.images.len();
                 samples.push((s, Vec::new()));
@@ -651,11 +653,16 @@ impl Trainer {
         if !aux.is_finite() {
             return Err(Error::Diverged { iter: self.step, loss: aux });
         }
+        self.update(loss);
+        Ok(StepLosses { aux, tower, ..Default::default() })
+    }
+
+    /// Backward pass of `loss`, one AdamW update at this step's learning rate, next step.
+    fn update(&mut self, loss: burn::tensor::Tensor<1>) {
         let grads = GradientsParams::from_grads(loss.backward(), &self.model);
         let lr = self.cfg.lr_at(self.step);
         self.model = self.optim.step(lr, self.model.clone(), grads);
         self.step += 1;
-        Ok(StepLosses { aux, tower, ..Default::default() })
     }
 }
 

@@ -98,6 +98,9 @@ pub struct VlmTrainConfig {
     /// see, is learned in cheap steps before the LLM starts reading the tokens.
     pub tower_steps: usize,
     pub tower_images: usize,
+    /// Peak learning rate of the tower's phase (0: `lr`); a ViT this small learns shape sooner
+    /// at a higher rate than the LLM tolerates.
+    pub tower_lr: f64,
     /// Weights of the supervised hops ([`hops`]): dedupe, words, find (in `HopKind::ALL` order),
     /// and of the slot head; all zero: the answers alone teach the LLM.
     pub hop_weights: [f32; 3],
@@ -141,6 +144,7 @@ impl Default for VlmTrainConfig {
             aux_weight: 0.5,
             tower_steps: 0,
             tower_images: 32,
+            tower_lr: 0.0,
             hop_weights: [0.3, 0.5, 0.5],
             slot_weight: 0.3,
             adaptive: true,
@@ -231,6 +235,9 @@ impl VlmTrainConfig {
         if !(self.lr > 0.0 && self.lr.is_finite() && self.min_lr >= 0.0) {
             return bad("lr", "must be > 0 (and min_lr >= 0)");
         }
+        if !(self.tower_lr >= 0.0 && self.tower_lr.is_finite()) {
+            return bad("tower_lr", "must be >= 0 (0: lr)");
+        }
         if self.tower_steps > 0 && (self.tower_steps >= self.steps || self.tower_images == 0) {
             return bad("tower_steps", "must be below steps (and tower_images at least 1)");
         }
@@ -285,7 +292,8 @@ impl VlmTrainConfig {
     pub fn lr_at(&self, i: usize) -> f64 {
         // the tower's phase at the peak rate (after the warm-up); the whole schedule again after it
         if i < self.tower_steps {
-            return self.lr * ((i + 1) as f64 / self.warmup.max(1) as f64).min(1.0);
+            let peak = if self.tower_lr > 0.0 { self.tower_lr } else { self.lr };
+            return peak * ((i + 1) as f64 / self.warmup.max(1) as f64).min(1.0);
         }
         let (i, steps) = (i - self.tower_steps, self.steps - self.tower_steps);
         if i < self.warmup {

@@ -189,10 +189,10 @@ fn supervised_hops_point_at_the_objects_the_questions_name() {
 }
 
 /// Exact match the committed model must keep on ground-truth images of two held-out seeds: it
-/// scored [`COMMITTED_MEASURED`] (109 of 168) when committed; the target is 0.90, not yet
+/// scored [`COMMITTED_MEASURED`] (114 of 168) when committed; the target is 0.90, not yet
 /// reached (BENCHMARKS.md has the 50-seed figures per question type).
-const COMMITTED_FLOOR: f64 = 0.60;
-const COMMITTED_MEASURED: f64 = 0.649;
+const COMMITTED_FLOOR: f64 = 0.62;
+const COMMITTED_MEASURED: f64 = 0.679;
 
 #[test]
 fn the_committed_model_answers_questions_on_held_out_scenes() {
@@ -259,8 +259,9 @@ fn chatsplat_tokens_answer_a_held_out_scene_nearly_as_well_as_ground_truth_image
 }
 
 const E2E_GEOMETRY_ITERS: usize = 300;
-const E2E_LANGUAGE_ITERS: usize = 60;
+const E2E_LANGUAGE_ITERS: usize = 150;
 /// Floors of the end-to-end test: when the model was committed, 67 questions, ground-truth images
-/// 0.672, ChatSplat tokens 0.642 (dev profile, ndarray).
-const E2E_FLOOR: f64 = 0.55;
-const E2E_GAP: f64 = 0.10;
+/// 0.791, ChatSplat tokens 0.687 (dev profile, ndarray; 0.567 after 60 language iterations: the
+/// view tokens of small objects sharpen late, BENCHMARKS.md).
+const E2E_FLOOR: f64 = 0.60;
+const E2E_GAP: f64 = 0.15;

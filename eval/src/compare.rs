@@ -140,7 +140,7 @@ fn image_tokens(
         let rgb = match rendered {
             None => v.rgb.clone(),
             Some(s) => {
-                let view = model::vqa::scene_view(file, s, frame)?;
+                let view = model::vqa::scene_view(file, &s.images, frame)?;
                 s.scene.render(s.camera(view)?)?.rgb.iter().map(|c| c.clamp(0.0, 1.0)).collect()
             }
         };

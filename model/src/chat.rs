@@ -82,8 +82,14 @@ impl ChatSession {
                 ),
             ));
         }
-        let images = cams.train.iter().chain(&cams.test).map(|c| c.image.clone()).collect();
-        Ok(Self { vlm, scene, language, cameras: cams.all(), images, train_views: cams.train.len() })
+        Ok(Self {
+            vlm,
+            scene,
+            language,
+            cameras: cams.all(),
+            images: cams.image_names(),
+            train_views: cams.train.len(),
+        })
     }
 
     /// The camera of view `view`, or an error naming the views there are.

@@ -101,6 +101,11 @@ impl CameraSet {
     pub fn all(&self) -> Vec<Camera> {
         self.train.iter().chain(&self.test).map(StoredCamera::camera).collect()
     }
+
+    /// The image file name of every view, in the order of [`all`](Self::all).
+    pub fn image_names(&self) -> Vec<String> {
+        self.train.iter().chain(&self.test).map(|c| c.image.clone()).collect()
+    }
 }
 
 /// The dataset a geometry run was trained on.

@@ -137,13 +137,12 @@ pub struct Answer {
 }
 
 /// The scene view a question's view index means: through the file's frame list (by image file
-/// name) when it has one, else the index itself.
-pub fn scene_view(file: &QuestionFile, session: &ChatSession, view: usize) -> Result<usize> {
+/// name, among `images`, the run's view image names) when it has one, else the index itself.
+pub fn scene_view(file: &QuestionFile, images: &[String], view: usize) -> Result<usize> {
     let Some(frames) = &file.views else { return Ok(view) };
     let frame = frames.get(view).ok_or_else(|| Error::input(format!("view {view} is not in the file's views")))?;
     let name = Path::new(frame).file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    session
-        .images
+    images
         .iter()
         .position(|i| *i == name)
         .ok_or_else(|| Error::input(format!("frame {view} ({frame}) is not one of the trained scene's views")))
@@ -151,11 +150,11 @@ pub fn scene_view(file: &QuestionFile, session: &ChatSession, view: usize) -> Re
 
 /// What a question asks about; `scene_views` spread views for scene questions without `views`.
 pub fn target_of(file: &QuestionFile, q: &Question, session: &ChatSession, scene_views: usize) -> Result<Target> {
-    let view = |v: Option<usize>| scene_view(file, session, v.unwrap_or(0));
+    let view = |v: Option<usize>| scene_view(file, &session.images, v.unwrap_or(0));
     Ok(match q.level {
         Level::View => Target::View(view(q.view)?),
         Level::Scene => Target::Scene(match &q.views {
-            Some(v) => v.iter().map(|&i| scene_view(file, session, i)).collect::<Result<_>>()?,
+            Some(v) => v.iter().map(|&i| scene_view(file, &session.images, i)).collect::<Result<_>>()?,
             None => session.scene_views(scene_views)?,
         }),
         Level::Object => {

@@ -107,14 +107,13 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     // the questions the built-in model knows, on the first view the question file asks about
     // and at the first object it clicks (a held-out view: what the user sees from a new angle)
     let qf = load_questions(&data.join("questions.json"))?;
-    let session = model::chat::ChatSession::open(&run, None, &vlm, &a.backend.device())?;
-    let in_run = |v: Option<usize>| model::vqa::scene_view(&qf, &session, v.unwrap_or(0));
+    let images = run.read_cameras()?.image_names();
+    let in_run = |v: Option<usize>| model::vqa::scene_view(&qf, &images, v.unwrap_or(0));
     let view = in_run(qf.questions.iter().find(|q| q.level == Level::View).and_then(|q| q.view))?;
     let click = match qf.questions.iter().find(|q| q.level == Level::Object) {
         Some(q) => q.object.map(|xy| in_run(q.view).map(|v| (v, xy))).transpose()?,
         None => None,
     };
-    drop(session);
     eprintln!("[view {view}] What objects are there?");
     super::ask::run(ask(view, None, false, "What objects are there?"))?;
     if let Some((v, [x, y])) = click {

@@ -101,6 +101,9 @@ pub struct VlmTrainConfig {
     /// Peak learning rate of the tower's phase (0: `lr`); a ViT this small learns shape sooner
     /// at a higher rate than the LLM tolerates.
     pub tower_lr: f64,
+    /// Rate the tower's phase decays to (cosine, after the warm-up); 0: no decay (constant at the
+    /// phase's peak).
+    pub tower_min_lr: f64,
     /// Weights of the supervised hops ([`hops`]): dedupe, words, find (in `HopKind::ALL` order),
     /// and of the slot head; all zero: the answers alone teach the LLM.
     pub hop_weights: [f32; 3],
@@ -145,6 +148,7 @@ impl Default for VlmTrainConfig {
             tower_steps: 0,
             tower_images: 32,
             tower_lr: 0.0,
+            tower_min_lr: 0.0,
             hop_weights: [0.3, 0.5, 0.5],
             slot_weight: 0.3,
             adaptive: true,
@@ -238,6 +242,9 @@ impl VlmTrainConfig {
         if !(self.tower_lr >= 0.0 && self.tower_lr.is_finite()) {
             return bad("tower_lr", "must be >= 0 (0: lr)");
         }
+        if !(self.tower_min_lr >= 0.0 && self.tower_min_lr.is_finite()) {
+            return bad("tower_min_lr", "must be >= 0 (0: no decay)");
+        }
         if self.tower_steps > 0 && (self.tower_steps >= self.steps || self.tower_images == 0) {
             return bad("tower_steps", "must be below steps (and tower_images at least 1)");
         }
@@ -293,15 +300,20 @@ impl VlmTrainConfig {
         // the tower's phase at the peak rate (after the warm-up); the whole schedule again after it
         if i < self.tower_steps {
             let peak = if self.tower_lr > 0.0 { self.tower_lr } else { self.lr };
-            return peak * ((i + 1) as f64 / self.warmup.max(1) as f64).min(1.0);
+            let floor = if self.tower_min_lr > 0.0 { self.tower_min_lr } else { peak };
+            return warmup_cosine(i, self.tower_steps, self.warmup, peak, floor);
         }
-        let (i, steps) = (i - self.tower_steps, self.steps - self.tower_steps);
-        if i < self.warmup {
-            return self.lr * (i + 1) as f64 / self.warmup as f64;
-        }
-        let t = ((i - self.warmup) as f64 / (steps.saturating_sub(self.warmup)).max(1) as f64).min(1.0);
-        self.min_lr + 0.5 * (self.lr - self.min_lr) * (1.0 + (std::f64::consts::PI * t).cos())
+        warmup_cosine(i - self.tower_steps, self.steps - self.tower_steps, self.warmup, self.lr, self.min_lr)
     }
+}
+
+/// Step `i` of `steps`: a linear warm-up to `peak` over `warmup` steps, then a cosine to `floor`.
+fn warmup_cosine(i: usize, steps: usize, warmup: usize, peak: f64, floor: f64) -> f64 {
+    if i < warmup {
+        return peak * (i + 1) as f64 / warmup as f64;
+    }
+    let t = ((i - warmup) as f64 / (steps.saturating_sub(warmup)).max(1) as f64).min(1.0);
+    floor + 0.5 * (peak - floor) * (1.0 + (std::f64::consts::PI * t).cos())
 }
 
 /// A fresh training scene's seed (never a held-out one).

@@ -295,9 +295,10 @@ impl VlmTrainConfig {
         }
     }
 
-    /// The learning rate of step `i`: linear warm-up, then cosine decay to `min_lr`.
+    /// The learning rate of step `i`: in the tower's phase a warm-up to its peak (`tower_lr`, else
+    /// `lr`), then a cosine to `tower_min_lr` (0: held at the peak); after it the warm-up again,
+    /// then a cosine from `lr` to `min_lr`.
     pub fn lr_at(&self, i: usize) -> f64 {
-        // the tower's phase at the peak rate (after the warm-up); the whole schedule again after it
         if i < self.tower_steps {
             let peak = if self.tower_lr > 0.0 { self.tower_lr } else { self.lr };
             let floor = if self.tower_min_lr > 0.0 { self.tower_min_lr } else { peak };

@@ -85,6 +85,31 @@ fn the_tower_phase_and_the_full_phase_each_warm_up_then_decay_to_their_floor() {
 }
 
 #[test]
+fn after_its_phase_the_tower_learns_at_tower_lr_scale_times_the_rate() {
+    let dev = Device::ndarray();
+    // one tower step, then a full step; a frozen tower (scale 0) against one that learns (scale 1)
+    let run = |scale: f64| {
+        let cfg = VlmTrainConfig { steps: 4, tower_steps: 1, tower_images: 2, tower_lr_scale: scale, ..tiny_config() };
+        let mut t = Trainer::new(&cfg, &dev).unwrap();
+        t.step().unwrap();
+        let vision = |t: &Trainer| host(t.model.vlm.vision.patch.weight.val());
+        let llm = |t: &Trainer| host(t.model.vlm.llm.layers[0].q.weight.val());
+        let (v0, l0) = (vision(&t), llm(&t));
+        t.step().unwrap();
+        (max_abs_diff(&v0, &vision(&t)), max_abs_diff(&l0, &llm(&t)))
+    };
+    let (frozen_vision, frozen_llm) = run(0.0);
+    let (vision, llm) = run(1.0);
+    eprintln!(
+        "full-phase weight changes: scale 0 vision {frozen_vision} llm {frozen_llm}; scale 1 vision {vision} llm {llm}"
+    );
+    assert_eq!(frozen_vision, 0.0, "scale 0 keeps the tower as its phase left it");
+    assert!(vision > 1e-4, "scale 1 trains the tower: {vision}");
+    let alike = (frozen_llm - llm).abs() <= 1e-6 * llm.max(1.0);
+    assert!(frozen_llm > 1e-4 && alike, "the LLM's step does not depend on it: {frozen_llm} vs {llm}");
+}
+
+#[test]
 fn a_trained_model_directory_round_trips_through_the_loader() {
     let dev = Device::ndarray();
     let cfg = tiny_config();

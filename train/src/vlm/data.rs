@@ -99,7 +99,7 @@ impl DataSpec {
     pub fn new(cfg: &LlavaConfig, processor: &ProcessorConfig, resolution: u32, margin: f32) -> Self {
         Self {
             resolution,
-            fov_deg: 50.0,
+            fov_deg: model::data::synth::FOV_DEG,
             margin,
             processor: processor.clone(),
             image_size: cfg.vision.image_size,

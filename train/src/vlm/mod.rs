@@ -104,6 +104,10 @@ pub struct VlmTrainConfig {
     /// Rate the tower's phase decays to (cosine, after the warm-up); 0: no decay (constant at the
     /// phase's peak).
     pub tower_min_lr: f64,
+    /// After the tower's phase the vision tower learns at this multiple of the rate (1: like the
+    /// rest); below 1 the LLM's first steps, whose gradients are large and noisy, do not wash out
+    /// the shapes the tower's phase taught it.
+    pub tower_lr_scale: f64,
     /// Weights of the supervised hops ([`hops`]): dedupe, words, find (in `HopKind::ALL` order),
     /// and of the slot head; all zero: the answers alone teach the LLM.
     pub hop_weights: [f32; 3],
@@ -149,6 +153,7 @@ impl Default for VlmTrainConfig {
             tower_images: 32,
             tower_lr: 0.0,
             tower_min_lr: 0.0,
+            tower_lr_scale: 1.0,
             hop_weights: [0.3, 0.5, 0.5],
             slot_weight: 0.3,
             adaptive: true,
@@ -244,6 +249,9 @@ impl VlmTrainConfig {
         }
         if !(self.tower_min_lr >= 0.0 && self.tower_min_lr.is_finite()) {
             return bad("tower_min_lr", "must be >= 0 (0: no decay)");
+        }
+        if !(self.tower_lr_scale >= 0.0 && self.tower_lr_scale.is_finite()) {
+            return bad("tower_lr_scale", "must be >= 0 (1: the tower learns like the rest)");
         }
         if self.tower_steps > 0 && (self.tower_steps >= self.steps || self.tower_images == 0) {
             return bad("tower_steps", "must be below steps (and tower_images at least 1)");
@@ -678,11 +686,19 @@ impl Trainer {
         Ok(StepLosses { aux, tower, ..Default::default() })
     }
 
-    /// Backward pass of `loss`, one AdamW update at this step's learning rate, next step.
+    /// Backward pass of `loss`, one AdamW update at this step's learning rate (the vision tower's
+    /// scaled by `tower_lr_scale` after its own phase), next step.
     fn update(&mut self, loss: burn::tensor::Tensor<1>) {
-        let grads = GradientsParams::from_grads(loss.backward(), &self.model);
+        let mut grads = loss.backward();
         let lr = self.cfg.lr_at(self.step);
-        self.model = self.optim.step(lr, self.model.clone(), grads);
+        let scale = self.cfg.tower_lr_scale;
+        if self.step >= self.cfg.tower_steps && scale != 1.0 {
+            // AdamW normalises the gradient away, so the tower gets its own update at its own rate
+            let tower = GradientsParams::from_module(&mut grads, &self.model.vlm.vision);
+            self.model = self.optim.step(lr * scale, self.model.clone(), tower);
+        }
+        let rest = GradientsParams::from_grads(grads, &self.model);
+        self.model = self.optim.step(lr, self.model.clone(), rest);
         self.step += 1;
     }
 }

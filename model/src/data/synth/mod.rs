@@ -52,7 +52,7 @@ pub struct SynthOptions {
 
 impl Default for SynthOptions {
     fn default() -> Self {
-        Self { seed: DEFAULT_SEED, views: 48, width: 96, height: 96, fov_deg: 50.0 }
+        Self { seed: DEFAULT_SEED, views: 48, width: 96, height: 96, fov_deg: FOV_DEG }
     }
 }
 
@@ -64,6 +64,9 @@ pub const MAX_SIDE: u32 = 4096;
 pub const SCENE_VIEWS: usize = 4;
 /// Where the cameras look.
 pub const LOOK_AT: Vec3 = Vec3::new(0.0, 0.25, 0.0);
+/// Vertical field of view of every synthetic camera (degrees): narrow enough that the objects
+/// fill the frame, wide enough that every object on the table is in it from every orbit camera.
+pub const FOV_DEG: f32 = 40.0;
 /// Distance of the dataset cameras from [`LOOK_AT`].
 pub const CAMERA_DISTANCE: f32 = 3.4;
 /// Mask id of the table top; objects start at `FIRST_OBJECT_ID`.

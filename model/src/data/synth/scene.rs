@@ -154,8 +154,8 @@ impl Size {
     /// sizes stay apart from every camera distance the datasets use).
     pub fn scale(self) -> f32 {
         match self {
-            Size::Small => 0.17,
-            Size::Large => 0.42,
+            Size::Small => 0.19,
+            Size::Large => 0.40,
         }
     }
 }
@@ -212,7 +212,7 @@ impl Table {
 }
 
 /// Where objects may stand: within this distance of the table's centre.
-pub const PLACEMENT_RADIUS: f32 = 1.15;
+pub const PLACEMENT_RADIUS: f32 = 0.95;
 /// Gap kept between the footprints of two objects.
 pub const GAP: f32 = 0.08;
 

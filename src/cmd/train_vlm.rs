@@ -81,10 +81,10 @@ pub fn run(a: Args) -> anyhow::Result<()> {
             }
             let [d, w, f] = p.hop_loss;
             let [c, s, z] = p.tower_accuracy.map(|a| (100.0 * a).round());
-            let (answer, aux, slots) = (p.answer_loss, p.aux_loss, p.slot_loss);
+            let (answer, aux, slots, places) = (p.answer_loss, p.aux_loss, p.slot_loss, p.place_loss);
             let msg = format!(
                 "answer {answer:.3} aux {aux:.3} (tower sees colour {c}% shape {s}% size {z}%) \
-                 hops {d:.2}/{w:.2}/{f:.2} slots {slots:.2}"
+                 hops {d:.2}/{w:.2}/{f:.2} slots {slots:.2} places {places:.2}"
             );
             bar.update_with(p.step, cfg.steps, &msg);
         })

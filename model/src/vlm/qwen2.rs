@@ -51,9 +51,26 @@ pub struct Probe {
     pub layers: Vec<usize>,
     /// ... as `(layer, [B * heads * T, T])`, row `(b * heads + head) * T + query`.
     pub probs: Vec<(usize, Tensor<2>)>,
-    /// Record the residual stream entering this layer (`[B, T, D]`).
-    pub residual_at: Option<usize>,
-    pub residual: Option<Tensor<3>>,
+    /// Record the residual stream entering these layers (the number of layers: after the
+    /// last, before the final norm) ...
+    pub residual_at: Vec<usize>,
+    /// ... as `(layer, [B, T, D])`.
+    pub residuals: Vec<(usize, Tensor<3>)>,
+}
+
+impl Probe {
+    /// The residual stream recorded entering `layer`.
+    pub fn residual(&self, layer: usize) -> Option<Tensor<3>> {
+        self.residuals.iter().find(|(l, _)| *l == layer).map(|(_, r)| r.clone())
+    }
+
+    fn record(probe: Option<&mut Probe>, layer: usize, x: &Tensor<3>) {
+        if let Some(p) = probe
+            && p.residual_at.contains(&layer)
+        {
+            p.residuals.push((layer, x.clone()));
+        }
+    }
 }
 
 /// Qwen2 causal LM.
@@ -218,11 +235,7 @@ impl Qwen2 {
         let mask = mask.map(|m| if rep > 1 { m.repeat_dim(0, rep) } else { m });
         let mut x = x;
         for (li, l) in self.layers.iter().enumerate() {
-            if let Some(p) = probe.as_deref_mut()
-                && p.residual_at == Some(li)
-            {
-                p.residual = Some(x.clone());
-            }
+            Probe::record(probe.as_deref_mut(), li, &x);
             let hs = l.ln1.forward(x.clone());
             let heads = |y: Tensor<3>, n: usize| y.reshape([b, t, n, hd]).swap_dims(1, 2);
             let q = rotate(heads(l.q.forward(hs.clone()), h));
@@ -258,6 +271,7 @@ impl Qwen2 {
             let hs = l.ln2.forward(x.clone());
             x = x + l.down.forward(act(self.cfg.act, l.gate.forward(hs.clone())) * l.up.forward(hs));
         }
+        Probe::record(probe, self.layers.len(), &x);
         self.norm.forward(x)
     }
 
@@ -281,7 +295,7 @@ impl Qwen2 {
 
     /// Training: `x` `[B, T, D]` with each token at `positions[i]`, attending where `mask`
     /// (`[T, T]`, additive: 0 or -inf) allows; returns the final-norm hidden states `[B, T, D]`.
-    /// With `probe`, also what it asks for: attention weights of some layers, a residual stream.
+    /// With `probe`, also what it asks for: attention weights of some layers, residual streams.
     pub fn forward_masked(
         &self,
         x: Tensor<3>,

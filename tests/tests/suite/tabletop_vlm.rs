@@ -36,6 +36,8 @@ fn tiny_config() -> VlmTrainConfig {
         resolution: 48,
         lr: 3e-3,
         warmup: 1,
+        // every head the trainer has, so that the backend-swapped test covers them all
+        place_weight: 0.3,
         ..Default::default()
     }
 }
@@ -183,6 +185,39 @@ fn packed_batches_score_answers_as_single_turn_inference_does() {
 }
 
 #[test]
+fn the_places_of_left_of_questions_agree_with_their_answers() {
+    use model::data::synth::questions::Kind;
+    let dev = Device::ndarray();
+    let t = Trainer::new(&tiny_config(), &dev).unwrap();
+    let m = t.model.valid();
+    let grid = m.vlm.cfg.vision.grid() as i64;
+    let samples = eval_samples(t.spec(), 90..110, 1, 0);
+    let batch: Vec<_> =
+        samples.iter().filter(|x| x.kind == SampleKind::View).map(|x| (x.clone(), x.qas.clone())).collect();
+    let p = pack(&m.vlm, &batch).unwrap();
+    let qas: Vec<_> = batch.iter().flat_map(|(_, qas)| qas.iter()).collect();
+    assert_eq!(qas.len(), p.slots.len(), "one slot row per question");
+    let (mut agree, mut differ, mut asked) = (0, 0, 0);
+    for (qa, (_, slots)) in qas.iter().zip(&p.slots) {
+        let [x1, x2] = [slots[4], slots[5]];
+        assert!((0..=grid).contains(&x1) && (0..=grid).contains(&x2), "places within the grid: {slots:?}");
+        if qa.kind != Kind::LeftOf {
+            continue;
+        }
+        asked += 1;
+        // both objects are in the view (the generator asks about seen objects only)
+        assert!(x1 > 0 && x2 > 0, "{}: places {x1} {x2}", qa.question);
+        if x1 != x2 {
+            differ += 1;
+            agree += usize::from((x1 < x2) == (qa.answer == "yes"));
+        }
+    }
+    eprintln!("left_of: {asked} asked, {differ} in different columns, {agree} of those agree with the answer");
+    assert!(differ >= 10, "enough left_of questions with objects in different columns ({differ})");
+    assert!(agree as f64 >= 0.9 * differ as f64, "places agree with the answers ({agree} of {differ})");
+}
+
+#[test]
 fn supervised_hops_point_at_the_objects_the_questions_name() {
     use model::data::synth::questions::Kind;
     use model::data::synth::scene::{Color, Shape};
@@ -240,10 +275,10 @@ fn supervised_hops_point_at_the_objects_the_questions_name() {
 }
 
 /// Exact match the committed model must keep on ground-truth images of two held-out seeds: it
-/// scored [`COMMITTED_MEASURED`] (118 of 168) when committed; the target is 0.90, not yet
+/// scored [`COMMITTED_MEASURED`] (121 of 168) when committed; the target is 0.90, not yet
 /// reached (BENCHMARKS.md has the 50-seed figures per question type).
 const COMMITTED_FLOOR: f64 = 0.65;
-const COMMITTED_MEASURED: f64 = 0.702;
+const COMMITTED_MEASURED: f64 = 0.720;
 
 #[test]
 fn the_committed_model_answers_questions_on_held_out_scenes() {
@@ -311,9 +346,9 @@ fn chatsplat_tokens_answer_a_held_out_scene_nearly_as_well_as_ground_truth_image
 
 const E2E_GEOMETRY_ITERS: usize = 300;
 const E2E_LANGUAGE_ITERS: usize = 150;
-/// Floors of the end-to-end test: when the model was committed, 67 questions, ground-truth images
-/// 0.821, ChatSplat tokens 0.791 (dev profile, ndarray; the model before it: 0.791 and 0.687, and
-/// 0.567 after 60 language iterations: the view tokens of small objects sharpen late,
-/// BENCHMARKS.md).
-const E2E_FLOOR: f64 = 0.70;
-const E2E_GAP: f64 = 0.15;
+/// Floors of the end-to-end test: when the model was committed, 75 questions, ground-truth images
+/// 0.867, ChatSplat tokens 0.853 (dev profile, ndarray; with the smaller objects and the model
+/// before it 67 questions, 0.821 and 0.791; two models before, 0.791 and 0.687, and 0.567 after
+/// 60 language iterations: the view tokens of small objects sharpen late, BENCHMARKS.md).
+const E2E_FLOOR: f64 = 0.75;
+const E2E_GAP: f64 = 0.10;

@@ -26,6 +26,9 @@ pub struct Trainable {
     /// `[text D, 2 x (9 + 7)]`: the colour and shape of the first two objects a question names,
     /// read off the answer position's residual stream after layer 1 ([`super::hops`]).
     pub slots: Linear,
+    /// `[text D, 2 x (1 + grid)]`: the image column of the same two objects (none + each column),
+    /// read off the same position after the find layer (whose hops gather their tokens).
+    pub places: Linear,
 }
 
 impl Trainable {
@@ -37,7 +40,8 @@ impl Trainable {
         };
         let classes = AUX_CLASSES.iter().sum();
         let (dv, dt) = (vlm.cfg.vision.hidden_size, vlm.cfg.text.hidden_size);
-        Self { aux: zeros(dv, classes), slots: zeros(dt, SLOT_CLASSES.iter().sum()), vlm }
+        let places = zeros(dt, 2 * place_classes(&vlm));
+        Self { aux: zeros(dv, classes), slots: zeros(dt, SLOT_CLASSES.iter().sum()), places, vlm }
     }
 }
 
@@ -80,8 +84,9 @@ pub struct Packed {
     pub label_tokens: Vec<bool>,
     /// Supervised attention rows, per sample (`hops[b]`): see [`super::hops`].
     pub hops: Vec<Vec<Hop>>,
-    /// Flat `b * t + i` of every first answer position and the slot classes of its question.
-    pub slots: Vec<(usize, [i64; 4])>,
+    /// Flat `b * t + i` of every first answer position and the slot and place classes of its
+    /// question ([`super::hops::question_hops`]).
+    pub slots: Vec<(usize, [i64; 6])>,
 }
 
 /// The symbolic stand-in for the tower's output: per token a fixed random vector per colour,
@@ -187,7 +192,7 @@ pub fn pack(vlm: &LlavaOnevision, samples: &[(Sample, Vec<Qa>)]) -> Result<Packe
         let row = &mut ids[bi * t..(bi + 1) * t];
         row[..head].copy_from_slice(&head_ids);
         let ident = prefix_identities(&samples[bi].0, head, g2);
-        let tokens = Tokens::new(&ident);
+        let tokens = Tokens::new(&ident).with_columns(prefix_columns(head, images, g2, vlm.cfg.vision.grid()));
         let mut sample_hops = tokens.dedupe();
         for (si, seg) in segs.iter().enumerate() {
             let start = prefix + si * l;
@@ -253,6 +258,17 @@ struct Segment {
 
 /// The object each position of a sample's prompt prefix shows (`head` text tokens, then per image
 /// `g2` tokens and a newline row): its (colour, shape) label, `None` for anything else.
+/// The image column of every prefix position (`images` rows of `g2` tokens and a newline after
+/// `head` text tokens; `grid` columns).
+fn prefix_columns(head: usize, images: usize, g2: usize, grid: usize) -> Vec<Option<u8>> {
+    let mut cols = vec![None; head];
+    for _ in 0..images {
+        cols.extend((0..g2).map(|i| Some((i % grid) as u8)));
+        cols.push(None);
+    }
+    cols
+}
+
 fn prefix_identities(sample: &Sample, head: usize, g2: usize) -> Vec<Option<Ident>> {
     let mut ident = vec![None; head];
     for img in &sample.images {
@@ -298,6 +314,9 @@ pub struct Forward {
     pub hop_loss: [Tensor<1>; 3],
     /// Mean cross-entropy of the slot head (zero when not supervised).
     pub slot_loss: Tensor<1>,
+    /// Mean cross-entropy of the place head over the named objects that have a place (zero when
+    /// not supervised or none has).
+    pub place_loss: Tensor<1>,
     /// Log-probabilities `[targets, vocab]` at the answer positions.
     pub log_probs: Tensor<2>,
 }
@@ -357,12 +376,12 @@ pub fn forward(
     let mut probe = Probe::default();
     if supervise {
         probe.layers = vec![0, HopKind::Find.layer()];
-        probe.residual_at = Some(SLOT_LAYER + 1);
+        probe.residual_at = vec![SLOT_LAYER + 1, HopKind::Find.layer() + 1];
     }
     let hidden = vlm.llm.forward_masked(x, &p.positions, mask, supervise.then_some(&mut probe));
     let zero = || Tensor::<1>::zeros([1], device);
     let mut hop_loss = [zero(), zero(), zero()];
-    let mut slot_loss = zero();
+    let (mut slot_loss, mut place_loss) = (zero(), zero());
     if supervise {
         let heads = vlm.cfg.text.num_heads;
         for (i, kind) in HopKind::ALL.into_iter().enumerate() {
@@ -371,10 +390,15 @@ pub fn forward(
                 hop_loss[i] = hop_cross_entropy(probs, p, kind, heads, device);
             }
         }
-        if let Some(r) = probe.residual.take()
-            && !p.slots.is_empty()
-        {
-            slot_loss = slot_cross_entropy(m, r.reshape([p.b * p.t, dt]), &p.slots, device);
+        let residual = |layer: usize| probe.residual(layer).filter(|_| !p.slots.is_empty());
+        if let Some(r) = residual(SLOT_LAYER + 1) {
+            let classes = SLOT_CLASSES.map(|c| (c, true)).to_vec();
+            slot_loss = slot_cross_entropy(&m.slots, r.reshape([p.b * p.t, dt]), &p.slots, 0, &classes, device);
+        }
+        if let Some(r) = residual(HopKind::Find.layer() + 1) {
+            // an object the image does not show, or one the question does not single out, has no place
+            let classes = vec![(place_classes(vlm), false); 2];
+            place_loss = slot_cross_entropy(&m.places, r.reshape([p.b * p.t, dt]), &p.slots, 4, &classes, device);
         }
     }
     let idx: Vec<i64> = p.targets.iter().map(|&(i, _)| i as i64).collect();
@@ -385,7 +409,16 @@ pub fn forward(
     let tgt: Vec<i64> = p.targets.iter().map(|&(_, t)| t).collect();
     let tgt = Tensor::<1, Int>::from_data(TensorData::new(tgt, [n]), device).reshape([n, 1]);
     let answer_loss = log_probs.clone().gather(1, tgt).mean().neg();
-    Forward { answer_loss, aux_loss, aux_logits: aux_logits_out, label_loss, hop_loss, slot_loss, log_probs }
+    Forward {
+        answer_loss,
+        aux_loss,
+        aux_logits: aux_logits_out,
+        label_loss,
+        hop_loss,
+        slot_loss,
+        place_loss,
+        log_probs,
+    }
 }
 
 /// The vision tower and the auxiliary head on `n_img` images (`pixels` `[n_img, 3, S, S]`
@@ -461,27 +494,47 @@ fn hop_cross_entropy(probs: Tensor<2>, p: &Packed, kind: HopKind, heads: usize, 
     (on * (u.clone().neg() + 1.0) + even * u).mean()
 }
 
-/// The slot head's cross-entropy at the first answer positions (`residual` `[B * T, D]`, the
-/// stream after layer [`SLOT_LAYER`]): colour and shape of the first two named objects.
-fn slot_cross_entropy(m: &Trainable, residual: Tensor<2>, slots: &[(usize, [i64; 4])], device: &Device) -> Tensor<1> {
+/// A slot-style head's cross-entropy at the first answer positions (`residual` `[B * T, D]`, the
+/// stream the head reads): `classes[k]` is the class count of task `k`, whose labels are
+/// `slots[..].1[first + k]`, and whether its class 0 ("none") is trained too (else those rows
+/// are left out of that task). The mean over the tasks that have rows.
+fn slot_cross_entropy(
+    head: &Linear,
+    residual: Tensor<2>,
+    slots: &[(usize, [i64; 6])],
+    first: usize,
+    classes: &[(usize, bool)],
+    device: &Device,
+) -> Tensor<1> {
     let n = slots.len();
     let at: Vec<i64> = slots.iter().map(|s| s.0 as i64).collect();
     let h = residual.select(0, Tensor::<1, Int>::from_data(TensorData::new(at, [n]), device));
     let h = h.clone() / (h.powf_scalar(2.0).mean_dim(1) + 1e-6).sqrt();
-    let logits = m.slots.forward(h);
+    let logits = head.forward(h);
     let mut loss = Tensor::zeros([1], device);
-    let mut off = 0;
-    for (k, c) in SLOT_CLASSES.into_iter().enumerate() {
-        let lab: Vec<i64> = slots.iter().map(|s| s.1[k]).collect();
-        let lab = Tensor::<1, Int>::from_data(TensorData::new(lab, [n]), device);
-        loss = loss + cross_entropy(logits.clone().narrow(1, off, c), lab);
+    let (mut off, mut tasks) = (0, 0);
+    for (k, &(c, with_none)) in classes.iter().enumerate() {
+        let rows: Vec<usize> = (0..n).filter(|&i| with_none || slots[i].1[first + k] > 0).collect();
+        if !rows.is_empty() {
+            tasks += 1;
+            let lab: Vec<i64> = rows.iter().map(|&i| slots[i].1[first + k]).collect();
+            let lab = Tensor::<1, Int>::from_data(TensorData::new(lab, [rows.len()]), device);
+            let idx: Vec<i64> = rows.iter().map(|&i| i as i64).collect();
+            let idx = Tensor::<1, Int>::from_data(TensorData::new(idx, [rows.len()]), device);
+            loss = loss + cross_entropy(logits.clone().narrow(1, off, c).select(0, idx), lab);
+        }
         off += c;
     }
-    loss / SLOT_CLASSES.len() as f32
+    loss / tasks.max(1) as f32
 }
 
 /// Class counts of the slot head: colour (none + 8) and shape (none + 6) of two objects.
 pub const SLOT_CLASSES: [usize; 4] = [9, 7, 9, 7];
+
+/// Class count of each place task: none + the image grid's columns.
+pub fn place_classes(vlm: &LlavaOnevision) -> usize {
+    1 + vlm.cfg.vision.grid()
+}
 
 /// How often the auxiliary head names the colour, shape and size of the tokens that show an
 /// object (`aux_logits` from [`Forward`]): what the tower has learned to see.

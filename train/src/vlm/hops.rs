@@ -11,6 +11,9 @@
 //!   first / second object of the question;
 //! * **slots** (out of layer 1): a linear head classifies those objects' colour and shape from the
 //!   first answer position's residual stream;
+//! * **places** (out of the find layer, optional): a linear head classifies the image column of
+//!   each of them from the same position (what `left_of` compares, which the answers alone do not
+//!   teach in the mix of all kinds: BENCHMARKS.md);
 //! * **find** (layer 2, heads 0 and 1): every answer position looks at the tokens of the object
 //!   the answer is about (per question kind, below).
 //!
@@ -121,6 +124,8 @@ pub struct Tokens<'a> {
     pub ident: &'a [Option<Ident>],
     /// The first position of every object (in sequence order; each object once).
     pub firsts: Vec<usize>,
+    /// The image column of every position (`None`: not an image token, or not known).
+    pub columns: Vec<Option<u8>>,
 }
 
 impl<'a> Tokens<'a> {
@@ -135,7 +140,29 @@ impl<'a> Tokens<'a> {
                 firsts.push(i);
             }
         }
-        Self { ident, firsts }
+        Self { ident, firsts, columns: Vec::new() }
+    }
+
+    /// The same with the image column of every position (`columns[i]`, as [`Tokens::columns`]).
+    pub fn with_columns(mut self, columns: Vec<Option<u8>>) -> Self {
+        self.columns = columns;
+        self
+    }
+
+    /// The place class of the object `want` names: 1 + its tokens' mean column (rounded), or 0
+    /// when it names no single object that the image shows or the columns are not known.
+    pub fn place(&self, want: Ident) -> i64 {
+        let hits = self.matching(want);
+        let one = hits.first().map(|&i| self.ident[i]);
+        if hits.is_empty() || hits.iter().any(|&i| Some(self.ident[i]) != one) {
+            return 0;
+        }
+        let cols: Vec<f32> =
+            hits.iter().filter_map(|&i| self.columns.get(i).copied().flatten()).map(f32::from).collect();
+        if cols.len() != hits.len() {
+            return 0;
+        }
+        1 + (cols.iter().sum::<f32>() / cols.len() as f32).round() as i64
     }
 
     fn matching(&self, want: Ident) -> Vec<usize> {
@@ -164,7 +191,8 @@ impl<'a> Tokens<'a> {
 /// The hops of one question: `question` the words of its prompt segment, at positions
 /// `start..start + question.len()`, its answer words after them (the closing token last,
 /// `Word::Other`); `first` is the position that predicts the first answer word. Also the slot
-/// classes `[colour, shape]` of the first two named objects (0 = none).
+/// classes `[colour, shape]` of the first two named objects (0 = none), then their place classes
+/// ([`Tokens::place`]).
 pub fn question_hops(
     kind: Kind,
     question: &[Word],
@@ -172,13 +200,14 @@ pub fn question_hops(
     answer: &[Word],
     first: usize,
     tokens: &Tokens,
-) -> (Vec<Hop>, [i64; 4]) {
+) -> (Vec<Hop>, [i64; 6]) {
     let names = named(question);
     let mut hops = Vec::new();
-    let mut slots = [0i64; 4];
+    let mut slots = [0i64; 6];
     for (k, (id, _)) in names.iter().take(2).enumerate() {
         slots[2 * k] = id.0 as i64;
         slots[2 * k + 1] = id.1 as i64;
+        slots[4 + k] = tokens.place(*id);
     }
     // words: heads 2 and 3 gather the first and the last named object's words
     if let (Some(a), Some(b)) = (names.first(), names.last()) {
@@ -295,7 +324,7 @@ mod tests {
         );
         let q = words("Is there a red cube?");
         let (hops, slots) = question_hops(Kind::Exists, &q, 10, &[Word::Other, Word::Other], 16, &t);
-        assert_eq!(slots, [1, 2, 0, 0]);
+        assert_eq!(slots, [1, 2, 0, 0, 0, 0], "no columns known: no places");
         let find: Vec<_> = hops.iter().filter(|h| h.kind == HopKind::Find).collect();
         assert_eq!(find.len(), 2);
         assert_eq!(find[0].targets, vec![1, 2]);
@@ -316,5 +345,21 @@ mod tests {
         let (hops, _) = question_hops(Kind::Objects, &words("What objects are there?"), 10, &ans, 16, &t);
         let per: Vec<_> = hops.iter().filter(|h| h.head == 0).map(|h| (h.query, h.targets.clone())).collect();
         assert_eq!(per, vec![(16, vec![1, 2]), (17, vec![1, 2]), (18, vec![4]), (19, vec![4]), (20, vec![SINK])]);
+    }
+
+    #[test]
+    fn places_are_the_named_objects_mean_column() {
+        // the red cube in columns 5 and 6, the blue cone in column 1, a red sphere in column 3
+        let ident = [None, Some((1, 2)), Some((1, 2)), None, Some((6, 4)), Some((1, 1))];
+        let cols = vec![None, Some(5), Some(6), Some(0), Some(1), Some(3)];
+        let t = Tokens::new(&ident).with_columns(cols);
+        let q = words("Is the red cube left of the blue cone?");
+        let (_, slots) = question_hops(Kind::LeftOf, &q, 10, &[Word::Other, Word::Other], 16, &t);
+        // 1 + round(5.5) = 7 (half away from zero), 1 + 1 = 2
+        assert_eq!(slots, [1, 2, 6, 4, 7, 2]);
+        // "the red object" names two objects here, an absent one none: no place
+        assert_eq!(t.place((1, 0)), 0);
+        assert_eq!(t.place((2, 2)), 0);
+        assert_eq!(t.place((0, 4)), 2, "the only cone");
     }
 }

@@ -109,9 +109,10 @@ pub struct VlmTrainConfig {
     /// the shapes the tower's phase taught it.
     pub tower_lr_scale: f64,
     /// Weights of the supervised hops ([`hops`]): dedupe, words, find (in `HopKind::ALL` order),
-    /// and of the slot head; all zero: the answers alone teach the LLM.
+    /// and of the slot and place heads; all zero: the answers alone teach the LLM.
     pub hop_weights: [f32; 3],
     pub slot_weight: f32,
+    pub place_weight: f32,
     /// Draw question kinds (and the level of each step) in proportion to their recent training
     /// error (plus `adaptive_floor`) instead of uniformly: steps go where answers are still wrong.
     pub adaptive: bool,
@@ -156,6 +157,7 @@ impl Default for VlmTrainConfig {
             tower_lr_scale: 1.0,
             hop_weights: [0.3, 0.5, 0.5],
             slot_weight: 0.3,
+            place_weight: 0.0,
             adaptive: true,
             adaptive_floor: 0.05,
             feature_noise: 0.1,
@@ -271,10 +273,11 @@ impl VlmTrainConfig {
         if self.resolution < m.patch_size as u32 {
             return bad("resolution", "must be at least the patch size");
         }
-        if self.hop_weights.iter().chain([&self.slot_weight]).any(|w| !(*w >= 0.0 && w.is_finite())) {
-            return bad("hop_weights", "must be finite and non-negative (and slot_weight too)");
+        if self.hop_weights.iter().chain([&self.slot_weight, &self.place_weight]).any(|w| !(*w >= 0.0 && w.is_finite()))
+        {
+            return bad("hop_weights", "must be finite and non-negative (and slot_weight, place_weight too)");
         }
-        let supervised = self.hop_weights.iter().chain([&self.slot_weight]).any(|w| *w > 0.0);
+        let supervised = self.hop_weights.iter().chain([&self.slot_weight, &self.place_weight]).any(|w| *w > 0.0);
         if supervised && (m.text_layers < hops::MIN_LAYERS || m.text_heads < hops::MIN_HEADS) {
             return bad(
                 "hop_weights",
@@ -497,6 +500,8 @@ pub struct LogLine {
     pub hop_loss: [f32; 3],
     #[serde(default)]
     pub slot_loss: f32,
+    #[serde(default)]
+    pub place_loss: f32,
     /// The auxiliary head's accuracy on the step's object tokens: colour, shape, size.
     #[serde(default)]
     pub tower_accuracy: [f32; 3],
@@ -575,6 +580,7 @@ pub struct StepLosses {
     /// dedupe, words, find ([`hops::HopKind::ALL`] order)
     pub hops: [f32; 3],
     pub slots: f32,
+    pub places: f32,
     /// The auxiliary head's accuracy on object tokens: colour, shape, size.
     pub tower: [f32; 3],
 }
@@ -605,9 +611,13 @@ impl Trainer {
         let vlm_dim = vlm.cfg.vision.hidden_size;
         let slot_classes = batch::SLOT_CLASSES.iter().sum();
         let slots = model::vlm::layers::init_linear(&mut rng, vlm.cfg.text.hidden_size, slot_classes, true, 0.02, &ad);
+        // its own generator: `rng` goes on to draw the data, which must not depend on this head
+        let (mut place_rng, place_classes) = (Rng::new(cfg.seed ^ 0x91ACE), 2 * batch::place_classes(&vlm));
+        let places =
+            model::vlm::layers::init_linear(&mut place_rng, vlm.cfg.text.hidden_size, place_classes, true, 0.02, &ad);
         Ok(Self {
             cfg: cfg.clone(),
-            model: Trainable { vlm, aux, slots },
+            model: Trainable { vlm, aux, slots, places },
             step: 0,
             spec,
             rng,
@@ -636,13 +646,14 @@ impl Trainer {
         }
         let labels = (self.cfg.label_weight > 0.0 || prob > 0.0).then_some(&self.labels);
         let cfg = &self.cfg;
-        let supervise = cfg.hop_weights.iter().chain([&cfg.slot_weight]).any(|w| *w > 0.0);
+        let supervise = cfg.hop_weights.iter().chain([&cfg.slot_weight, &cfg.place_weight]).any(|w| *w > 0.0);
         let noise = Some((cfg.feature_noise, &mut self.rng));
         let f = forward(&self.model, &p, labels, noise, supervise, &self.device);
         let mut loss = f.answer_loss.clone()
             + f.aux_loss.clone() * cfg.aux_weight
             + f.label_loss * cfg.label_weight
-            + f.slot_loss.clone() * cfg.slot_weight;
+            + f.slot_loss.clone() * cfg.slot_weight
+            + f.place_loss.clone() * cfg.place_weight;
         for (h, w) in f.hop_loss.iter().zip(cfg.hop_weights) {
             loss = loss + h.clone() * w;
         }
@@ -652,6 +663,7 @@ impl Trainer {
             aux: one(&f.aux_loss),
             hops: [one(&f.hop_loss[0]), one(&f.hop_loss[1]), one(&f.hop_loss[2])],
             slots: one(&f.slot_loss),
+            places: one(&f.place_loss),
             tower: batch::tower_accuracy(&p, f.aux_logits.clone()),
         };
         if !(losses.answer.is_finite() && losses.aux.is_finite() && losses.hops.iter().all(|h| h.is_finite())) {
@@ -740,6 +752,7 @@ pub fn train(
             aux_loss: losses.aux,
             hop_loss: losses.hops,
             slot_loss: losses.slots,
+            place_loss: losses.places,
             tower_accuracy: losses.tower,
             eval,
             eval_labels,

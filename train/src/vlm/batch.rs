@@ -256,8 +256,6 @@ struct Segment {
     kind: Kind,
 }
 
-/// The object each position of a sample's prompt prefix shows (`head` text tokens, then per image
-/// `g2` tokens and a newline row): its (colour, shape) label, `None` for anything else.
 /// The image column of every prefix position (`images` rows of `g2` tokens and a newline after
 /// `head` text tokens; `grid` columns).
 fn prefix_columns(head: usize, images: usize, g2: usize, grid: usize) -> Vec<Option<u8>> {
@@ -269,6 +267,8 @@ fn prefix_columns(head: usize, images: usize, g2: usize, grid: usize) -> Vec<Opt
     cols
 }
 
+/// The object each position of a sample's prompt prefix shows (`head` text tokens, then per image
+/// `g2` tokens and a newline row): its (colour, shape) label, `None` for anything else.
 fn prefix_identities(sample: &Sample, head: usize, g2: usize) -> Vec<Option<Ident>> {
     let mut ident = vec![None; head];
     for img in &sample.images {

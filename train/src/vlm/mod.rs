@@ -273,12 +273,10 @@ impl VlmTrainConfig {
         if self.resolution < m.patch_size as u32 {
             return bad("resolution", "must be at least the patch size");
         }
-        if self.hop_weights.iter().chain([&self.slot_weight, &self.place_weight]).any(|w| !(*w >= 0.0 && w.is_finite()))
-        {
+        if self.head_weights().any(|w| !(w >= 0.0 && w.is_finite())) {
             return bad("hop_weights", "must be finite and non-negative (and slot_weight, place_weight too)");
         }
-        let supervised = self.hop_weights.iter().chain([&self.slot_weight, &self.place_weight]).any(|w| *w > 0.0);
-        if supervised && (m.text_layers < hops::MIN_LAYERS || m.text_heads < hops::MIN_HEADS) {
+        if self.supervised() && (m.text_layers < hops::MIN_LAYERS || m.text_heads < hops::MIN_HEADS) {
             return bad(
                 "hop_weights",
                 &format!(
@@ -304,6 +302,16 @@ impl VlmTrainConfig {
         } else {
             1.0 - (t - self.label_tokens_until) / (self.label_tokens_end - self.label_tokens_until).max(1e-6)
         }
+    }
+
+    /// The weights of the supervised hops, then of the slot and place heads.
+    fn head_weights(&self) -> impl Iterator<Item = f32> + '_ {
+        self.hop_weights.iter().copied().chain([self.slot_weight, self.place_weight])
+    }
+
+    /// Whether any hop or head is supervised (the forward then records what they need).
+    pub fn supervised(&self) -> bool {
+        self.head_weights().any(|w| w > 0.0)
     }
 
     /// The learning rate of step `i`: in the tower's phase a warm-up to its peak (`tower_lr`, else
@@ -646,7 +654,7 @@ impl Trainer {
         }
         let labels = (self.cfg.label_weight > 0.0 || prob > 0.0).then_some(&self.labels);
         let cfg = &self.cfg;
-        let supervise = cfg.hop_weights.iter().chain([&cfg.slot_weight, &cfg.place_weight]).any(|w| *w > 0.0);
+        let supervise = cfg.supervised();
         let noise = Some((cfg.feature_noise, &mut self.rng));
         let f = forward(&self.model, &p, labels, noise, supervise, &self.device);
         let mut loss = f.answer_loss.clone()

@@ -346,6 +346,7 @@ fn broken_datasets_configs_and_arguments_are_refused() {
         (vec!["extract", "--data", &b, "--out", &o, "--masks", &o], "is not a directory"),
         (vec!["train", "--data", &b, "--out", &o, "--masks", &b], "is missing: every image needs a mask"),
         (vec!["ask", "--image", "x.png", "--run", &o, "What?"], "--image"),
+        (vec!["ask", "--image", "x.png", "--half", "What?"], "--backend flex"),
         (vec!["export-ply", "--run", &o, "--out", &o], "run"),
     ];
     for (args, want) in lines {

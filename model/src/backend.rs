@@ -11,14 +11,24 @@ pub enum Backend {
     Ndarray,
     /// burn-wgpu (CubeCL kernels): a GPU, or Mesa lavapipe on the CPU.
     Wgpu,
+    /// burn-flex on the CPU (burn-ndarray's successor: gemm matmuls, SIMD element-wise ops on all
+    /// threads, fused attention); the same CPU rasterizer as ndarray.
+    Flex,
 }
 
 impl Backend {
+    /// Whether this backend can hold a model's weights in f16 (`--half`): flex (gemm's f16
+    /// matmuls, accumulated in f32); burn-ndarray holds only f32 and f64.
+    pub fn holds_half(self) -> bool {
+        self == Backend::Flex
+    }
+
     /// The burn device of this backend.
     pub fn device(self) -> Device {
         match self {
             Backend::Ndarray => Device::ndarray(),
             Backend::Wgpu => Device::wgpu(DeviceKind::DefaultDevice),
+            Backend::Flex => Device::flex(),
         }
     }
 }
@@ -30,7 +40,8 @@ impl std::str::FromStr for Backend {
         match s {
             "ndarray" => Ok(Backend::Ndarray),
             "wgpu" => Ok(Backend::Wgpu),
-            other => Err(format!("unknown backend `{other}` (expected ndarray or wgpu)")),
+            "flex" => Ok(Backend::Flex),
+            other => Err(format!("unknown backend `{other}` (expected ndarray, wgpu or flex)")),
         }
     }
 }
@@ -40,6 +51,7 @@ impl std::fmt::Display for Backend {
         f.write_str(match self {
             Backend::Ndarray => "ndarray",
             Backend::Wgpu => "wgpu",
+            Backend::Flex => "flex",
         })
     }
 }

@@ -25,7 +25,7 @@ use burn::backend::autodiff::{
     ops::{Backward, Ops, OpsKind},
 };
 use burn::backend::{
-    Backend, ExtensionType, NdArray, TensorMetadata, backend_extension,
+    Backend, ExtensionType, Flex, NdArray, TensorMetadata, backend_extension,
     tensor::{FloatTensor, IntTensor},
 };
 use burn::tensor::{Shape, TensorData};
@@ -65,7 +65,7 @@ pub struct SplatSaved<B: Backend> {
 }
 
 /// Splatting as a backend operation.
-#[backend_extension(Cube, NdArray, Autodiff)]
+#[backend_extension(Cube, NdArray, Flex, Autodiff)]
 pub trait SplatBackend: Backend {
     /// Renders the Gaussians (see the module docs for shapes).
     fn splat_forward(
@@ -213,20 +213,27 @@ pub fn cpu_backward<B: Backend>(
     }
 }
 
-impl SplatBackend for NdArray {
-    fn splat_forward(inputs: SplatPrims<Self>, camera: Camera, config: RasterConfig) -> SplatFwdPrims<Self> {
-        cpu_forward::<Self>(inputs, &camera, &config)
-    }
+/// The CPU backends share the host rasterizer.
+macro_rules! cpu_splat_backend {
+    ($($backend:ty),+) => {$(
+        impl SplatBackend for $backend {
+            fn splat_forward(inputs: SplatPrims<Self>, camera: Camera, config: RasterConfig) -> SplatFwdPrims<Self> {
+                cpu_forward::<Self>(inputs, &camera, &config)
+            }
 
-    fn splat_backward(
-        inputs: SplatPrims<Self>,
-        saved: SplatSaved<Self>,
-        camera: Camera,
-        config: RasterConfig,
-    ) -> SplatPrims<Self> {
-        cpu_backward::<Self>(inputs, saved, &camera, &config)
-    }
+            fn splat_backward(
+                inputs: SplatPrims<Self>,
+                saved: SplatSaved<Self>,
+                camera: Camera,
+                config: RasterConfig,
+            ) -> SplatPrims<Self> {
+                cpu_backward::<Self>(inputs, saved, &camera, &config)
+            }
+        }
+    )+};
 }
+
+cpu_splat_backend!(NdArray, Flex);
 
 // ---------------------------------------------------------------------------------------------
 // Autodiff: forward on the inner backend, backward through `splat_backward`.

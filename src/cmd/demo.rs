@@ -103,6 +103,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         question: q.into(),
         sampling: SamplingArgs { max_new_tokens: 16, temperature: 0.0, top_p: 1.0, seed: 0 },
         backend: a.backend,
+        half: false,
     };
     // the questions the built-in model knows, on the first view the question file asks about
     // and at the first object it clicks (a held-out view: what the user sees from a new angle)

@@ -2,8 +2,8 @@
 //! tokens/s) on a model directory (default: the tiny parity fixture), per backend, and the
 //! parameter counts and memory of the published 0.5B and 7B models.
 //!
-//! cargo run --release -p eval --bin vlm-bench -- [--vlm DIR] [--backend ndarray|wgpu ...]
-//!     [--random 0.5b|7b] [--reference transformers.json]
+//! cargo run --release -p eval --bin vlm-bench -- [--vlm DIR] [--backend flex|ndarray|wgpu ...]
+//!     [--random 0.5b|7b] [--reference transformers.json] [--half]
 //!
 //! `--reference` reads the timings `eval/bench/transformers_vlm.py` wrote for transformers on
 //! the same machine and prints both side by side, as ratios (`eval/bench/vlm_vs_transformers.sh`
@@ -25,7 +25,7 @@ struct Args {
     /// Model directory (default: the built-in model).
     #[arg(long)]
     vlm: Option<PathBuf>,
-    #[arg(long, num_args = 1.., default_values_t = [Backend::Ndarray, Backend::Wgpu])]
+    #[arg(long, num_args = 1.., default_values_t = [Backend::Flex, Backend::Ndarray, Backend::Wgpu])]
     backend: Vec<Backend>,
     /// Timed repetitions.
     #[arg(long, default_value_t = 5)]
@@ -41,6 +41,22 @@ struct Args {
     /// printed beside this port's as ratios.
     #[arg(long)]
     reference: Option<PathBuf>,
+    /// Hold the linear layers and embeddings in f16, as checkpoints store them (half the memory;
+    /// activations, norms and attention stay f32). Needs a backend with f16 matmuls (flex, wgpu).
+    #[arg(long)]
+    half: bool,
+    /// With `--random`: write the random model to DIR as a llava-hf directory (bf16 weights, as
+    /// the published checkpoints) and stop, so that loading it (`--vlm DIR`) can be measured.
+    #[arg(long)]
+    save: Option<PathBuf>,
+}
+
+/// This process's peak resident memory so far in GiB (Linux `VmHWM`; `None` elsewhere).
+fn peak_rss_gib() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kb: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb / (1u64 << 20) as f64)
 }
 
 /// One backend's figures.
@@ -180,9 +196,30 @@ fn main() -> std::process::ExitCode {
             return std::process::ExitCode::FAILURE;
         }
     };
+    if let Some(out) = &a.save {
+        let Some(size) = &a.random else {
+            eprintln!("error: --save writes a --random model: pass --random 0.5b");
+            return std::process::ExitCode::FAILURE;
+        };
+        let saved = random_model(size, &burn::tensor::Device::flex())
+            .and_then(|m| train::vlm::save_model_as(&m, out, true).map_err(|e| model::Error::input(e.to_string())));
+        return match saved {
+            Ok(n) => {
+                println!("random {size}: {n} parameters (bf16) -> {}", out.display());
+                std::process::ExitCode::SUCCESS
+            }
+            Err(e) => {
+                eprintln!("error: {e}");
+                std::process::ExitCode::FAILURE
+            }
+        };
+    }
     match &a.random {
         Some(size) => println!("## vlm-bench: random-weight {size} (published configuration)"),
         None => println!("## vlm-bench: {}", dir.display()),
+    }
+    if a.half {
+        println!("(linear layers and embeddings held in f16)");
     }
     println!();
     println!(
@@ -192,12 +229,20 @@ fn main() -> std::process::ExitCode {
     println!("|---|---|---|---|---|---|---|");
     let mut timings = Vec::new();
     for backend in &a.backend {
+        if a.half && !backend.holds_half() {
+            println!("| {backend} | n/a: --half needs a backend with f16 matmuls (flex) | | | | | |");
+            continue;
+        }
         let r = catch_backend("benchmark", || -> model::Result<Timing> {
             let device = backend.device();
             let m = match &a.random {
+                Some(size) if a.half => random_model(size, &device)?.half(),
                 Some(size) => random_model(size, &device)?,
-                None => LlavaOnevision::load(&dir, &device)?,
+                None => LlavaOnevision::load_with(&dir, &device, a.half)?,
             };
+            if let Some(gib) = peak_rss_gib() {
+                eprintln!("{backend}: model ready, peak resident memory so far {gib:.2} GiB");
+            }
             let img = RgbImage::read_png(&dir.join("image_wide.png")).unwrap_or_else(|_| {
                 let (w, h) = (700, 300);
                 RgbImage::new(w, h, (0..w * h * 3).map(|i| (i * 37 % 256) as u8).collect())
@@ -266,6 +311,10 @@ fn main() -> std::process::ExitCode {
     if let Some(r) = &reference {
         print_reference(r, &timings);
     }
+    if let Some(gib) = peak_rss_gib() {
+        println!();
+        println!("Peak resident memory of this run: {gib:.2} GiB");
+    }
     println!();
     println!(
         "Parameters and memory (weights as loaded here in f32, and f16 as stored; KV cache for 4,096 tokens \
@@ -277,7 +326,10 @@ fn main() -> std::process::ExitCode {
             GiB | vision attn GiB |"
     );
     println!("|---|---|---|---|---|---|---|---|---|");
-    if let Ok(cfg) = LlavaOnevision::load(&dir, &burn::tensor::Device::ndarray()).map(|m| m.cfg) {
+    let cfg_path = dir.join("config.json");
+    if let Ok(cfg) =
+        model::vlm::config::read_json(&cfg_path).and_then(|v| model::vlm::config::parse_llava_config(&cfg_path, &v))
+    {
         memory_table("this directory", &cfg);
     }
     memory_table("llava-onevision-qwen2-0.5b-ov-hf", &LlavaConfig::onevision_0_5b());

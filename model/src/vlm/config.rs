@@ -205,7 +205,7 @@ pub struct ProcessorConfig {
     pub pinpoints: Vec<(usize, usize)>,
 }
 
-pub(crate) fn read_json(path: &Path) -> Result<Value, VlmError> {
+pub fn read_json(path: &Path) -> Result<Value, VlmError> {
     let text = std::fs::read_to_string(path).map_err(|e| VlmError::io(path, e))?;
     serde_json::from_str(&text).map_err(|e| VlmError::config(path, format!("not valid JSON: {e}")))
 }

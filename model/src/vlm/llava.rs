@@ -3,7 +3,7 @@
 
 use super::VlmError;
 use super::config::{LlavaConfig, ProcessorConfig, load_processor_config, parse_llava_config, read_json};
-use super::layers::{act, init_linear, load_linear, normal};
+use super::layers::{act, half_linear, init_linear, linear, load_linear, normal};
 use super::preprocess::{AnyresGrid, ImagePatches, RgbImage, anyres_views, base_view, num_image_tokens};
 use super::qwen2::{KvCache, Qwen2};
 use super::siglip::VisionTower;
@@ -27,7 +27,7 @@ pub struct Projector {
 impl Projector {
     /// `[..., vision D]` -> `[..., text D]`.
     pub fn forward(&self, x: Tensor<3>) -> Tensor<3> {
-        self.l2.forward(act(self.act, self.l1.forward(x)))
+        linear(&self.l2, act(self.act, linear(&self.l1, x)))
     }
 }
 
@@ -53,6 +53,12 @@ pub struct LlavaOnevision {
 impl LlavaOnevision {
     /// Loads `config.json`, the image processor config, `tokenizer.json` and the safetensors weights of `dir`.
     pub fn load(dir: &Path, device: &Device) -> Result<Self, VlmError> {
+        Self::load_with(dir, device, false)
+    }
+
+    /// [`LlavaOnevision::load`], with `half`: the linear layers and embeddings held in f16 as they
+    /// are read (half the memory of f32; activations, norms and attention stay f32).
+    pub fn load_with(dir: &Path, device: &Device, half: bool) -> Result<Self, VlmError> {
         if !dir.is_dir() {
             return Err(VlmError::config(
                 dir,
@@ -66,7 +72,7 @@ impl LlavaOnevision {
         let cfg = parse_llava_config(&cfg_path, &read_json(&cfg_path)?)?;
         let processor = load_processor_config(dir, &cfg)?;
         let tokenizer = ChatTokenizer::load(dir, cfg.image_token_id)?;
-        let w = WeightStore::open(dir, device)?;
+        let w = WeightStore::open(dir, device)?.with_half(half);
         let (dv, dt) = (cfg.vision.hidden_size, cfg.text.hidden_size);
         let projector = Projector {
             l1: load_linear(&w, "multi_modal_projector.linear_1", dv, dt, cfg.projector_bias)?,
@@ -111,6 +117,17 @@ impl LlavaOnevision {
             cfg,
             dir: PathBuf::new(),
         }
+    }
+
+    /// The same model with its linear layers and embeddings held in f16 (what
+    /// [`LlavaOnevision::load_with`] does while reading).
+    pub fn half(self) -> Self {
+        let projector = Projector {
+            l1: half_linear(self.projector.l1),
+            l2: half_linear(self.projector.l2),
+            act: self.projector.act,
+        };
+        Self { vision: self.vision.half(), llm: self.llm.half(), projector, ..self }
     }
 
     /// Every tensor under the llava-hf checkpoint names and layouts (what the loader reads).

@@ -6,12 +6,15 @@
 
 use super::VlmError;
 use super::config::TextConfig;
-use super::layers::{act, attention, attention_probs, init_linear, init_rms_norm, load_linear, load_rms_norm, normal};
+use super::layers::{
+    act, attention, attention_probs, half_linear, in_dtype, init_linear, init_rms_norm, linear, load_linear,
+    load_rms_norm, normal,
+};
 use super::weights::{HfTensors, WeightStore};
 use crate::rng::Rng;
 use burn::module::{Module, Param};
 use burn::nn::{Embedding, Linear, RmsNorm};
-use burn::tensor::{Device, Int, Tensor, TensorData};
+use burn::tensor::{DType, Device, Int, Tensor, TensorData};
 
 /// One decoder layer.
 #[derive(Module, Debug)]
@@ -109,7 +112,7 @@ impl Qwen2 {
             });
         }
         let embed = Embedding {
-            weight: Param::from_tensor(w.tensor(&format!("{PRE}.embed_tokens.weight"), [cfg.vocab_size, d])?),
+            weight: Param::from_tensor(w.hold(w.tensor(&format!("{PRE}.embed_tokens.weight"), [cfg.vocab_size, d])?)),
         };
         let lm_head = if cfg.tie_word_embeddings || !w.contains("language_model.lm_head.weight") {
             if !cfg.tie_word_embeddings {
@@ -175,11 +178,35 @@ impl Qwen2 {
         self.embed.weight.val().device()
     }
 
+    /// The same model with its linear layers and embeddings held in f16 (see [`linear`]).
+    pub fn half(self) -> Self {
+        let layers = self
+            .layers
+            .into_iter()
+            .map(|l| DecoderLayer {
+                q: half_linear(l.q),
+                k: half_linear(l.k),
+                v: half_linear(l.v),
+                o: half_linear(l.o),
+                gate: half_linear(l.gate),
+                up: half_linear(l.up),
+                down: half_linear(l.down),
+                ..l
+            })
+            .collect();
+        Self {
+            embed: Embedding { weight: Param::from_tensor(in_dtype(self.embed.weight.val(), DType::F16)) },
+            lm_head: self.lm_head.map(half_linear),
+            layers,
+            ..self
+        }
+    }
+
     /// Token embeddings `[T, D]` of `ids`.
     pub fn embed(&self, ids: &[u32]) -> Tensor<2> {
         let idx: Vec<i64> = ids.iter().map(|&i| i as i64).collect();
         let idx = Tensor::<1, Int>::from_data(TensorData::new(idx, [ids.len()]), &self.device());
-        self.embed.weight.val().select(0, idx)
+        in_dtype(self.embed.weight.val().select(0, idx), DType::F32)
     }
 
     /// cos and sin `[T, head_dim/2]` at `positions`, computed in f32 as transformers does.
@@ -238,9 +265,9 @@ impl Qwen2 {
             Probe::record(probe.as_deref_mut(), li, &x);
             let hs = l.ln1.forward(x.clone());
             let heads = |y: Tensor<3>, n: usize| y.reshape([b, t, n, hd]).swap_dims(1, 2);
-            let q = rotate(heads(l.q.forward(hs.clone()), h));
-            let mut k = rotate(heads(l.k.forward(hs.clone()), kvh));
-            let mut v = heads(l.v.forward(hs), kvh);
+            let q = rotate(heads(linear(&l.q, hs.clone()), h));
+            let mut k = rotate(heads(linear(&l.k, hs.clone()), kvh));
+            let mut v = heads(linear(&l.v, hs), kvh);
             if let Some(c) = cache.as_deref_mut() {
                 if let Some((pk, pv)) = c.layers.get(li) {
                     k = Tensor::cat(vec![pk.clone(), k], 2);
@@ -267,9 +294,9 @@ impl Qwen2 {
                 _ => attention(q, k, v, mask.clone()),
             };
             let o = o.reshape([b, h, t, hd]).swap_dims(1, 2).reshape([b, t, h * hd]);
-            x = x + l.o.forward(o);
+            x = x + linear(&l.o, o);
             let hs = l.ln2.forward(x.clone());
-            x = x + l.down.forward(act(self.cfg.act, l.gate.forward(hs.clone())) * l.up.forward(hs));
+            x = x + linear(&l.down, act(self.cfg.act, linear(&l.gate, hs.clone())) * linear(&l.up, hs));
         }
         Probe::record(probe, self.layers.len(), &x);
         self.norm.forward(x)
@@ -309,14 +336,16 @@ impl Qwen2 {
     /// Logits `[..., vocab]` of final hidden states `[..., D]`.
     pub fn logits<const N: usize>(&self, hidden: Tensor<N>) -> Tensor<N> {
         match &self.lm_head {
-            Some(h) => h.forward(hidden),
+            Some(h) => linear(h, hidden),
             None => {
                 let dims = hidden.dims();
                 let d = dims[N - 1];
                 let rows: usize = dims[..N - 1].iter().product();
                 // (E h^T)^T rather than h E^T: E^T as a strided view makes burn-ndarray copy the whole
                 // [vocab, D] embedding on every call (3.0 s vs 0.13 s per decode step at vocab 152k, D 896)
-                let y = self.embed.weight.val().matmul(hidden.reshape([rows, d]).transpose()).transpose();
+                let e = self.embed.weight.val();
+                let (held, dtype) = (e.dtype(), hidden.dtype());
+                let y = in_dtype(e.matmul(in_dtype(hidden.reshape([rows, d]), held).transpose()).transpose(), dtype);
                 let mut out = dims;
                 out[N - 1] = self.cfg.vocab_size;
                 y.reshape(out)

@@ -5,7 +5,7 @@
 
 use super::VlmError;
 use super::config::{LlavaConfig, VisionConfig};
-use super::layers::{act, attention, init_layer_norm, init_linear, load_layer_norm, load_linear};
+use super::layers::{act, attention, half_linear, init_layer_norm, init_linear, linear, load_layer_norm, load_linear};
 use super::weights::{HfTensors, WeightStore};
 use crate::rng::Rng;
 use burn::module::{Module, Param};
@@ -46,9 +46,9 @@ impl VisionTower {
         // [D, 3, p, p] -> [3 p p, D], rows ordered (channel, y, x) like the unfolded patches.
         let patch = Linear {
             weight: Param::from_tensor(
-                w.transposed(&format!("{PRE}.embeddings.patch_embedding.weight"), &[d, 3, p, p])?,
+                w.hold(w.transposed(&format!("{PRE}.embeddings.patch_embedding.weight"), &[d, 3, p, p])?),
             ),
-            bias: Some(Param::from_tensor(w.tensor(&format!("{PRE}.embeddings.patch_embedding.bias"), [d])?)),
+            bias: Some(Param::from_tensor(w.hold(w.tensor(&format!("{PRE}.embeddings.patch_embedding.bias"), [d])?))),
         };
         let mut layers = Vec::new();
         for i in 0..cfg.vision_layers_needed() {
@@ -121,6 +121,24 @@ impl VisionTower {
         }
     }
 
+    /// The same tower with its linear layers held in f16 (see [`linear`]).
+    pub fn half(self) -> Self {
+        let layers = self
+            .layers
+            .into_iter()
+            .map(|l| EncoderLayer {
+                q: half_linear(l.q),
+                k: half_linear(l.k),
+                v: half_linear(l.v),
+                out: half_linear(l.out),
+                fc1: half_linear(l.fc1),
+                fc2: half_linear(l.fc2),
+                ..l
+            })
+            .collect();
+        Self { patch: half_linear(self.patch), layers, ..self }
+    }
+
     /// `pixels`: `[B, 3, S, S]` normalised -> selected hidden state `[B, tokens, D]`.
     pub fn forward(&self, pixels: Tensor<4>) -> Tensor<3> {
         let [b, c, s, s2] = pixels.dims();
@@ -136,7 +154,7 @@ impl VisionTower {
         let used = g * p; // 378 of 384: the conv never reaches the last 6 rows/columns
         let pixels = if used < s { pixels.narrow(2, 0, used).narrow(3, 0, used) } else { pixels };
         let patches = pixels.reshape([b, 3, g, p, g, p]).permute([0, 2, 4, 1, 3, 5]).reshape([b * g * g, 3 * p * p]);
-        let x = self.patch.forward(patches);
+        let x = linear(&self.patch, patches);
         let mut x = x.reshape([b, g * g, d]) + self.position.val().unsqueeze_dim::<3>(0);
         let heads = self.cfg.num_heads;
         let hd = d / heads;
@@ -145,11 +163,11 @@ impl VisionTower {
         for l in &self.layers {
             let h = l.ln1.forward(x.clone());
             let o =
-                attention(split(l.q.forward(h.clone())), split(l.k.forward(h.clone())), split(l.v.forward(h)), None);
+                attention(split(linear(&l.q, h.clone())), split(linear(&l.k, h.clone())), split(linear(&l.v, h)), None);
             let o = o.reshape([b, heads, t, hd]).swap_dims(1, 2).reshape([b, t, d]);
-            x = x + l.out.forward(o);
+            x = x + linear(&l.out, o);
             let h = l.ln2.forward(x.clone());
-            x = x + l.fc2.forward(act(self.cfg.act, l.fc1.forward(h)));
+            x = x + linear(&l.fc2, act(self.cfg.act, linear(&l.fc1, h)));
         }
         x
     }

@@ -1,4 +1,4 @@
-//! The tensor-level op through burn: NdArray (plain and autodiff) against the CPU kernels, and
+//! The tensor-level op through burn: NdArray and Flex (plain and autodiff) against the CPU kernels, and
 //! wgpu (lavapipe on CPU in CI) against NdArray. wgpu runs in one test to pay kernel compilation
 //! once; set CHATSPLAT_REQUIRE_WGPU=1 to fail instead of skipping when no adapter exists.
 
@@ -79,35 +79,47 @@ fn grad_list(g: &Grads) -> [(&'static str, &Vec<f32>); 7] {
     ]
 }
 
-#[test]
-fn ndarray_forward_equals_the_cpu_kernel_bitwise() {
-    let cam = front_camera(97, 61, 70.0);
-    let scene = random_scene(200, 5, &cam, 3);
-    let device = Device::ndarray();
-    let (g, bg) = scene.gaussians(&device);
-    let out = splat(&g, &cam, bg, &SplatOptions::default()).unwrap();
-    let direct = cpu::forward(&scene.inputs(), &cam, &RasterConfig::default());
-    assert_eq!(host(out.features), direct.image);
-    assert_eq!(host(out.alpha), direct.alpha);
-    assert_eq!(host(out.depth), direct.depth);
-    let ids: Vec<i32> = out.top_id.into_data().convert::<i32>().to_vec::<i32>().unwrap();
-    assert_eq!(ids, direct.top_id);
+/// The CPU backends, which share the host rasterizer: burn-ndarray and its successor burn-flex.
+fn cpu_devices() -> [Device; 2] {
+    [Device::ndarray(), Device::flex()]
 }
 
 #[test]
-fn ndarray_autodiff_gradients_equal_the_hand_written_backward() {
+fn cpu_backends_forward_equals_the_cpu_kernel_bitwise() {
+    let cam = front_camera(97, 61, 70.0);
+    let scene = random_scene(200, 5, &cam, 3);
+    let direct = cpu::forward(&scene.inputs(), &cam, &RasterConfig::default());
+    for device in cpu_devices() {
+        let (g, bg) = scene.gaussians(&device);
+        let out = splat(&g, &cam, bg, &SplatOptions::default()).unwrap();
+        assert_eq!(host(out.features), direct.image, "{device:?}");
+        assert_eq!(host(out.alpha), direct.alpha, "{device:?}");
+        assert_eq!(host(out.depth), direct.depth, "{device:?}");
+        let ids: Vec<i32> = out.top_id.into_data().convert::<i32>().to_vec::<i32>().unwrap();
+        assert_eq!(ids, direct.top_id, "{device:?}");
+    }
+}
+
+#[test]
+fn cpu_backends_autodiff_gradients_equal_the_hand_written_backward() {
     let cam = front_camera(64, 40, 50.0);
     let scene = random_scene(60, 4, &cam, 9);
     let cfg = RasterConfig::default();
-    let (_, g) = render_and_grad(&scene, &cam, cfg, &Device::ndarray().autodiff(), 17);
+    for device in cpu_devices() {
+        let (_, g) = render_and_grad(&scene, &cam, cfg, &device.autodiff(), 17);
+        assert_gradients_equal_the_direct_backward(&scene, &cam, cfg, &g);
+    }
+}
+
+fn assert_gradients_equal_the_direct_backward(scene: &Scene, cam: &Camera, cfg: RasterConfig, g: &Grads) {
     // The same upstream gradient, straight into the CPU backward.
     let (h, w, c) = (cam.height as usize, cam.width as usize, 4);
     let mut r = Rng::new(17);
     let wf: Vec<f32> = (0..h * w * c).map(|_| r.range(-1.0, 1.0)).collect();
     let wa: Vec<f32> = (0..h * w).map(|_| r.range(-1.0, 1.0)).collect();
     let wd: Vec<f32> = (0..h * w).map(|_| r.range(-0.2, 0.2)).collect();
-    let f = cpu::forward(&scene.inputs(), &cam, &cfg);
-    let d = cpu::backward(&scene.inputs(), &cam, &cfg, &f.final_t, &f.n_visited, &wf, &wa, &wd);
+    let f = cpu::forward(&scene.inputs(), cam, &cfg);
+    let d = cpu::backward(&scene.inputs(), cam, &cfg, &f.final_t, &f.n_visited, &wf, &wa, &wd);
     let want = Grads {
         means: d.means,
         log_scales: d.log_scales,
@@ -117,7 +129,7 @@ fn ndarray_autodiff_gradients_equal_the_hand_written_backward() {
         background: d.background,
         screen_offsets: d.screen_offsets,
     };
-    for ((name, a), (_, b)) in grad_list(&g).into_iter().zip(grad_list(&want)) {
+    for ((name, a), (_, b)) in grad_list(g).into_iter().zip(grad_list(&want)) {
         assert_eq!(a, b, "{name}: autodiff result differs from the direct backward");
         assert!(a.iter().any(|&v| v != 0.0), "{name}: gradient is all zero");
     }

@@ -181,6 +181,41 @@ fn ndarray_matches_transformers() {
     parity(&Device::ndarray());
 }
 
+/// burn-flex: gemm matmuls and its fused (flash) attention, whose tiles the fixture's 729-token
+/// views exceed.
+#[test]
+fn flex_matches_transformers() {
+    parity(&Device::flex());
+}
+
+/// Weights held in f16 (`LlavaOnevision::load_with(.., half)`): every linear layer and the
+/// embeddings are f16 on the device, and the outputs stay within f16 rounding of transformers'
+/// f32 ones (relative to each output's scale), with the same greedy continuation.
+#[test]
+fn flex_with_f16_weights_stays_within_half_precision_of_transformers() {
+    let (r, _) = reference();
+    let dev = Device::flex();
+    let m = LlavaOnevision::load_with(&fixture(), &dev, true).unwrap();
+    assert_eq!(m.vision.layers[0].fc1.weight.val().dtype(), burn::tensor::DType::F16);
+    assert_eq!(m.llm.embed.weight.val().dtype(), burn::tensor::DType::F16);
+    let rel = |what: &str, got: &[f32], want: &[f32], tol: f32| {
+        assert_eq!(got.len(), want.len(), "{what}: length");
+        let scale = want.iter().fold(1e-6f32, |a, b| a.max(b.abs()));
+        let err = max_abs_diff(got, want);
+        eprintln!("{what} (f16 weights): max abs error {err:.2e} of scale {scale:.2e}");
+        assert!(err <= tol * scale, "{what}: max abs error {err} > {tol} x {scale}");
+    };
+    let p = m.preprocess(&image("image_wide.png"), false);
+    let feats = m.vision_features(m.pixels(&p));
+    rel("vision features", &host(feats.clone()), f32s(&r, "single_vision_features").1, 1e-2);
+    let packed = m.pack(m.projector.forward(feats), &p);
+    let embeds = m.embed_prompt(&ids(&r, "single_input_ids"), &[packed]).unwrap();
+    rel("logits", &host(m.logits(embeds.clone())), f32s(&r, "single_logits").1, 1e-2);
+    let want_ids = ids(&r, "single_greedy_ids");
+    let opts = GenerateOptions { max_new_tokens: want_ids.len(), ignore_stop: true, ..Default::default() };
+    assert_eq!(m.generate(embeds, &opts, |_| {}).unwrap().ids, want_ids, "greedy continuation");
+}
+
 #[test]
 fn wgpu_matches_transformers() {
     let Some(dev) = wgpu_device() else { return };

@@ -355,6 +355,11 @@ pub fn init_model(cfg: &VlmTrainConfig, device: &Device) -> Result<LlavaOnevisio
 /// `tokenizer.json`, `tokenizer_config.json`, `chat_template.jinja`, `generation_config.json`
 /// and `model.safetensors` (f32), each atomically.
 pub fn save_model(vlm: &LlavaOnevision, dir: &Path) -> Result<usize> {
+    save_model_as(vlm, dir, false)
+}
+
+/// [`save_model`], with the weights in bf16 when `bf16` (as the llava-hf checkpoints store them).
+pub fn save_model_as(vlm: &LlavaOnevision, dir: &Path, bf16: bool) -> Result<usize> {
     io::create_dir(dir)?;
     io::write_json(&dir.join("config.json"), &vlm.cfg.to_hf_json())?;
     io::write_json(&dir.join("processor_config.json"), &vlm.processor.to_hf_json(&vlm.cfg))?;
@@ -369,7 +374,7 @@ pub fn save_model(vlm: &LlavaOnevision, dir: &Path) -> Result<usize> {
     let gen_cfg = serde_json::json!({"eos_token_id": vlm.cfg.text.eos_token_ids, "pad_token_id": 0});
     io::write_json(&dir.join("generation_config.json"), &gen_cfg)?;
     let tensors = vlm.export();
-    tensors.write(&dir.join("model.safetensors"), false)?;
+    tensors.write(&dir.join("model.safetensors"), bf16)?;
     Ok(tensors.count())
 }
 

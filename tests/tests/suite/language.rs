@@ -402,3 +402,45 @@ fn wgpu_tokens_and_gradients_match_ndarray() {
     assert!(rel(&gf_cpu, &gf_gpu) < 1e-3);
     assert!(rel(&gw_cpu, &gw_gpu) < 1e-3);
 }
+
+/// Folding the last (linear) lifting layer into the patch convolution — what the encoder does when
+/// it is cheaper, as at LLaVA-OneVision's size — gives the plain encoder's tokens and gradients.
+#[test]
+fn the_folded_encoder_equals_the_plain_one_in_tokens_and_gradients() {
+    // hidden 4 < D 16: folding is cheaper (8,192 instead of 20,480 multiply-adds), as at real size
+    let cfg = LanguageConfig {
+        view_channels: 3,
+        object_channels: 3,
+        hidden: 4,
+        dim: 16,
+        grid: 4,
+        patch: 2,
+        ..LanguageConfig::default()
+    };
+    let dev = Device::ndarray().autodiff();
+    let enc = Encoder::new(&cfg, 5, &dev);
+    let mut rng = Rng::new(8);
+    let side = cfg.grid * cfg.patch;
+    let map: Vec<f32> = (0..side * side * 3).map(|_| rng.normal()).collect();
+    let weights: Vec<f32> = (0..cfg.tokens() * cfg.dim).map(|_| rng.normal()).collect();
+    let run = |folded: bool| {
+        let m = Tensor::<3>::from_data(TensorData::new(map.clone(), [side, side, 3]), &dev);
+        let t = if folded { enc.tokens_raw(m) } else { enc.tokens_raw_plain(m) };
+        let loss =
+            (t.clone() * Tensor::<2>::from_data(TensorData::new(weights.clone(), [cfg.tokens(), cfg.dim]), &dev)).sum();
+        let g = loss.backward();
+        let grad = |p: &burn::module::Param<Tensor<2>>| host(p.val().grad(&g).expect("a gradient"));
+        (host(t), grad(&enc.patch_weight), grad(&enc.lift_weights[1]), grad(&enc.lift_weights[0]))
+    };
+    let (a, b) = (run(true), run(false));
+    let close = |what: &str, x: &[f32], y: &[f32]| {
+        let scale = y.iter().fold(1e-6f32, |m, v| m.max(v.abs()));
+        let err = x.iter().zip(y).fold(0f32, |m, (p, q)| m.max((p - q).abs()));
+        assert!(err <= 1e-5 * scale.max(1.0), "{what}: folded and plain differ by {err} (scale {scale})");
+    };
+    assert_ne!(a.0, b.0, "the folded path was not taken (bitwise equal to the plain one)");
+    close("tokens", &a.0, &b.0);
+    close("patch weight gradient", &a.1, &b.1);
+    close("last lifting weight gradient", &a.2, &b.2);
+    close("first lifting weight gradient", &a.3, &b.3);
+}

@@ -10,7 +10,7 @@
 # `bench` unpacks the carried Vulkan loaders when the machine has none, then times, each with the
 # command line printed above its output (into OUTDIR, default $OUT or ./gpu-out):
 #   1. splat-bench: the splatting op on wgpu and ndarray, N = 1e5 and 1e6, C = 3 and 32;
-#   2. vlm-bench: the published 0.5B configuration (random weights), wgpu and ndarray;
+#   2. vlm-bench: the published 0.5B configuration (random weights), wgpu, flex and ndarray;
 #   3. geometry and language training s/iter on a built-in synthetic scene (wgpu), and
 #      lang-bench's views/s and objects/s (real-size encoder too) on it.
 # CHATSPLAT_GPU_QUICK=1 shrinks every size and trains on ndarray (a smoke run of the script on
@@ -88,9 +88,9 @@ bench() {
     {
         step "$bin/splat-bench" --n "$n" --c "$c" --res "$res" --impls wgpu,ndarray --max-secs 20
         if [ "$quick" = 1 ]; then
-            step "$bin/vlm-bench" --backend wgpu ndarray --reps 1 --decode 4
+            step "$bin/vlm-bench" --backend wgpu flex ndarray --reps 1 --decode 4
         else
-            step "$bin/vlm-bench" --random "$vlm" --backend wgpu ndarray --reps 2 --decode 16
+            step "$bin/vlm-bench" --random "$vlm" --backend wgpu flex ndarray --reps 2 --decode 16
         fi
         local scene=$out/scene run=$out/run
         rm -rf "$scene" "$run"

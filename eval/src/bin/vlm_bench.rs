@@ -42,7 +42,7 @@ struct Args {
     #[arg(long)]
     reference: Option<PathBuf>,
     /// Hold the linear layers and embeddings in f16, as checkpoints store them (half the memory;
-    /// activations, norms and attention stay f32). Needs a backend with f16 matmuls (flex, wgpu).
+    /// activations, norms and attention stay f32). Needs a backend that holds f16 (flex).
     #[arg(long)]
     half: bool,
     /// With `--random`: write the random model to DIR as a llava-hf directory (bf16 weights, as
@@ -201,8 +201,10 @@ fn main() -> std::process::ExitCode {
             eprintln!("error: --save writes a --random model: pass --random 0.5b");
             return std::process::ExitCode::FAILURE;
         };
-        let saved = random_model(size, &burn::tensor::Device::flex())
-            .and_then(|m| train::vlm::save_model_as(&m, out, true).map_err(|e| model::Error::input(e.to_string())));
+        let saved = match random_model(size, &burn::tensor::Device::flex()) {
+            Ok(m) => train::vlm::save_model_as(&m, out, true).map_err(|e| e.to_string()),
+            Err(e) => Err(e.to_string()),
+        };
         return match saved {
             Ok(n) => {
                 println!("random {size}: {n} parameters (bf16) -> {}", out.display());

@@ -31,8 +31,17 @@ pub fn half_linear(l: Linear) -> Linear {
 /// `x` is rounded to the weights' precision for the matmul (accumulated in f32 by the CPU's
 /// gemm) and the result returned in `x`'s.
 pub fn linear<const D: usize>(l: &Linear, x: Tensor<D>) -> Tensor<D> {
-    let (held, dtype) = (l.weight.val().dtype(), x.dtype());
-    if held == dtype { l.forward(x) } else { in_dtype(l.forward(in_dtype(x, held)), dtype) }
+    in_precision(l.weight.val().dtype(), x, |x| l.forward(x))
+}
+
+/// `f(x)` computed in the precision `held` of the weights `f` multiplies by, returned in `x`'s.
+pub fn in_precision<const D: usize, const E: usize>(
+    held: DType,
+    x: Tensor<D>,
+    f: impl FnOnce(Tensor<D>) -> Tensor<E>,
+) -> Tensor<E> {
+    let dtype = x.dtype();
+    if held == dtype { f(x) } else { in_dtype(f(in_dtype(x, held)), dtype) }
 }
 
 /// `t` in `dtype` (no op when it already is). f32 <-> f16 on flex is converted on the host with

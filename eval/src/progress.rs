@@ -34,6 +34,17 @@ impl Progress {
         Self { bar, label, unit, log }
     }
 
+    /// Starts over under a new label (the next stage of a run): count, rate and eta from zero.
+    pub fn restart(&mut self, label: impl Into<String>) {
+        self.label = label.into();
+        self.bar.reset();
+        self.bar.set_prefix(self.label.clone());
+        if let Some(log) = &mut self.log {
+            let now = Instant::now();
+            *log.get_mut().unwrap_or_else(|e| e.into_inner()) = (now, now);
+        }
+    }
+
     pub fn update(&self, done: usize, total: usize) {
         self.update_with(done, total, "");
     }

@@ -4,7 +4,8 @@ use crate::error::{Error, Result};
 use burn::tensor::{Device, DeviceKind};
 
 /// The compute backends chatsplat runs on.
-#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
+#[serde(rename_all = "lowercase")]
 pub enum Backend {
     /// burn-ndarray on the CPU (the CPU rasterizer, rayon over tiles).
     #[default]

@@ -3,7 +3,7 @@
 use eval::progress::Progress;
 use model::Backend;
 use std::path::PathBuf;
-use train::vlm::{EVAL_SEEDS, VlmTrainConfig, evaluate_model, train};
+use train::vlm::{EVAL_SEEDS, VlmTrainConfig, evaluate_model, train_from};
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -26,6 +26,10 @@ pub struct Args {
     /// seeds (exact match per level and question type).
     #[arg(long)]
     pub evaluate: Option<PathBuf>,
+    /// For a config with a `base` stage: read that stage's model from this directory (whose
+    /// train_config.json must equal the base) instead of training it.
+    #[arg(long)]
+    pub base_model: Option<PathBuf>,
     /// Held-out seeds for --evaluate (seeds `10000..10000 + n`).
     #[arg(long, default_value_t = 50)]
     pub eval_seeds: u64,
@@ -54,6 +58,16 @@ fn evaluate(dir: &std::path::Path, a: &Args) -> anyhow::Result<()> {
     Ok(())
 }
 
+/// The stages of `cfg`'s chain, and the number of the first one to train (1: the innermost base),
+/// after those `base_model` was trained with.
+fn stages(cfg: &VlmTrainConfig, base_model: Option<&std::path::Path>) -> (usize, usize) {
+    let chain: Vec<&VlmTrainConfig> = std::iter::successors(Some(cfg), |c| c.base.as_deref()).collect();
+    let read = |d: &std::path::Path| model::io::read_config::<VlmTrainConfig>(&d.join("train_config.json")).ok();
+    let done =
+        base_model.and_then(read).and_then(|b| chain.iter().position(|c| **c == b)).map_or(0, |i| chain.len() - i);
+    (chain.len(), done + 1)
+}
+
 pub fn run(a: Args) -> anyhow::Result<()> {
     if let Some(dir) = &a.evaluate {
         return evaluate(dir, &a);
@@ -70,10 +84,19 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     }
     super::check_config(a.config.as_deref(), cfg.validate())?;
     let device = a.backend.device();
-    let bar = Progress::new("train-vlm", "steps");
+    let (stages, first) = stages(&cfg, a.base_model.as_deref());
+    let mut stage = first;
+    let stage_label =
+        |i: usize| if stages > 1 { format!("train-vlm (stage {i} of {stages})") } else { "train-vlm".into() };
+    let (mut bar, mut stage_started) = (Progress::new(stage_label(stage), "steps"), false);
     let t0 = std::time::Instant::now();
     let acc = model::catch_backend("VLM training", || {
-        train(&cfg, &a.out, &device, |p| {
+        train_from(&cfg, &a.out, a.base_model.as_deref(), &device, |p| {
+            if p.step == 1 && stage_started {
+                stage += 1;
+                bar.restart(stage_label(stage));
+            }
+            stage_started = true;
             if let Some(e) = &p.eval {
                 let labels = p.eval_labels.as_ref().map(|l| format!(" (reading label tokens: {})", l.summary()));
                 eprintln!("\nstep {}: held-out exact match {}{}", p.step, e.summary(), labels.unwrap_or_default());
@@ -86,12 +109,12 @@ pub fn run(a: Args) -> anyhow::Result<()> {
                 "answer {answer:.3} aux {aux:.3} (tower sees colour {c}% shape {s}% size {z}%) \
                  hops {d:.2}/{w:.2}/{f:.2} slots {slots:.2} places {places:.2}"
             );
-            bar.update_with(p.step, cfg.steps, &msg);
+            bar.update_with(p.step, p.steps, &msg);
         })
     })??;
     println!(
-        "trained {} steps in {:.1} min; held-out exact match {} -> {}",
-        cfg.steps,
+        "trained {} stage(s) in {:.1} min; held-out exact match {} -> {}",
+        stages + 1 - first,
         t0.elapsed().as_secs_f64() / 60.0,
         acc.summary(),
         a.out.display()

@@ -89,6 +89,9 @@ pub struct VlmTrainConfig {
     pub questions_per_sample: usize,
     /// Train on these question kinds only (empty: all); for curricula and ablations.
     pub kinds: Vec<Kind>,
+    /// Extra weight of a question kind when a sample's questions are picked (absent: 1): more
+    /// of a kind that lags, e.g. `{"left_of": 4}`.
+    pub kind_weights: BTreeMap<Kind, f32>,
     /// Probability of a view, object and scene step.
     pub mix: [f32; 3],
     /// Weight of the auxiliary per-token loss.
@@ -133,6 +136,15 @@ pub struct VlmTrainConfig {
     pub eval_every: usize,
     /// Held-out seeds for evaluation during training.
     pub eval_seeds: u64,
+    /// The backend this stage trains on (absent: the command's `--backend`). Backends differ in
+    /// the last bits of a float, and a training run amplifies them, so a committed model's
+    /// configuration names the backend each of its stages was trained on.
+    pub backend: Option<model::Backend>,
+    /// A first stage: train this configuration (same model shape) before this one, which then
+    /// starts from its weights with a fresh optimizer and fresh heads (auxiliary, slot, place;
+    /// they are not part of the llava-hf files), so a fine-tuned model is reproduced from its seeds
+    /// by one command.
+    pub base: Option<Box<VlmTrainConfig>>,
 }
 
 impl Default for VlmTrainConfig {
@@ -148,6 +160,7 @@ impl Default for VlmTrainConfig {
             images_per_step: 16,
             questions_per_sample: 6,
             kinds: Vec::new(),
+            kind_weights: BTreeMap::new(),
             mix: [0.45, 0.3, 0.25],
             aux_weight: 0.5,
             tower_steps: 0,
@@ -168,6 +181,8 @@ impl Default for VlmTrainConfig {
             label_weight: 1.0,
             eval_every: 500,
             eval_seeds: 8,
+            backend: None,
+            base: None,
         }
     }
 }
@@ -270,6 +285,9 @@ impl VlmTrainConfig {
                 return bad("kinds", "must include a question kind of every level that mix draws");
             }
         }
+        if self.kind_weights.values().any(|w| !(*w > 0.0 && w.is_finite())) {
+            return bad("kind_weights", "must be finite and > 0");
+        }
         if self.resolution < m.patch_size as u32 {
             return bad("resolution", "must be at least the patch size");
         }
@@ -289,6 +307,12 @@ impl VlmTrainConfig {
         if !(self.adaptive_floor > 0.0 && self.adaptive_floor.is_finite()) {
             return bad("adaptive_floor", "must be > 0");
         }
+        if let Some(base) = &self.base {
+            if base.model != self.model {
+                return bad("base.model", "must be the same model shape as this stage's");
+            }
+            base.validate().map_err(|e| Error::input(format!("{e} (in base)")))?;
+        }
         Ok(())
     }
 
@@ -302,6 +326,13 @@ impl VlmTrainConfig {
         } else {
             1.0 - (t - self.label_tokens_until) / (self.label_tokens_end - self.label_tokens_until).max(1e-6)
         }
+    }
+
+    /// How likely a question of `kind` is to be picked from a sample's questions: its
+    /// `kind_weights` entry times, when adaptive, how much it still needs (`running`).
+    pub fn question_weight(&self, kind: Kind, running: &RunningAccuracy) -> f32 {
+        let w = self.kind_weights.get(&kind).copied().unwrap_or(1.0);
+        w * if self.adaptive { running.need(kind, self.adaptive_floor) } else { 1.0 }
     }
 
     /// The weights of the supervised hops, then of the slot and place heads.
@@ -504,6 +535,9 @@ pub fn evaluate_model(
 pub struct LogLine {
     /// Steps done.
     pub step: usize,
+    /// Steps of this stage (for progress; not logged).
+    #[serde(skip)]
+    pub steps: usize,
     pub seconds: f64,
     pub lr: f64,
     pub answer_loss: f32,
@@ -576,8 +610,7 @@ fn step_samples(
         if let Some(s) = spec.sample(kind, seed, rng) {
             let asked: Vec<Qa> = s.qas.iter().filter(|q| allowed(q.kind)).cloned().collect();
             if !asked.is_empty() {
-                let need = |k: Kind| if cfg.adaptive { running.need(k, cfg.adaptive_floor) } else { 1.0 };
-                let qs = pick_questions(&asked, cfg.questions_per_sample, need, rng);
+                let qs = pick_questions(&asked, cfg.questions_per_sample, |k| cfg.question_weight(k, running), rng);
                 out.push((s, qs));
             }
         }
@@ -617,6 +650,14 @@ impl Trainer {
         cfg.validate()?;
         let ad = device.clone().autodiff();
         let vlm = init_model(cfg, &ad)?;
+        Self::starting_from(cfg, vlm, &ad)
+    }
+
+    /// A trainer of `cfg` that starts from `vlm` (on `device`, which must carry autodiff), with
+    /// fresh heads and optimizer.
+    pub fn starting_from(cfg: &VlmTrainConfig, vlm: LlavaOnevision, device: &Device) -> Result<Self> {
+        cfg.validate()?;
+        let ad = device.clone();
         let spec = DataSpec::new(&vlm.cfg, &vlm.processor, cfg.resolution, cfg.margin);
         let classes: usize = AUX_CLASSES.iter().sum();
         let mut rng = Rng::new(cfg.seed ^ 0xDA7A);
@@ -730,13 +771,58 @@ impl Trainer {
 
 /// Trains a tabletop VLM from `cfg` on `device` (autodiff is added here) and writes it to `out`
 /// (with `train_config.json` and `training_log.json`); `progress` sees every step.
-pub fn train(
+pub fn train(cfg: &VlmTrainConfig, out: &Path, device: &Device, progress: impl FnMut(&LogLine)) -> Result<Accuracy> {
+    train_from(cfg, out, None, device, progress)
+}
+
+/// [`train`]; a configuration with a `base` stage trains it first into `out/base` (`progress`
+/// sees its steps too), and so on down the chain, except that the stage whose configuration is
+/// exactly `base_model`'s `train_config.json` is read from that model directory instead (it and
+/// the stages before it are not trained again).
+pub fn train_from(
     cfg: &VlmTrainConfig,
     out: &Path,
+    base_model: Option<&Path>,
     device: &Device,
     mut progress: impl FnMut(&LogLine),
 ) -> Result<Accuracy> {
-    let mut t = Trainer::new(cfg, device)?;
+    train_stages(cfg, out, base_model, device, &mut progress)
+}
+
+fn train_stages(
+    cfg: &VlmTrainConfig,
+    out: &Path,
+    base_model: Option<&Path>,
+    device: &Device,
+    progress: &mut dyn FnMut(&LogLine),
+) -> Result<Accuracy> {
+    cfg.validate()?;
+    let command_device = device;
+    let device = &cfg.backend.map_or_else(|| device.clone(), |b| b.device());
+    let mut t = match &cfg.base {
+        None => {
+            if let Some(dir) = base_model {
+                let path = dir.join("train_config.json");
+                return Err(Error::invalid(&path, "was trained with none of this configuration's stages"));
+            }
+            Trainer::new(cfg, device)?
+        }
+        Some(base) => {
+            let dir = match base_model {
+                Some(dir) if io::read_config::<VlmTrainConfig>(&dir.join("train_config.json"))? == **base => {
+                    dir.to_path_buf()
+                }
+                _ => {
+                    let dir = out.join("base");
+                    train_stages(base, &dir, base_model, command_device, progress)?;
+                    dir
+                }
+            };
+            let ad = device.clone().autodiff();
+            let vlm = LlavaOnevision::load(&dir, &ad)?;
+            Trainer::starting_from(cfg, vlm, &ad)?
+        }
+    };
     io::create_dir(out)?;
     io::write_json(&out.join("train_config.json"), cfg)?;
     let held = eval_samples(t.spec(), EVAL_SEEDS..EVAL_SEEDS + cfg.eval_seeds, 2, 2);
@@ -759,6 +845,7 @@ pub fn train(
         let evaluated = eval.is_some();
         let line = LogLine {
             step,
+            steps: cfg.steps,
             seconds: start.elapsed().as_secs_f64(),
             lr,
             answer_loss: losses.answer,

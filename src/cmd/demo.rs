@@ -75,7 +75,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     })?;
 
     step(4, "language field, encoder and scaling adjustment");
-    let mut language = LanguageTrainConfig { warmup_iters: (a.language_iters / 4).max(1), ..Default::default() };
+    let mut language = LanguageTrainConfig { warmup_iters: (a.language_iters / 10).max(1), ..Default::default() };
     language.field.patch = 0; // render maps at the views' own resolution
     let language_cfg = a.out.join("language_config.json");
     model::io::write_json(&language_cfg, &language)?;

@@ -11,6 +11,7 @@
 
 use crate::ckpt::AdamStates;
 use crate::geometry::view_at;
+use crate::schedule::warmup_cosine;
 use crate::teacher::{TeacherObject, TeacherSet};
 use burn::optim::{Adam, AdamConfig};
 use burn::tensor::{Device, Tensor, TensorData};
@@ -35,7 +36,10 @@ pub struct LanguageTrainConfig {
     pub seed: u64,
     /// Adam learning rate of the per-Gaussian language features (paper: 0.05).
     pub lr_features: f64,
-    /// Adam learning rate of the encoder and the scaling adjustment (paper: 0.05).
+    /// Adam learning rate of the encoder and the scaling adjustment (paper: 0.05). At 0.05 the
+    /// patch convolution overshoots during the warm-up of a short run (on the demo scene the loss
+    /// rose 2.5 -> 3.9 and 100 iterations never recovered: 54 % exact match against 90 % at
+    /// 0.02), so the default is 0.02; at 240 iterations both rates score alike (BENCHMARKS.md).
     pub lr_encoder: f64,
     /// Weight of the object loss (paper: 1).
     pub object_weight: f32,
@@ -47,6 +51,12 @@ pub struct LanguageTrainConfig {
     /// steps move every weight by about the learning rate, which at 0.05 throws the patch
     /// convolution (fan-in 14·14·D) far off before it recovers.
     pub warmup_iters: usize,
+    /// After the warm-up both learning rates follow a cosine from their value down to this
+    /// fraction of it at the last iteration (1: constant, as in the paper). Adam at a constant
+    /// rate keeps every feature moving by about the rate to the end; decaying it lets the field
+    /// settle: on held-out views of the synthetic scenes (240 iterations) the view tokens' L1 to
+    /// the teacher fell from 0.51 to 0.42 and ChatSplat's exact match rose 82 -> 89 % (BENCHMARKS.md).
+    pub lr_final: f64,
     /// Initialise the scaling adjustment from the teacher: `b` = per-token mean over the training
     /// views, `a` = per-channel standard deviation, so the encoder starts on standardised targets.
     pub init_scale_shift_from_teacher: bool,
@@ -63,10 +73,11 @@ impl Default for LanguageTrainConfig {
             iters: 3000,
             seed: 0,
             lr_features: 0.05,
-            lr_encoder: 0.05,
+            lr_encoder: 0.02,
             object_weight: 1.0,
             max_objects_per_step: 0,
             warmup_iters: 100,
+            lr_final: 0.05,
             init_scale_shift_from_teacher: true,
             checkpoint_every: 500,
             checkpoint_seconds: 300,
@@ -85,6 +96,9 @@ impl LanguageTrainConfig {
         }
         if !(self.object_weight.is_finite() && self.object_weight >= 0.0) {
             return bad("object_weight", "must be a finite number >= 0");
+        }
+        if !(self.lr_final.is_finite() && (0.0..=1.0).contains(&self.lr_final)) {
+            return bad("lr_final", "must be a number in [0, 1]");
         }
         Ok(())
     }
@@ -252,11 +266,7 @@ impl LanguageTrainer {
         let lv_v = host(lv)[0];
         let loss_v = host(loss.clone())[0];
         let grads = loss.backward();
-        let warm = if self.cfg.warmup_iters > 0 {
-            ((self.iter + 1) as f64 / self.cfg.warmup_iters as f64).min(1.0)
-        } else {
-            1.0
-        };
+        let warm = warmup_cosine(self.iter, self.cfg.iters, self.cfg.warmup_iters, 1.0, self.cfg.lr_final);
         let mut new = Vec::with_capacity(params.len());
         for ((name, value), (_, p)) in self.scene.field.named().into_iter().zip(&params) {
             let Some(g) = p.grad(&grads) else {

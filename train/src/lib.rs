@@ -9,5 +9,6 @@
 pub mod ckpt;
 pub mod geometry;
 pub mod language;
+pub mod schedule;
 pub mod teacher;
 pub mod vlm;

@@ -45,8 +45,13 @@ struct Args {
     resolution: u32,
     #[arg(long, default_value_t = 1500)]
     geometry_iters: usize,
+    /// Language-stage iterations (without `--language-config`, the first tenth warm up).
     #[arg(long, default_value_t = 600)]
     language_iters: usize,
+    /// A language-stage config.json (any `LanguageTrainConfig` fields, e.g. `{"lr_final": 1.0}`
+    /// for the paper's constant rate); `--language-iters` sets its iterations.
+    #[arg(long)]
+    language_config: Option<PathBuf>,
     /// Work directory (datasets, runs) and bench.json.
     #[arg(long, default_value = "out/vqa-bench")]
     out: PathBuf,
@@ -98,6 +103,21 @@ fn bench(a: &Args) -> Result<()> {
         None => model::vlm::default_model_dir()?,
     };
     let vlm = LlavaOnevision::load(&vlm_dir, &device)?;
+    let mut language_config = match &a.language_config {
+        Some(p) => {
+            let c: LanguageTrainConfig = model::io::read_config(p)?;
+            c.validate().map_err(|e| model::Error::invalid(p, e.to_string()))?;
+            c
+        }
+        None => {
+            let mut c = LanguageTrainConfig::default();
+            c.field.patch = 0; // maps at the views' own resolution
+            c.warmup_iters = (a.language_iters / 10).max(1);
+            c
+        }
+    };
+    language_config.iters = a.language_iters;
+    language_config.checkpoint_every = 0;
     model::io::create_dir(&a.out)?;
     let mut tallies: BTreeMap<Source, Tally> = BTreeMap::new();
     let mut seconds: BTreeMap<(Source, Level), (f64, usize)> = BTreeMap::new();
@@ -122,8 +142,7 @@ fn bench(a: &Args) -> Result<()> {
         let teacher = TeacherDir::new(data.join("teacher"));
         train::teacher::extract(&vlm, &data, &teacher, &Default::default(), |_| {}, |_, _| {})?;
         let lang = LanguageRun::new(run.dir.join("language"));
-        let mut lcfg = LanguageTrainConfig { iters: a.language_iters, checkpoint_every: 0, ..Default::default() };
-        lcfg.field.patch = 0;
+        let lcfg = language_config.clone();
         let bar = Progress::new(format!("seed {seed} language"), "it");
         let l = train::language::run(&run, &teacher.dir, &lang, lcfg, &device, false, |p| {
             if p.iter % 10 == 0 || p.iter == p.iters {
@@ -253,7 +272,8 @@ fn bench(a: &Args) -> Result<()> {
     }
     let json = serde_json::json!({
         "seeds": [a.first_seed, a.first_seed + a.seeds], "views": a.views, "resolution": a.resolution,
-        "geometry_iters": a.geometry_iters, "language_iters": a.language_iters, "backend": a.backend.to_string(),
+        "geometry_iters": a.geometry_iters, "language_iters": a.language_iters,
+        "language_config": language_config, "backend": a.backend.to_string(),
         "tallies": tallies
             .iter()
             .map(|(s, t)| (format!("{s:?}"), serde_json::to_value(t).unwrap()))

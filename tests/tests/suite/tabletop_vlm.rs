@@ -383,8 +383,12 @@ fn chatsplat_tokens_answer_a_held_out_scene_nearly_as_well_as_ground_truth_image
     train::geometry::run(&ds, None, &data, &load, &run, gcfg, &dev, false, |_| {}).unwrap();
     let teacher = TeacherDir::new(data.join("teacher"));
     train::teacher::extract(&vlm, &data, &teacher, &Default::default(), |_| {}, |_, _| {}).unwrap();
-    let mut lcfg =
-        train::language::LanguageTrainConfig { iters: E2E_LANGUAGE_ITERS, checkpoint_every: 0, ..Default::default() };
+    let mut lcfg = train::language::LanguageTrainConfig {
+        iters: E2E_LANGUAGE_ITERS,
+        warmup_iters: E2E_LANGUAGE_ITERS / 10,
+        checkpoint_every: 0,
+        ..Default::default()
+    };
     lcfg.field.patch = 0;
     let lang = LanguageRun::new(run.dir.join("language"));
     train::language::run(&run, &teacher.dir, &lang, lcfg, &dev, false, |_| {}).unwrap();
@@ -403,9 +407,10 @@ fn chatsplat_tokens_answer_a_held_out_scene_nearly_as_well_as_ground_truth_image
 
 const E2E_GEOMETRY_ITERS: usize = 300;
 const E2E_LANGUAGE_ITERS: usize = 150;
-/// Floors of the end-to-end test: when the model was committed, 75 questions, ground-truth images
-/// 0.933, ChatSplat tokens 0.867 (dev profile, ndarray; the model before it 0.867 and 0.853; with
-/// the smaller objects 67 questions, 0.821 and 0.791 and, one model earlier, 0.791 and 0.687, and
-/// 0.567 after 60 language iterations: the view tokens of small objects sharpen late, BENCHMARKS.md).
-const E2E_FLOOR: f64 = 0.80;
-const E2E_GAP: f64 = 0.10;
+/// Floors of the end-to-end test: with the language stage's cosine decay and slower encoder
+/// (2026-11-25), 75 questions, ground-truth images 0.933, ChatSplat tokens 0.947 (dev profile,
+/// ndarray; with the paper's constant rates 0.933 and 0.867; with the smaller objects and an
+/// earlier model 0.821 and 0.791, and 0.567 after 60 language iterations: the view tokens of small
+/// objects sharpen late, BENCHMARKS.md).
+const E2E_FLOOR: f64 = 0.85;
+const E2E_GAP: f64 = 0.05;

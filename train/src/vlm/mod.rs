@@ -15,6 +15,7 @@ pub mod batch;
 pub mod data;
 pub mod hops;
 
+use crate::schedule::warmup_cosine;
 use batch::{AUX_CLASSES, LabelTokens, Packed, Trainable, exact, forward, pack};
 use burn::module::Module;
 use burn::optim::{AdamWConfig, GradientsParams};
@@ -356,15 +357,6 @@ impl VlmTrainConfig {
         }
         warmup_cosine(i - self.tower_steps, self.steps - self.tower_steps, self.warmup, self.lr, self.min_lr)
     }
-}
-
-/// Step `i` of `steps`: a linear warm-up to `peak` over `warmup` steps, then a cosine to `floor`.
-fn warmup_cosine(i: usize, steps: usize, warmup: usize, peak: f64, floor: f64) -> f64 {
-    if i < warmup {
-        return peak * (i + 1) as f64 / warmup as f64;
-    }
-    let t = ((i - warmup) as f64 / (steps.saturating_sub(warmup)).max(1) as f64).min(1.0);
-    floor + 0.5 * (peak - floor) * (1.0 + (std::f64::consts::PI * t).cos())
 }
 
 /// A fresh training scene's seed (never a held-out one).

@@ -4,6 +4,7 @@
 //! Tokens go through the LLaVA-OneVision projector into the LLM.
 
 use crate::error::{Error, Result};
+use crate::language::FrozenEncoder;
 use crate::run::{GeometryRun, LanguageRun};
 use crate::scene::{LanguageScene, highlight, spread_views};
 use crate::vlm::{GenerateOptions, Generation, LlavaOnevision};
@@ -57,6 +58,8 @@ pub fn answer(
 pub struct ChatSession {
     pub vlm: LlavaOnevision,
     pub scene: LanguageScene,
+    /// The scene's encoder, frozen for inference (its fold formed once).
+    pub encoder: FrozenEncoder,
     pub language: LanguageRun,
     /// Cameras of the training views, then the held-out views.
     pub cameras: Vec<Camera>,
@@ -84,6 +87,7 @@ impl ChatSession {
         }
         Ok(Self {
             vlm,
+            encoder: FrozenEncoder::new(scene.field.encoder.clone()),
             scene,
             language,
             cameras: cams.all(),
@@ -111,25 +115,29 @@ impl ChatSession {
         Ok(spread_views(&self.cameras[..self.train_views], k))
     }
 
+    /// View-level tokens `[T, D]` of view `view`.
+    pub fn view_tokens(&self, view: usize) -> Result<Tensor<2>> {
+        let map = self.scene.view_map(&self.scene.field, self.camera(view)?)?;
+        Ok(self.encoder.forward_level(map, false))
+    }
+
     /// Tokens of a target. Object level errors when the pixel shows no object.
     pub fn tokens(&self, target: &Target) -> Result<TargetTokens> {
-        let field = &self.scene.field;
         match target {
-            Target::View(v) => {
-                Ok(TargetTokens { images: vec![self.scene.view_tokens(field, self.camera(*v)?)?], picked: None })
-            }
+            Target::View(v) => Ok(TargetTokens { images: vec![self.view_tokens(*v)?], picked: None }),
             Target::Scene(vs) => {
                 if vs.is_empty() {
                     return Err(Error::input("scene level needs at least one view"));
                 }
-                let images =
-                    vs.iter().map(|&v| self.scene.view_tokens(field, self.camera(v)?)).collect::<Result<_>>()?;
+                let images = vs.iter().map(|&v| self.view_tokens(v)).collect::<Result<_>>()?;
                 Ok(TargetTokens { images, picked: None })
             }
             Target::Object { view, x, y } => {
                 let cam = self.camera(*view)?;
-                match self.scene.object_tokens_at(cam, *x, *y)? {
-                    Some((id, t)) => Ok(TargetTokens { images: vec![t], picked: Some(id) }),
+                match self.scene.object_map_at(cam, *x, *y)? {
+                    Some((id, map)) => {
+                        Ok(TargetTokens { images: vec![self.encoder.forward_level(map, true)], picked: Some(id) })
+                    }
                     None => Err(Error::input(format!(
                         "pixel ({x}, {y}) of view {view} ({}x{}) shows no object",
                         cam.width, cam.height

@@ -78,11 +78,16 @@ impl LanguageScene {
         self.splats.render(cam, self.sh_degree, self.background)
     }
 
-    /// View-level tokens `[T, D]` of a view camera, with `field` (the scene's own or a copy being
-    /// trained).
+    /// The view-level map `[H, W, Cv]` of a view camera (rendered from its token camera), with
+    /// `field` (the scene's own or a copy being trained).
+    pub fn view_map(&self, field: &LanguageField, cam: &Camera) -> Result<Tensor<3>> {
+        self.render_map(field.view_features.val(), &self.cfg.view_camera(cam))
+    }
+
+    /// View-level tokens `[T, D]` of a view camera, with `field` (at inference, a
+    /// [`FrozenEncoder`](crate::language::FrozenEncoder) of [`view_map`](Self::view_map) is faster).
     pub fn view_tokens(&self, field: &LanguageField, cam: &Camera) -> Result<Tensor<2>> {
-        let map = self.render_map(field.view_features.val(), &self.cfg.view_camera(cam))?;
-        Ok(field.encoder.forward(map))
+        Ok(field.encoder.forward(self.view_map(field, cam)?))
     }
 
     /// The object crop camera and its `[r, r]` 0/1 mask of object `id`: the rendered identity,
@@ -106,14 +111,20 @@ impl LanguageScene {
         Ok((oc, mask))
     }
 
-    /// Object-level tokens `[T, D]` through an object's crop camera and mask, with `field`.
-    pub fn object_tokens_with(&self, field: &LanguageField, oc: &Camera, mask: &[f32]) -> Result<Tensor<2>> {
+    /// The masked object-level map `[r, r, Co]` through an object's crop camera and its `[r, r]`
+    /// mask, with `field`.
+    pub fn object_map(&self, field: &LanguageField, oc: &Camera, mask: &[f32]) -> Result<Tensor<3>> {
         let feats = field.object_features.val();
         let dev = feats.device();
         let size = oc.width as usize;
         let map = self.render_map(feats, oc)?;
         let mask = Tensor::<2>::from_data(TensorData::new(mask.to_vec(), [size, size]), &dev);
-        Ok(field.encoder.forward_level(mask_out(map, mask), true))
+        Ok(mask_out(map, mask))
+    }
+
+    /// Object-level tokens `[T, D]` through an object's crop camera and mask, with `field`.
+    pub fn object_tokens_with(&self, field: &LanguageField, oc: &Camera, mask: &[f32]) -> Result<Tensor<2>> {
+        Ok(field.encoder.forward_level(self.object_map(field, oc, mask)?, true))
     }
 
     /// The object under pixel `(x, y)` of `cam` and its crop box (from the rendered identity);
@@ -138,11 +149,12 @@ impl LanguageScene {
         Ok(crate::language::object_box(&ids, w, h, id, self.margin).map(|b| (id, b)))
     }
 
-    /// Object tokens for a click at `(x, y)`: `(id, tokens)`, `None` when the pixel shows no object.
-    pub fn object_tokens_at(&self, cam: &Camera, x: usize, y: usize) -> Result<Option<(u8, Tensor<2>)>> {
+    /// The masked object map of a click at `(x, y)` with the scene's field: `(id, map)`, `None`
+    /// when the pixel shows no object.
+    pub fn object_map_at(&self, cam: &Camera, x: usize, y: usize) -> Result<Option<(u8, Tensor<3>)>> {
         let Some((id, bbox)) = self.pick(cam, x, y)? else { return Ok(None) };
         let (oc, mask) = self.object_crop(cam, id, bbox)?;
-        Ok(Some((id, self.object_tokens_with(&self.field, &oc, &mask)?)))
+        Ok(Some((id, self.object_map(&self.field, &oc, &mask)?)))
     }
 
     /// The scene restricted to Gaussians `keep` (row indices): "model only what a scene needs".

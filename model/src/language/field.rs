@@ -2,6 +2,8 @@
 //! encoder (lifting 1x1 convolutions, the non-overlapping patch convolution, the scaling
 //! adjustment).
 
+#[cfg(doc)]
+use super::FrozenEncoder;
 use super::LanguageConfig;
 use crate::error::{Error, Result};
 use crate::rng::Rng;
@@ -140,10 +142,18 @@ impl Encoder {
         self.patch_rows(x, h, w).matmul(self.patch_weight.val()) + self.patch_bias.val()
     }
 
-    /// [`Encoder::tokens_raw`] with the last lifting layer `(W, b)` folded into the patch weight
-    /// `P` (`[patch², D, out]` by pixel): `P'[pixel] = W P[pixel]`, bias `b Σ_pixel P[pixel] + c`.
+    /// [`Encoder::tokens_raw`] with the last lifting layer folded into the patch convolution
+    /// (formed for this map: training changes the weights every step; [`FrozenEncoder`] forms it
+    /// once).
     fn tokens_raw_folded(&self, map: Tensor<3>) -> Tensor<2> {
-        let [h, w, _] = map.dims();
+        let (weight, bias) = self.folded_patch();
+        self.tokens_raw_with_fold(map, weight, bias)
+    }
+
+    /// The last lifting layer `(W, b)` folded into the patch weight `P` (`[patch², D, out]` by
+    /// pixel): `P'[pixel] = W P[pixel]` as `[patch² x hidden, out]` and the bias
+    /// `b Σ_pixel P[pixel] + c` as `[1, out]`.
+    pub(crate) fn folded_patch(&self) -> (Tensor<2>, Tensor<2>) {
         let (last_w, last_b) = (
             self.lift_weights.last().expect("folding needs a lifting layer").val(),
             self.lift_biases.last().expect("a bias per lifting layer").val(),
@@ -153,8 +163,15 @@ impl Encoder {
         let per_pixel = self.patch_weight.val().reshape([p * p, d, out]);
         let folded = last_w.unsqueeze_dim::<3>(0).matmul(per_pixel.clone()).reshape([p * p * hidden, out]);
         let bias = last_b.matmul(per_pixel.sum_dim(0).reshape([d, out])) + self.patch_bias.val();
+        (folded, bias)
+    }
+
+    /// Tokens before the scaling adjustment through a folded patch convolution
+    /// ([`folded_patch`](Self::folded_patch)): every lifting layer but the last, then one matmul.
+    pub(crate) fn tokens_raw_with_fold(&self, map: Tensor<3>, weight: Tensor<2>, bias: Tensor<2>) -> Tensor<2> {
+        let [h, w, _] = map.dims();
         let x = self.lift(map, false);
-        self.patch_rows(x, h, w).matmul(folded) + bias
+        self.patch_rows(x, h, w).matmul(weight) + bias
     }
 
     /// Encodes a rendered view-level map `[H, W, C]` into tokens `[T, D]` (scaling adjustment applied).
@@ -165,7 +182,12 @@ impl Encoder {
     /// As [`forward`](Self::forward) for a view-level (`object = false`) or a masked
     /// object-level map (the object pair `(a, b)` when the encoder has one).
     pub fn forward_level(&self, map: Tensor<3>, object: bool) -> Tensor<2> {
-        let t = self.tokens_raw(map);
+        self.adjust(self.tokens_raw(map), object)
+    }
+
+    /// The scaling adjustment `t * a + b` of a view-level or object-level token grid `t` `[T, D]`
+    /// (the object pair when the encoder has one; `t` unchanged without the adjustment).
+    pub(crate) fn adjust(&self, t: Tensor<2>, object: bool) -> Tensor<2> {
         let pair = match (object, &self.object_scale, &self.object_shift) {
             (true, Some(a), Some(b)) => Some((a, b)),
             _ => self.scale.as_ref().zip(self.shift.as_ref()),

@@ -15,13 +15,16 @@
 //! `Conv2d` layout.
 //!
 //! Modules: [`config`] (shapes and the token cameras), [`crop`] (the object crop rule shared with
-//! the teacher), [`field`] (the burn modules), [`export`] (Conv2d-layout weights).
+//! the teacher), [`field`] (the burn modules), [`frozen`] (the encoder at inference, its fold
+//! formed once), [`export`] (Conv2d-layout weights).
 
 pub mod config;
 pub mod crop;
 pub mod export;
 pub mod field;
+pub mod frozen;
 
 pub use config::LanguageConfig;
 pub use crop::{ObjectCrop, object_box, object_image, objects_in};
 pub use field::{Encoder, LanguageField, mask_out};
+pub use frozen::FrozenEncoder;

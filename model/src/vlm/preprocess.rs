@@ -34,7 +34,7 @@ impl RgbImage {
         Ok(Self::new(w, h, data))
     }
 
-    /// From linear [0,1] floats (HWC), rounded to 8 bits.
+    /// From linear `[0, 1]` floats (HWC), rounded to 8 bits.
     pub fn from_f32(width: usize, height: usize, rgb: &[f32]) -> Self {
         Self::new(width, height, rgb.iter().map(|v| (v.clamp(0.0, 1.0) * 255.0).round() as u8).collect())
     }

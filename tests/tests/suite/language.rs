@@ -444,3 +444,50 @@ fn the_folded_encoder_equals_the_plain_one_in_tokens_and_gradients() {
     close("last lifting weight gradient", &a.2, &b.2);
     close("first lifting weight gradient", &a.3, &b.3);
 }
+
+/// The encoder frozen for inference (its fold formed once, as `chat` and `lang-bench` use it)
+/// gives the trained encoder's tokens at view and object level (the per-level scaling adjustment
+/// included), with the built-in model's shapes (hidden = D) and without lifting (nothing folded).
+#[test]
+fn the_frozen_encoder_gives_the_trained_encoders_tokens() {
+    let dev = Device::ndarray();
+    let base = LanguageConfig {
+        view_channels: 3,
+        object_channels: 3,
+        hidden: 8,
+        dim: 8,
+        grid: 3,
+        patch: 2,
+        ..Default::default()
+    };
+    // without lifting the map itself has D channels
+    for cfg in [base.clone(), LanguageConfig { lifting: false, view_channels: 8, object_channels: 8, ..base }] {
+        let mut enc = Encoder::new(&cfg, 9, &dev);
+        // distinct view and object scaling pairs, so a swapped pair would show
+        let mut rng = Rng::new(4);
+        let mut param = |n: usize| {
+            let v: Vec<f32> = (0..n).map(|_| 1.0 + 0.5 * rng.normal()).collect();
+            burn::module::Param::from_tensor(Tensor::<2>::from_data(TensorData::new(v, [cfg.tokens(), cfg.dim]), &dev))
+        };
+        let n = cfg.tokens() * cfg.dim;
+        (enc.scale, enc.shift, enc.object_scale, enc.object_shift) =
+            (Some(param(n)), Some(param(n)), Some(param(n)), Some(param(n)));
+        let frozen = model::language::FrozenEncoder::new(enc.clone());
+        assert_eq!(frozen.is_folded(), cfg.lifting, "folded exactly when there is a lifting layer");
+        let side = cfg.grid * cfg.patch;
+        for object in [false, true] {
+            let map = random_map(side, side, cfg.view_channels, 11 + object as u64, &dev);
+            let (want, got) = (host(enc.forward_level(map.clone(), object)), host(frozen.forward_level(map, object)));
+            let scale = want.iter().fold(1f32, |m, v| m.max(v.abs()));
+            let err = want.iter().zip(&got).fold(0f32, |m, (p, q)| m.max((p - q).abs()));
+            assert!(
+                err <= 1e-5 * scale,
+                "lifting {}, object {object}: frozen differs by {err} (scale {scale})",
+                cfg.lifting
+            );
+        }
+        let map = random_map(side, side, cfg.view_channels, 12, &dev);
+        let (view, object) = (host(frozen.forward_level(map.clone(), false)), host(frozen.forward_level(map, true)));
+        assert_ne!(view, object, "view and object level use their own scaling pairs");
+    }
+}

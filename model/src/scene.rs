@@ -93,22 +93,9 @@ impl LanguageScene {
     /// The object crop camera and its `[r, r]` 0/1 mask of object `id`: the rendered identity,
     /// restricted to the crop's box inside the view's frame (as the teacher's image was).
     pub fn object_crop(&self, cam: &Camera, id: u8, bbox: [usize; 4]) -> Result<(Camera, Vec<f32>)> {
-        let crop = ObjectCrop::from_box(bbox, cam.width as usize, cam.height as usize);
         let oc = self.cfg.object_camera(cam, bbox);
         let ids = self.splats.render_ids(&oc)?;
-        let size = oc.width as usize;
-        let mut mask = vec![0f32; size * size];
-        for y in 0..size {
-            for x in 0..size {
-                // pixel centre back in view pixels
-                let vx = (x as f32 + 0.5 - oc.cx) / oc.fx * cam.fx + cam.cx;
-                let vy = (y as f32 + 0.5 - oc.cy) / oc.fy * cam.fy + cam.cy;
-                if crop.contains(vx, vy) && ids[y * size + x] == id {
-                    mask[y * size + x] = 1.0;
-                }
-            }
-        }
-        Ok((oc, mask))
+        Ok((oc, crop_mask(cam, &oc, bbox, &ids, id)))
     }
 
     /// The masked object-level map `[r, r, Co]` through an object's crop camera and its `[r, r]`
@@ -149,12 +136,18 @@ impl LanguageScene {
         Ok(crate::language::object_box(&ids, w, h, id, self.margin).map(|b| (id, b)))
     }
 
-    /// The masked object map of a click at `(x, y)` with the scene's field: `(id, map)`, `None`
-    /// when the pixel shows no object.
+    /// The masked object map `[r, r, Co]` of a click at `(x, y)` with the scene's field: `(id,
+    /// map)`, `None` when the pixel shows no object. The crop's identity and object features are
+    /// rendered in one pass: the same map as [`object_crop`](Self::object_crop) +
+    /// [`object_map`](Self::object_map), one render fewer.
     pub fn object_map_at(&self, cam: &Camera, x: usize, y: usize) -> Result<Option<(u8, Tensor<3>)>> {
         let Some((id, bbox)) = self.pick(cam, x, y)? else { return Ok(None) };
-        let (oc, mask) = self.object_crop(cam, id, bbox)?;
-        Ok(Some((id, self.object_map(&self.field, &oc, &mask)?)))
+        let oc = self.cfg.object_camera(cam, bbox);
+        let (ids, map) = self.splats.render_ids_with(&oc, self.field.object_features.val())?;
+        let size = oc.width as usize;
+        let mask = crop_mask(cam, &oc, bbox, &ids, id);
+        let mask = Tensor::<2>::from_data(TensorData::new(mask, [size, size]), &map.device());
+        Ok(Some((id, mask_out(map, mask))))
     }
 
     /// The scene restricted to Gaussians `keep` (row indices): "model only what a scene needs".
@@ -222,4 +215,24 @@ pub fn spread_views(cams: &[Camera], k: usize) -> Vec<usize> {
         }
     }
     chosen
+}
+
+/// The `[r, r]` 0/1 mask of object `id` in crop camera `oc` of view `cam`: pixels whose rendered
+/// identity `ids` (`[r * r]`, seen from `oc`) is `id` and whose centre, back in view pixels, lies
+/// inside the crop of `bbox` (as the teacher's image was cut).
+fn crop_mask(cam: &Camera, oc: &Camera, bbox: [usize; 4], ids: &[u8], id: u8) -> Vec<f32> {
+    let crop = ObjectCrop::from_box(bbox, cam.width as usize, cam.height as usize);
+    let size = oc.width as usize;
+    let mut mask = vec![0f32; size * size];
+    for y in 0..size {
+        for x in 0..size {
+            // pixel centre back in view pixels
+            let vx = (x as f32 + 0.5 - oc.cx) / oc.fx * cam.fx + cam.cx;
+            let vy = (y as f32 + 0.5 - oc.cy) / oc.fy * cam.fy + cam.cy;
+            if crop.contains(vx, vy) && ids[y * size + x] == id {
+                mask[y * size + x] = 1.0;
+            }
+        }
+    }
+    mask
 }

@@ -332,21 +332,39 @@ impl SplatModel {
     /// [`render`](Self::render) gives as `ids`, from the identity channels alone (no SH colours, 16
     /// channels instead of 19; object masks need nothing else).
     pub fn render_ids(&self, cam: &Camera) -> Result<Vec<u8>> {
+        Ok(self.render_ids_pass(cam, None)?.0)
+    }
+
+    /// [`render_ids`](Self::render_ids) and, in the same pass (one projection and binning instead
+    /// of two), per-Gaussian `extra` features `[N, C]` over a zero background: `(ids, [H, W, C])`,
+    /// the same map as a render of `extra` alone (compositing is per channel).
+    pub fn render_ids_with(&self, cam: &Camera, extra: Tensor<2>) -> Result<(Vec<u8>, Tensor<3>)> {
+        let (ids, map) = self.render_ids_pass(cam, Some(extra))?;
+        Ok((ids, map.expect("extra channels were rendered")))
+    }
+
+    fn render_ids_pass(&self, cam: &Camera, extra: Option<Tensor<2>>) -> Result<(Vec<u8>, Option<Tensor<3>>)> {
         let n = self.len();
         let dev = self.means.val().device();
+        let c = extra.as_ref().map_or(0, |e| e.dims()[1]);
+        let features = match extra {
+            Some(e) => Tensor::cat(vec![self.identity.val(), e], 1),
+            None => self.identity.val(),
+        };
         let g = Gaussians {
             means: self.means.val(),
             log_scales: self.log_scales.val(),
             quats: self.quats.val(),
             opacity_logits: self.opacity_logits.val().reshape([n]),
-            features: self.identity.val(),
+            features,
         };
         let opts = SplatOptions { validate: false, ..Default::default() };
-        let out = splat(&g, cam, Tensor::zeros([IDENTITY_DIM], &dev), &opts)?;
+        let out = splat(&g, cam, Tensor::zeros([IDENTITY_DIM + c], &dev), &opts)?;
         let [h, w, _] = out.features.dims();
-        let logits =
-            out.features.reshape([h * w, IDENTITY_DIM]).matmul(self.classifier_w.val()) + self.classifier_b.val();
-        Ok(class_ids(logits))
+        let identity = out.features.clone().narrow(2, 0, IDENTITY_DIM).reshape([h * w, IDENTITY_DIM]);
+        let logits = identity.matmul(self.classifier_w.val()) + self.classifier_b.val();
+        let map = (c > 0).then(|| out.features.narrow(2, IDENTITY_DIM, c));
+        Ok((class_ids(logits), map))
     }
 
     /// Renders RGB, the identity class of each pixel and alpha from `cam` at SH degree `degree`

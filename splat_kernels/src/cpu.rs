@@ -243,6 +243,15 @@ fn pixel_window(
     (lo(p.mean2d[0], hx, ox, w), hi(p.mean2d[0], hx, ox, w), lo(p.mean2d[1], hy, oy, h), hi(p.mean2d[1], hy, oy, h))
 }
 
+/// A power below which `opacity * exp(power) < alpha_min` for certain, with a margin (1e-3 in
+/// the exponent) far beyond the rounding of `exp` and `ln`: pixels below it are skipped without
+/// computing `exp`, and every pixel the alpha test keeps is still kept (bitwise the same result).
+/// `-inf` (no cut) when `alpha_min` is not positive.
+#[inline]
+fn power_cut(p: &Projected, cfg: &RasterConfig) -> f32 {
+    if cfg.alpha_min > 0.0 && p.opacity > 0.0 { (cfg.alpha_min / p.opacity).ln() - 1e-3 } else { f32::NEG_INFINITY }
+}
+
 struct TileFwd {
     image: Vec<f32>,
     alpha: Vec<f32>,
@@ -287,6 +296,7 @@ pub fn forward_binned(inp: &SplatInputsRef, cam: &Camera, cfg: &RasterConfig, b:
                 let p = b.projected[gid as usize].as_ref().expect("binned Gaussian is projected");
                 let f = &inp.features[gid as usize * c..(gid as usize + 1) * c];
                 let (wx0, wx1, wy0, wy1) = pixel_window(p, cfg, x0, y0, w, h);
+                let cut = power_cut(p, cfg);
                 for py in wy0..wy1 {
                     for px in wx0..wx1 {
                         let q = py * w + px;
@@ -295,7 +305,7 @@ pub fn forward_binned(inp: &SplatInputsRef, cam: &Camera, cfg: &RasterConfig, b:
                         }
                         let (power, _, _) =
                             eval_power(p, (x0 as usize + px) as f32 + 0.5, (y0 as usize + py) as f32 + 0.5);
-                        if power > 0.0 {
+                        if power > 0.0 || power < cut {
                             continue;
                         }
                         let alpha = (p.opacity * power.exp()).min(cfg.alpha_max);
@@ -423,6 +433,7 @@ pub fn backward(
                 let f = &inp.features[gid * c..(gid + 1) * c];
                 let slot = &mut buf[k * stride..(k + 1) * stride];
                 let (wx0, wx1, wy0, wy1) = pixel_window(p, cfg, x0, y0, w, h);
+                let cut = power_cut(p, cfg);
                 for py in wy0..wy1 {
                     for px in wx0..wx1 {
                         let q = py * w + px;
@@ -431,7 +442,7 @@ pub fn backward(
                         }
                         let (power, dx, dy) =
                             eval_power(p, (x0 as usize + px) as f32 + 0.5, (y0 as usize + py) as f32 + 0.5);
-                        if power > 0.0 {
+                        if power > 0.0 || power < cut {
                             continue;
                         }
                         let g = power.exp();

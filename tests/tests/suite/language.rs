@@ -299,8 +299,15 @@ fn end_to_end_language_field_chat_and_export() {
         // the click API agrees for one pixel of the first object
         if k == 0 {
             let p = (0..w * h).find(|&p| gt[p] >= model::data::synth::FIRST_OBJECT_ID && ids[p] == gt[p]).unwrap();
-            let picked = session.scene.pick(&v.camera, p % w, p / w).unwrap().unwrap();
-            assert_eq!(picked.0, gt[p]);
+            let (id, bbox) = session.scene.pick(&v.camera, p % w, p / w).unwrap().unwrap();
+            assert_eq!(id, gt[p]);
+            // a click renders the crop's identity and object features in one pass: the same masked
+            // map as the identity render + the feature render that training uses
+            let (_, one_pass) = session.scene.object_map_at(&v.camera, p % w, p / w).unwrap().unwrap();
+            let (oc, mask) = session.scene.object_crop(&v.camera, id, bbox).unwrap();
+            assert!(mask.iter().any(|&m| m > 0.0) && mask.contains(&0.0), "the mask cuts the object out");
+            let two_pass = session.scene.object_map(&session.scene.field, &oc, &mask).unwrap();
+            assert_eq!(host(one_pass), host(two_pass));
         }
     }
     eprintln!("held-out picking: {right}/{total} interior object pixels");

@@ -101,12 +101,7 @@ impl LanguageScene {
     /// The masked object-level map `[r, r, Co]` through an object's crop camera and its `[r, r]`
     /// mask, with `field`.
     pub fn object_map(&self, field: &LanguageField, oc: &Camera, mask: &[f32]) -> Result<Tensor<3>> {
-        let feats = field.object_features.val();
-        let dev = feats.device();
-        let size = oc.width as usize;
-        let map = self.render_map(feats, oc)?;
-        let mask = Tensor::<2>::from_data(TensorData::new(mask.to_vec(), [size, size]), &dev);
-        Ok(mask_out(map, mask))
+        Ok(cut_out(self.render_map(field.object_features.val(), oc)?, mask.to_vec()))
     }
 
     /// Object-level tokens `[T, D]` through an object's crop camera and mask, with `field`.
@@ -144,10 +139,7 @@ impl LanguageScene {
         let Some((id, bbox)) = self.pick(cam, x, y)? else { return Ok(None) };
         let oc = self.cfg.object_camera(cam, bbox);
         let (ids, map) = self.splats.render_ids_with(&oc, self.field.object_features.val())?;
-        let size = oc.width as usize;
-        let mask = crop_mask(cam, &oc, bbox, &ids, id);
-        let mask = Tensor::<2>::from_data(TensorData::new(mask, [size, size]), &map.device());
-        Ok(Some((id, mask_out(map, mask))))
+        Ok(Some((id, cut_out(map, crop_mask(cam, &oc, bbox, &ids, id)))))
     }
 
     /// The scene restricted to Gaussians `keep` (row indices): "model only what a scene needs".
@@ -235,4 +227,11 @@ fn crop_mask(cam: &Camera, oc: &Camera, bbox: [usize; 4], ids: &[u8], id: u8) ->
         }
     }
     mask
+}
+
+/// MaskOut of a square `[r, r, C]` object map by its `[r * r]` 0/1 mask.
+fn cut_out(map: Tensor<3>, mask: Vec<f32>) -> Tensor<3> {
+    let size = map.dims()[0];
+    let mask = Tensor::<2>::from_data(TensorData::new(mask, [size, size]), &map.device());
+    mask_out(map, mask)
 }

@@ -332,25 +332,24 @@ impl SplatModel {
     /// [`render`](Self::render) gives as `ids`, from the identity channels alone (no SH colours, 16
     /// channels instead of 19; object masks need nothing else).
     pub fn render_ids(&self, cam: &Camera) -> Result<Vec<u8>> {
-        Ok(self.render_ids_pass(cam, None)?.0)
+        Ok(self.render_identity(cam, self.identity.val())?.0)
     }
 
     /// [`render_ids`](Self::render_ids) and, in the same pass (one projection and binning instead
     /// of two), per-Gaussian `extra` features `[N, C]` over a zero background: `(ids, [H, W, C])`,
     /// the same map as a render of `extra` alone (compositing is per channel).
     pub fn render_ids_with(&self, cam: &Camera, extra: Tensor<2>) -> Result<(Vec<u8>, Tensor<3>)> {
-        let (ids, map) = self.render_ids_pass(cam, Some(extra))?;
-        Ok((ids, map.expect("extra channels were rendered")))
+        let c = extra.dims()[1];
+        let (ids, out) = self.render_identity(cam, Tensor::cat(vec![self.identity.val(), extra], 1))?;
+        Ok((ids, out.narrow(2, IDENTITY_DIM, c)))
     }
 
-    fn render_ids_pass(&self, cam: &Camera, extra: Option<Tensor<2>>) -> Result<(Vec<u8>, Option<Tensor<3>>)> {
+    /// Renders `features` `[N, 16 + C]` (the identity first) over a zero background: the identity
+    /// class of each pixel and the whole `[H, W, 16 + C]` map.
+    fn render_identity(&self, cam: &Camera, features: Tensor<2>) -> Result<(Vec<u8>, Tensor<3>)> {
         let n = self.len();
         let dev = self.means.val().device();
-        let c = extra.as_ref().map_or(0, |e| e.dims()[1]);
-        let features = match extra {
-            Some(e) => Tensor::cat(vec![self.identity.val(), e], 1),
-            None => self.identity.val(),
-        };
+        let width = features.dims()[1];
         let g = Gaussians {
             means: self.means.val(),
             log_scales: self.log_scales.val(),
@@ -359,12 +358,11 @@ impl SplatModel {
             features,
         };
         let opts = SplatOptions { validate: false, ..Default::default() };
-        let out = splat(&g, cam, Tensor::zeros([IDENTITY_DIM + c], &dev), &opts)?;
+        let out = splat(&g, cam, Tensor::zeros([width], &dev), &opts)?;
         let [h, w, _] = out.features.dims();
         let identity = out.features.clone().narrow(2, 0, IDENTITY_DIM).reshape([h * w, IDENTITY_DIM]);
         let logits = identity.matmul(self.classifier_w.val()) + self.classifier_b.val();
-        let map = (c > 0).then(|| out.features.narrow(2, IDENTITY_DIM, c));
-        Ok((class_ids(logits), map))
+        Ok((class_ids(logits), out.features))
     }
 
     /// Renders RGB, the identity class of each pixel and alpha from `cam` at SH degree `degree`

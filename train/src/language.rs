@@ -38,8 +38,9 @@ pub struct LanguageTrainConfig {
     pub lr_features: f64,
     /// Adam learning rate of the encoder and the scaling adjustment (paper: 0.05). At 0.05 the
     /// patch convolution overshoots during the warm-up of a short run (on the demo scene the loss
-    /// rose 2.5 -> 3.9 and 100 iterations never recovered: 54 % exact match against 90 % at
-    /// 0.02), so the default is 0.02; at 240 iterations both rates score alike (BENCHMARKS.md).
+    /// rose 2.5 -> 3.9 and 100 iterations never recovered: 47-54 % exact match with a warm-up of
+    /// 10-25 against 90 % at 0.02), so the default is 0.02; at 240 iterations on the bench scenes
+    /// 0.05 scores about a point higher (BENCHMARKS.md).
     pub lr_encoder: f64,
     /// Weight of the object loss (paper: 1).
     pub object_weight: f32,

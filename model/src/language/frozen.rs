@@ -29,11 +29,6 @@ impl FrozenEncoder {
         self.folded.is_some()
     }
 
-    /// The encoder as trained.
-    pub fn encoder(&self) -> &Encoder {
-        &self.encoder
-    }
-
     /// Encodes a view-level (`object = false`) or a masked object-level map.
     ///
     /// # Shapes

@@ -10,6 +10,7 @@
 //! [`qwen2::Qwen2`] -> logits `[T, vocab]`.
 
 pub mod config;
+pub mod cpu;
 pub mod generate;
 pub mod layers;
 pub mod llava;

@@ -7,7 +7,7 @@
 use super::VlmError;
 use super::config::TextConfig;
 use super::layers::{
-    act, attention, attention_probs, half_linear, in_dtype, in_precision, init_linear, init_rms_norm, linear,
+    Mask, attention, attention_probs, gated, half_linear, in_dtype, in_precision, init_linear, init_rms_norm, linear,
     load_linear, load_rms_norm, normal,
 };
 use super::weights::{HfTensors, WeightStore};
@@ -239,7 +239,7 @@ impl Qwen2 {
         &self,
         x: Tensor<3>,
         positions: &[usize],
-        mask: Option<Tensor<2>>,
+        mask: Mask,
         mut cache: Option<&mut KvCache>,
         mut probe: Option<&mut Probe>,
     ) -> Tensor<3> {
@@ -258,8 +258,11 @@ impl Qwen2 {
             Tensor::cat(vec![ra, rb], 3)
         };
         let rep = h / kvh;
-        // the mask of every query row of a grouped block (`rep` copies of `[T, past + T]`)
-        let mask = mask.map(|m| if rep > 1 { m.repeat_dim(0, rep) } else { m });
+        // an additive mask for every query row of a grouped block (`rep` copies of `[T, past + T]`)
+        let mask = match mask {
+            Mask::Additive(m) if rep > 1 => Mask::Additive(Box::new(m.repeat_dim(0, rep))),
+            m => m,
+        };
         let mut x = x;
         for (li, l) in self.layers.iter().enumerate() {
             Probe::record(probe.as_deref_mut(), li, &x);
@@ -287,16 +290,17 @@ impl Qwen2 {
             let (k, v) = (k.reshape([b * kvh, total, hd]), v.reshape([b * kvh, total, hd]));
             let o = match probe.as_deref_mut() {
                 Some(p) if p.layers.contains(&li) => {
-                    let (o, probs) = attention_probs(q, k, v, mask.clone());
+                    let m = mask.additive(rep * t, total, &q.device());
+                    let (o, probs) = attention_probs(q, k, v, m);
                     p.probs.push((li, probs.reshape([b * h * t, total])));
                     o
                 }
-                _ => attention(q, k, v, mask.clone()),
+                _ => attention(q, k, v, &mask),
             };
             let o = o.reshape([b, h, t, hd]).swap_dims(1, 2).reshape([b, t, h * hd]);
             x = x + linear(&l.o, o);
             let hs = l.ln2.forward(x.clone());
-            x = x + linear(&l.down, act(self.cfg.act, linear(&l.gate, hs.clone())) * linear(&l.up, hs));
+            x = x + linear(&l.down, gated(self.cfg.act, linear(&l.gate, hs.clone()), linear(&l.up, hs)));
         }
         Probe::record(probe, self.layers.len(), &x);
         self.norm.forward(x)
@@ -307,16 +311,9 @@ impl Qwen2 {
     pub fn forward(&self, x: Tensor<2>, cache: &mut KvCache) -> Tensor<2> {
         let [t, d] = x.dims();
         let start = cache.len;
-        let total = start + t;
-        let mask = (t > 1).then(|| {
-            let m: Vec<f32> = (0..t)
-                .flat_map(|i| (0..total).map(move |j| if j > start + i { f32::NEG_INFINITY } else { 0.0 }))
-                .collect();
-            Tensor::<2>::from_data(TensorData::new(m, [t, total]), &self.device())
-        });
-        let positions: Vec<usize> = (start..total).collect();
-        let out = self.run(x.unsqueeze_dim::<3>(0), &positions, mask, Some(cache), None);
-        cache.len = total;
+        let positions: Vec<usize> = (start..start + t).collect();
+        let out = self.run(x.unsqueeze_dim::<3>(0), &positions, Mask::Causal { past: start }, Some(cache), None);
+        cache.len = start + t;
         out.reshape([t, d])
     }
 
@@ -330,7 +327,7 @@ impl Qwen2 {
         mask: Tensor<2>,
         probe: Option<&mut Probe>,
     ) -> Tensor<3> {
-        self.run(x, positions, Some(mask), None, probe)
+        self.run(x, positions, Mask::Additive(Box::new(mask)), None, probe)
     }
 
     /// Logits `[..., vocab]` of final hidden states `[..., D]`.

@@ -5,7 +5,9 @@
 
 use super::VlmError;
 use super::config::{LlavaConfig, VisionConfig};
-use super::layers::{act, attention, half_linear, init_layer_norm, init_linear, linear, load_layer_norm, load_linear};
+use super::layers::{
+    Mask, act, attention, half_linear, init_layer_norm, init_linear, linear, load_layer_norm, load_linear,
+};
 use super::weights::{HfTensors, WeightStore};
 use crate::rng::Rng;
 use burn::module::{Module, Param};
@@ -162,8 +164,12 @@ impl VisionTower {
         let split = |y: Tensor<3>| y.reshape([b, t, heads, hd]).swap_dims(1, 2).reshape([b * heads, t, hd]);
         for l in &self.layers {
             let h = l.ln1.forward(x.clone());
-            let o =
-                attention(split(linear(&l.q, h.clone())), split(linear(&l.k, h.clone())), split(linear(&l.v, h)), None);
+            let o = attention(
+                split(linear(&l.q, h.clone())),
+                split(linear(&l.k, h.clone())),
+                split(linear(&l.v, h)),
+                &Mask::All,
+            );
             let o = o.reshape([b, heads, t, hd]).swap_dims(1, 2).reshape([b, t, d]);
             x = x + linear(&l.out, o);
             let h = l.ln2.forward(x.clone());

@@ -6,6 +6,7 @@
 
 use burn::tensor::{Device, Tensor, TensorData};
 use chatsplat_tests::{host, max_abs_diff, temp_dir, wgpu_device};
+use model::vlm::cpu::attention as cpu_attention;
 use model::vlm::preprocess::{anyres_views, base_view};
 use model::vlm::weights::WeightStore;
 use model::vlm::{GenerateOptions, LlavaOnevision, PromptLayout, RgbImage, Turn, VlmError, chat_template};
@@ -510,4 +511,71 @@ fn parameter_count_formula_matches_the_checkpoint() {
     let p7 = model::vlm::LlavaConfig::onevision_7b().parameter_counts();
     assert!((0.85e9..0.95e9).contains(&(p05.total() as f64)), "{p05:?}");
     assert!((7.9e9..8.1e9).contains(&(p7.total() as f64)), "{p7:?}");
+}
+
+/// The plain twin of `cpu_attention::attend`, in f64: every score, softmax over the keys each row
+/// may see, the weighted sum of the values.
+fn attend_reference(q: &[f32], k: &[f32], v: &[f32], s: cpu_attention::Shape, past: Option<usize>) -> Vec<f32> {
+    let rows = s.rep * s.t;
+    let mut out = vec![0f32; s.groups * rows * s.dv];
+    for g in 0..s.groups {
+        for r in 0..rows {
+            let seen = past.map_or(s.keys, |p| p + r % s.t + 1);
+            let qr = &q[(g * rows + r) * s.d..][..s.d];
+            let scores: Vec<f64> = (0..seen)
+                .map(|j| {
+                    let kj = &k[(g * s.keys + j) * s.d..][..s.d];
+                    qr.iter().zip(kj).map(|(a, b)| *a as f64 * *b as f64).sum::<f64>() / (s.d as f64).sqrt()
+                })
+                .collect();
+            let max = scores.iter().cloned().fold(f64::NEG_INFINITY, f64::max);
+            let w: Vec<f64> = scores.iter().map(|x| (x - max).exp()).collect();
+            let sum: f64 = w.iter().sum();
+            for c in 0..s.dv {
+                let o: f64 = (0..seen).map(|j| w[j] * v[(g * s.keys + j) * s.dv + c] as f64).sum();
+                out[(g * rows + r) * s.dv + c] = (o / sum) as f32;
+            }
+        }
+    }
+    out
+}
+
+/// The CPU inference kernel against its f64 twin: a vision-tower-like call over several row
+/// blocks, grouped causal prefill, causal after cached keys, one decode row, and scores in the
+/// hundreds (a softmax without its max subtracted would overflow); then through `layers::attention`
+/// on ndarray and flex against burn's composed softmax with the same mask built as a tensor.
+#[test]
+fn cpu_attention_matches_an_f64_reference_and_burns_softmax() {
+    use cpu_attention::Shape;
+    use model::vlm::layers::{Mask, attention, attention_probs};
+    let mut rng = model::rng::Rng::new(7);
+    let mut draw = |n: usize, amp: f32| (0..n).map(|_| amp * rng.normal()).collect::<Vec<f32>>();
+    let cases = [
+        ("vision-like: 150 rows in 3 blocks", Shape { groups: 3, rep: 1, t: 150, keys: 150, d: 16, dv: 16 }, None, 1.0),
+        ("grouped causal prefill", Shape { groups: 2, rep: 3, t: 70, keys: 70, d: 8, dv: 12 }, Some(0), 1.0),
+        ("causal after 67 cached keys", Shape { groups: 2, rep: 2, t: 5, keys: 72, d: 8, dv: 8 }, Some(67), 1.0),
+        ("decode: one row", Shape { groups: 2, rep: 7, t: 1, keys: 41, d: 8, dv: 8 }, Some(40), 1.0),
+        ("scores in the hundreds", Shape { groups: 1, rep: 2, t: 66, keys: 66, d: 16, dv: 4 }, Some(0), 12.0),
+    ];
+    for (what, s, past, amp) in cases {
+        let rows = s.rep * s.t;
+        let (q, k, v) =
+            (draw(s.groups * rows * s.d, amp), draw(s.groups * s.keys * s.d, amp), draw(s.groups * s.keys * s.dv, 1.0));
+        let mut got = vec![f32::NAN; s.groups * rows * s.dv];
+        cpu_attention::attend(&q, &k, &v, s, 1.0 / (s.d as f32).sqrt(), past, &mut got);
+        let want = attend_reference(&q, &k, &v, s, past);
+        assert!(got.iter().all(|x| x.is_finite()), "{what}: non-finite output");
+        assert_close(what, &got, &want, 2e-5);
+
+        let mask = past.map_or(Mask::All, |past| Mask::Causal { past });
+        for dev in [Device::ndarray(), Device::flex()] {
+            let t3 = |x: &[f32], n: usize, w: usize| {
+                Tensor::<3>::from_data(TensorData::new(x.to_vec(), [s.groups, n, w]), &dev)
+            };
+            let (tq, tk, tv) = (t3(&q, rows, s.d), t3(&k, s.keys, s.d), t3(&v, s.keys, s.dv));
+            let fast = host(attention(tq.clone(), tk.clone(), tv.clone(), &mask));
+            let composed = host(attention_probs(tq, tk, tv, mask.additive(rows, s.keys, &dev)).0);
+            assert_close(&format!("{what}: layers::attention vs burn's softmax on {dev:?}"), &fast, &composed, 2e-5);
+        }
+    }
 }

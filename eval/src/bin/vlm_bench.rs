@@ -49,6 +49,11 @@ struct Args {
     /// the published checkpoints) and stop, so that loading it (`--vlm DIR`) can be measured.
     #[arg(long)]
     save: Option<PathBuf>,
+    /// One pass of each stage without the warm-up passes, the prefill's cache reused for the
+    /// decode (for the 7B model on a CPU, where a 2k-token prefill takes minutes; GPU backends
+    /// want the warm-up for their kernels' compilation). Implies `--reps 1`.
+    #[arg(long)]
+    cold: bool,
 }
 
 /// This process's peak resident memory so far in GiB (Linux `VmHWM`; `None` elsewhere).
@@ -132,7 +137,7 @@ fn print_reference(r: &Reference, timings: &[(Backend, Timing)]) {
 }
 
 /// A random-weight LLaVA-OneVision of the published `size` configuration.
-fn random_model(size: &str, device: &burn::tensor::Device) -> model::Result<LlavaOnevision> {
+fn random_model(size: &str, device: &burn::tensor::Device, half: bool) -> model::Result<LlavaOnevision> {
     use model::vlm::tokenizer::{ChatTokenizer, word_level_tokenizer_json};
     let mut cfg = match size {
         "0.5b" => LlavaConfig::onevision_0_5b(),
@@ -150,7 +155,7 @@ fn random_model(size: &str, device: &burn::tensor::Device) -> model::Result<Llav
         resample: 3,
         pinpoints: cfg.pinpoints.clone(),
     };
-    Ok(LlavaOnevision::init(cfg, processor, tokenizer, 0, device))
+    Ok(LlavaOnevision::init_with(cfg, processor, tokenizer, 0, device, half))
 }
 
 fn sync(t: Tensor<2>) {
@@ -201,7 +206,7 @@ fn main() -> std::process::ExitCode {
             eprintln!("error: --save writes a --random model: pass --random 0.5b");
             return std::process::ExitCode::FAILURE;
         };
-        let saved = match random_model(size, &burn::tensor::Device::flex()) {
+        let saved = match random_model(size, &burn::tensor::Device::flex(), false) {
             Ok(m) => train::vlm::save_model_as(&m, out, true).map_err(|e| e.to_string()),
             Err(e) => Err(e.to_string()),
         };
@@ -238,8 +243,7 @@ fn main() -> std::process::ExitCode {
         let r = catch_backend("benchmark", || -> model::Result<Timing> {
             let device = backend.device();
             let m = match &a.random {
-                Some(size) if a.half => random_model(size, &device)?.half(),
-                Some(size) => random_model(size, &device)?,
+                Some(size) => random_model(size, &device, a.half)?,
                 None => LlavaOnevision::load_with(&dir, &device, a.half)?,
             };
             if let Some(gib) = peak_rss_gib() {
@@ -249,42 +253,45 @@ fn main() -> std::process::ExitCode {
                 let (w, h) = (700, 300);
                 RgbImage::new(w, h, (0..w * h * 3).map(|i| (i * 37 % 256) as u8).collect())
             });
+            let reps = if a.cold { 1 } else { a.reps };
+            let warm_up = |f: &dyn Fn()| {
+                if !a.cold {
+                    f()
+                }
+            };
             // Vision tower alone, one base view.
             let one = m.preprocess(&img, true);
             let px = m.pixels(&one);
-            sync(m.vision_features(px.clone()).reshape([-1, 1]).narrow(0, 0, 1)); // warm-up (kernel compilation)
+            let tower = || sync(m.vision_features(px.clone()).reshape([-1, 1]).narrow(0, 0, 1));
+            warm_up(&tower); // kernel compilation
             let t0 = Instant::now();
-            for _ in 0..a.reps {
-                sync(m.vision_features(px.clone()).reshape([-1, 1]).narrow(0, 0, 1));
-            }
-            let vis = t0.elapsed().as_secs_f64() / a.reps as f64;
+            (0..reps).for_each(|_| tower());
+            let vis = t0.elapsed().as_secs_f64() / reps as f64;
             // Whole anyres image -> packed embeddings.
             let p = m.preprocess(&img, false);
-            sync(m.image_embeds(&p));
+            warm_up(&|| sync(m.image_embeds(&p)));
             let t0 = Instant::now();
-            for _ in 0..a.reps {
-                sync(m.image_embeds(&p));
-            }
-            let anyres = t0.elapsed().as_secs_f64() / a.reps as f64;
-            // Prefill of the full prompt and decode.
+            (0..reps).for_each(|_| sync(m.image_embeds(&p)));
+            let anyres = t0.elapsed().as_secs_f64() / reps as f64;
+            // Prefill of the full prompt (a KV cache filled and the first token picked), then decode
+            // timed on its own (not total minus prefill, whose jitter would swamp it): greedy steps
+            // of one token each after that cache.
             let embeds = m.prompt_embeds("What is on the table?", &[m.image_embeds(&p)])?;
             let prompt_tokens = embeds.dims()[0];
-            let opts = GenerateOptions { max_new_tokens: 1, ignore_stop: true, ..Default::default() };
-            m.generate(embeds.clone(), &opts, |_| {})?;
-            let t0 = Instant::now();
-            for _ in 0..a.reps {
-                m.generate(embeds.clone(), &opts, |_| {})?;
-            }
-            let prefill = t0.elapsed().as_secs_f64() / a.reps as f64;
-            // Decode timed on its own (not total minus prefill, whose jitter would swamp it):
-            // the prompt fills a KV cache, then greedy steps of one token each.
-            let mut decode = f64::INFINITY;
             let greedy = GenerateOptions { temperature: 0.0, ..Default::default() };
             let mut rng = model::rng::Rng::new(0);
-            for _ in 0..a.reps {
+            // as `generate` does: logits of the last position only
+            let last_logits = |cache: &mut model::vlm::qwen2::KvCache| {
+                let h = m.llm.forward(embeds.clone(), cache);
+                last_row(m.llm.logits(h.narrow(0, prompt_tokens - 1, 1)))
+            };
+            warm_up(&|| drop(last_logits(&mut Default::default())));
+            let (mut prefill, mut decode) = (0.0, f64::INFINITY);
+            for _ in 0..reps {
+                let t0 = Instant::now();
                 let mut cache = model::vlm::qwen2::KvCache::default();
-                let h = m.llm.forward(embeds.clone(), &mut cache);
-                let mut next = pick(&last_row(m.llm.logits(h)), &greedy, &mut rng);
+                let mut next = pick(&last_logits(&mut cache), &greedy, &mut rng);
+                prefill += t0.elapsed().as_secs_f64() / reps as f64;
                 let t0 = Instant::now();
                 for _ in 0..a.decode {
                     let h = m.llm.forward(m.llm.embed(&[next]), &mut cache);

@@ -223,6 +223,24 @@ impl Mask {
     }
 }
 
+impl Mask {
+    /// The form [`attention`] will use for `rows` query rows against `keys` keys of tensors like
+    /// `like`, found once for every layer of a forward: a causal mask stays causal where the host
+    /// kernel takes it, a decode step (one position after the cache) sees every key, and otherwise
+    /// it becomes the additive mask (built here, not uploaded again per layer).
+    pub fn for_layers<const D: usize>(self, like: &Tensor<D>, rows: usize, keys: usize) -> Mask {
+        match self {
+            Mask::Causal { .. } if on_host(like) && rows >= HOST_ATTENTION_ROWS => self,
+            Mask::Causal { past } if keys - past == 1 => Mask::All,
+            Mask::Causal { .. } => match self.additive(rows, keys, &like.device()) {
+                Some(m) => Mask::Additive(Box::new(m)),
+                None => Mask::All,
+            },
+            m => m,
+        }
+    }
+}
+
 /// Whether work on `x` runs in the [`cpu`] kernels (on the host): CPU inference in f32 (burn's
 /// autodiff needs its own ops, wgpu keeps the data on its device).
 fn on_host<const D: usize>(x: &Tensor<D>) -> bool {
@@ -272,7 +290,9 @@ pub fn attention(q: Tensor<3>, k: Tensor<3>, v: Tensor<3>, mask: &Mask) -> Tenso
 /// Query rows (per key/value head) from which CPU attention runs in [`cpu::attention`]: below
 /// them (a decode step) burn-flex's fused kernel or burn's composed softmax were measured faster
 /// (decode at a 2k context: 7.0 against 5.6-6.0 tokens/s on flex, 2.7 against 1.2 on ndarray).
-const HOST_ATTENTION_ROWS: usize = 16;
+/// The kernel's own plain-loop path ([`cpu::attention::FEW_ROWS`]) then only serves a ragged
+/// last block of rows.
+const HOST_ATTENTION_ROWS: usize = cpu::attention::FEW_ROWS;
 
 /// [`attention`] through [`cpu::attention::attend`]: the tensors are read to the host and the
 /// result written back (7 MB each way for a 2k-token prompt at 0.5B, against 14 GFLOP).

@@ -513,6 +513,62 @@ fn parameter_count_formula_matches_the_checkpoint() {
     assert!((7.9e9..8.1e9).contains(&(p7.total() as f64)), "{p7:?}");
 }
 
+/// A model drawn in f16 layer by layer (how `vlm-bench --random 7b --half` holds the 7B model in
+/// 15 GB instead of 30) has exactly the weights of the f32 model halved afterwards, held in f16.
+#[test]
+fn drawing_a_model_in_f16_gives_the_halved_f32_model() {
+    let dev = Device::flex();
+    let fixture = LlavaOnevision::load(&fixture(), &dev).unwrap();
+    let draw = |half: bool| {
+        let (cfg, processor, tokenizer) = (fixture.cfg.clone(), fixture.processor.clone(), fixture.tokenizer.clone());
+        LlavaOnevision::init_with(cfg, processor, tokenizer, 7, &dev, half)
+    };
+    let (halved, drawn) = (draw(false).half(), draw(true));
+    for m in [&halved, &drawn] {
+        assert_eq!(m.llm.layers[1].down.weight.val().dtype(), burn::tensor::DType::F16);
+        assert_eq!(m.llm.embed.weight.val().dtype(), burn::tensor::DType::F16);
+        assert_eq!(m.vision.layers[0].fc1.weight.val().dtype(), burn::tensor::DType::F16);
+    }
+    let (a, b) = (halved.export().tensors, drawn.export().tensors);
+    assert_eq!(a.len(), b.len());
+    for ((name, shape, x), (name_b, shape_b, y)) in a.iter().zip(&b) {
+        assert_eq!((name, shape), (name_b, shape_b));
+        assert!(x == y, "{name}: the weights differ");
+    }
+    // and they are not the seed's f32 weights merely copied: halving rounded them
+    let f32_model = draw(false).export().tensors;
+    let q = |t: &[(String, Vec<usize>, Vec<f32>)]| {
+        t.iter().find(|e| e.0.ends_with("layers.0.self_attn.q_proj.weight")).unwrap().2.clone()
+    };
+    assert_ne!(q(&f32_model), q(&b));
+    assert!(max_abs_diff(&q(&f32_model), &q(&b)) < 1e-3);
+}
+
+/// Which form the Qwen2 forward gives its mask once for all layers: a causal prefill stays causal
+/// where the host kernel takes it, a decode step sees every key, and elsewhere (autodiff, wgpu)
+/// the additive mask is built once, the one `Mask::additive` gives.
+#[test]
+fn a_forwards_mask_is_resolved_once_for_its_device() {
+    use model::vlm::layers::Mask;
+    let host = Tensor::<2>::zeros([2, 2], &Device::flex());
+    assert!(matches!(Mask::Causal { past: 3 }.for_layers(&host, 7 * 20, 23), Mask::Causal { past: 3 }));
+    assert!(matches!(Mask::Causal { past: 3 }.for_layers(&host, 7, 4), Mask::All));
+    let ad = Device::flex().autodiff();
+    let like = Tensor::<2>::zeros([2, 2], &ad);
+    let (rows, keys) = (2 * 5, 8);
+    let Mask::Additive(m) = Mask::Causal { past: 3 }.for_layers(&like, rows, keys) else { panic!("additive expected") };
+    let want = host_rows(Mask::Causal { past: 3 }.additive(rows, keys, &ad).unwrap());
+    assert_eq!(host_rows(*m.clone()), want);
+    // row 1 of head 1 (position 1 after 3 cached keys) sees keys 0..=4
+    let row = &want[6];
+    assert!(row[..5].iter().all(|v| *v == 0.0) && row[5..].iter().all(|v| *v == f32::NEG_INFINITY), "{row:?}");
+}
+
+fn host_rows(m: Tensor<2>) -> Vec<Vec<f32>> {
+    let [_, keys] = m.dims();
+    host(m).chunks(keys).map(<[f32]>::to_vec).collect()
+}
+
 /// The plain twin of `cpu_attention::attend`, in f64: every score, softmax over the keys each row
 /// may see, the weighted sum of the values.
 fn attend_reference(q: &[f32], k: &[f32], v: &[f32], s: cpu_attention::Shape, past: Option<usize>) -> Vec<f32> {

@@ -19,9 +19,9 @@ use rayon::prelude::*;
 /// Query rows per block: a block's scores (`BLOCK x keys` f32) stay in L2 for a 2k-token prompt.
 const BLOCK: usize = 64;
 
-/// Rows below which a block's products are plain loops instead of gemm calls (a decode step's
-/// `rep` rows per key/value head).
-const FEW_ROWS: usize = 16;
+/// Rows below which a block's products are plain loops instead of gemm calls, which pack both
+/// operands on every call (a ragged last block, or a call with a handful of rows).
+pub const FEW_ROWS: usize = 16;
 
 /// Multiply-adds below which a call runs on the calling thread (a decode step at a 4k context).
 const PARALLEL_WORK: usize = 1 << 23;
@@ -177,8 +177,8 @@ fn rows_attend(
 }
 
 /// `sc` `[m, n]` = `scale q k^T` for a few rows `q` `[m, d]` and keys `k` `[n, d]`, key by key so
-/// that each is read once: gemm packs both operands on every call, which for a decode step's
-/// handful of rows costs more than the products.
+/// that each is read once: gemm packs both operands on every call, which for a handful of rows
+/// costs more than the products.
 fn scores_by_rows(q: &[f32], k: &[f32], d: usize, scale: f32, sc: &mut [f32]) {
     let n = k.len() / d;
     for (j, kj) in k.chunks_exact(d).enumerate() {

@@ -221,16 +221,16 @@ impl Mask {
             }
         }
     }
-}
 
-impl Mask {
-    /// The form [`attention`] will use for `rows` query rows against `keys` keys of tensors like
-    /// `like`, found once for every layer of a forward: a causal mask stays causal where the host
-    /// kernel takes it, a decode step (one position after the cache) sees every key, and otherwise
-    /// it becomes the additive mask (built here, not uploaded again per layer).
+    /// The form in which a forward hands this mask to [`attention`] in every layer, for `rows`
+    /// query rows against `keys` keys of tensors like `like`, found once for all layers. On the
+    /// host a causal mask stays causal ([`attention`] runs it in the kernel, or builds the small
+    /// mask of fewer than `HOST_ATTENTION_ROWS` rows per call); elsewhere a decode step (one
+    /// position after the cache) sees every key and any other causal mask becomes the additive
+    /// one, built and uploaded here once instead of in every layer.
     pub fn for_layers<const D: usize>(self, like: &Tensor<D>, rows: usize, keys: usize) -> Mask {
         match self {
-            Mask::Causal { .. } if on_host(like) && rows >= HOST_ATTENTION_ROWS => self,
+            Mask::Causal { .. } if on_host(like) => self,
             Mask::Causal { past } if keys - past == 1 => Mask::All,
             Mask::Causal { .. } => match self.additive(rows, keys, &like.device()) {
                 Some(m) => Mask::Additive(Box::new(m)),

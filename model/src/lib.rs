@@ -15,6 +15,7 @@
 //! (PNG) and [`rng`]. Nothing here depends on training (`train` depends on this crate).
 #![allow(deprecated)] // burn-ndarray is deprecated in burn 0.22 in favour of burn-flex.
 
+pub mod alloc;
 pub mod backend;
 pub mod error;
 pub mod images;

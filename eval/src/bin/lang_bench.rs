@@ -322,6 +322,7 @@ fn row(
 }
 
 fn main() -> std::process::ExitCode {
+    model::alloc::keep_freed_memory();
     let a = Args::parse();
     match catch_backend("lang-bench", || bench(&a)).and_then(|r| r) {
         Ok(()) => std::process::ExitCode::SUCCESS,

@@ -229,6 +229,7 @@ fn fmt_ms(v: Option<f64>) -> String {
 }
 
 fn main() {
+    model::alloc::keep_freed_memory();
     let a = Args::parse();
     if a.accuracy {
         accuracy();

@@ -186,6 +186,7 @@ fn memory_table(name: &str, cfg: &LlavaConfig) {
 }
 
 fn main() -> std::process::ExitCode {
+    model::alloc::keep_freed_memory();
     let a = Args::parse();
     let reference = match a.reference.as_deref().map(read_reference).transpose() {
         Ok(r) => r,
@@ -289,7 +290,7 @@ fn main() -> std::process::ExitCode {
             let (mut prefill, mut decode) = (0.0, f64::INFINITY);
             for _ in 0..reps {
                 let t0 = Instant::now();
-                let mut cache = model::vlm::qwen2::KvCache::default();
+                let mut cache = model::vlm::qwen2::KvCache::with_capacity(prompt_tokens + a.decode + 1);
                 let mut next = pick(&last_logits(&mut cache), &greedy, &mut rng);
                 prefill += t0.elapsed().as_secs_f64() / reps as f64;
                 let t0 = Instant::now();

@@ -60,6 +60,7 @@ struct Args {
 }
 
 fn main() -> std::process::ExitCode {
+    model::alloc::keep_freed_memory();
     let a = Args::parse();
     match catch_backend("vqa-bench", || bench(&a)).and_then(|r| r) {
         Ok(()) => std::process::ExitCode::SUCCESS,

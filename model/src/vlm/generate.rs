@@ -95,7 +95,7 @@ impl LlavaOnevision {
         }
         // the answer stops at the model's context
         let new_tokens = opts.max_new_tokens.min(max - prompt_tokens);
-        let mut cache = KvCache::default();
+        let mut cache = KvCache::with_capacity(prompt_tokens + new_tokens);
         let mut rng = Rng::new(opts.seed);
         let hidden = self.llm.forward(prompt, &mut cache);
         let [t, d] = hidden.dims();

@@ -32,7 +32,87 @@ pub fn half_linear(l: Linear) -> Linear {
 /// `x` is rounded to the weights' precision for the matmul (accumulated in f32 by the CPU's
 /// gemm) and the result returned in `x`'s.
 pub fn linear<const D: usize>(l: &Linear, x: Tensor<D>) -> Tensor<D> {
-    in_precision(l.weight.val().dtype(), x, |x| l.forward(x))
+    let bias = l.bias.as_ref().map(|b| b.val());
+    let w = l.weight.val();
+    let x = match few_rows_product(x, &w, bias.as_ref()) {
+        Ok(y) => return y,
+        Err(x) => x,
+    };
+    if w.dtype() == DType::F16 && on_host(&x) && w.shape().num_elements() <= WIDEN_LIMIT {
+        // many rows on the host: widen this layer's f16 weights for one f32 product (gemm's f16
+        // path ran the 0.5B vision tower at 0.54x transformers' speed against 0.77x in f32; the
+        // widening is ~3 % of a 2k-token product's time)
+        let wide = Linear {
+            weight: Param::from_tensor(in_dtype(w, DType::F32)),
+            bias: bias.map(|b| Param::from_tensor(in_dtype(b, DType::F32))),
+        };
+        return wide.forward(x);
+    }
+    in_precision(w.dtype(), x, |x| l.forward(x))
+}
+
+/// Weights (elements) up to which [`linear`] widens f16 weights to f32 for a product of many rows
+/// (512 MB in f32: every layer of the 7B model but its 152k-row `lm_head`).
+const WIDEN_LIMIT: usize = 1 << 27;
+
+/// Rows (all dimensions but the last) up to which CPU inference multiplies by a weight matrix in
+/// [`cpu::matvec`] (a decode step has one).
+const FEW_ROWS_PRODUCT: usize = 8;
+
+/// `x w (+ bias)` through [`cpu::matvec`], reading `w` and `bias` where burn-flex holds them (f32
+/// or f16, no copy), when `x` is at most [`FEW_ROWS_PRODUCT`] f32 rows at inference on flex and
+/// `w` `[k, n]` is row-major or the transposed view of a row-major `[n, k]`; `Err(x)` otherwise.
+// the input comes back by value (moved, not copied) when this path does not apply
+#[allow(clippy::result_large_err)]
+pub fn few_rows_product<const D: usize>(
+    x: Tensor<D>,
+    w: &Tensor<2>,
+    bias: Option<&Tensor<1>>,
+) -> Result<Tensor<D>, Tensor<D>> {
+    use burn::backend::Flex;
+    use cpu::matvec::{Held, Order};
+    let dims = x.dims();
+    let (k, rows) = (dims[D - 1], dims[..D - 1].iter().product::<usize>());
+    let device = x.device();
+    if rows > FEW_ROWS_PRODUCT || device.is_autodiff() || device != Device::flex() || x.dtype() != DType::F32 {
+        return Err(x);
+    }
+    let Ok(wt) = w.clone().try_into_primitive::<Flex>() else { return Err(x) };
+    let layout = wt.layout();
+    let (shape, strides, start) = (layout.shape(), layout.strides(), layout.start_offset());
+    let n = shape[1];
+    let order = match strides {
+        _ if shape[0] != k => return Err(x),
+        [s, 1] if *s == n as isize => Order::InOut,
+        [1, s] if *s == k as isize => Order::OutIn,
+        _ => return Err(x),
+    };
+    let held = match wt.dtype() {
+        DType::F32 => Held::F32(&wt.storage::<f32>()[start..start + k * n]),
+        DType::F16 => Held::F16(&wt.storage::<half::f16>()[start..start + k * n]),
+        _ => return Err(x),
+    };
+    let bias = match bias.map(|b| b.clone().try_into_primitive::<Flex>()) {
+        None => None,
+        Some(Ok(b)) if b.is_contiguous() && matches!(b.dtype(), DType::F32 | DType::F16) => Some(b),
+        Some(_) => return Err(x),
+    };
+    let xs = host_vec(x);
+    let mut out = vec![0f32; rows * n];
+    cpu::matvec::matmul(&xs, held, order, rows, k, n, &mut out);
+    if let Some(b) = bias {
+        let off = b.layout().start_offset();
+        let b: Vec<f32> = match b.dtype() {
+            DType::F32 => b.storage::<f32>()[off..off + n].to_vec(),
+            _ => b.storage::<half::f16>()[off..off + n].iter().map(|v| v.to_f32()).collect(),
+        };
+        for row in out.chunks_exact_mut(n) {
+            row.iter_mut().zip(&b).for_each(|(y, b)| *y += b);
+        }
+    }
+    let mut shape = dims;
+    shape[D - 1] = n;
+    Ok(Tensor::from_data(TensorData::new(out, shape), &device))
 }
 
 /// `f(x)` computed in the precision `held` of the weights `f` multiplies by, returned in `x`'s.
@@ -49,7 +129,6 @@ pub fn in_precision<const D: usize, const E: usize>(
 /// F16C vector instructions: burn-flex's own cast goes element by element through f64 in
 /// software, which made the f16-weight vision tower 3x slower than f32 (14.7 s vs 5.2 s per view).
 pub fn in_dtype<const D: usize>(t: Tensor<D>, dtype: DType) -> Tensor<D> {
-    use half::slice::HalfFloatSliceExt;
     let from = t.dtype();
     if from == dtype {
         return t;
@@ -60,23 +139,42 @@ pub fn in_dtype<const D: usize>(t: Tensor<D>, dtype: DType) -> Tensor<D> {
         return t.cast(dtype);
     }
     let shape = t.shape();
-    let data = t.into_data();
-    let data = match (from, dtype) {
-        (DType::F32, DType::F16) => {
-            let src = data.as_slice::<f32>().expect("f32 data");
-            let mut out = vec![half::f16::ZERO; src.len()];
-            out.convert_from_f32_slice(src);
-            TensorData::new(out, shape)
+    let n = shape.num_elements();
+    // read where flex holds it (a weight is shared with its parameter: `into_data` would copy it
+    // first), or else as data
+    let data = match t.clone().try_into_primitive::<burn::backend::Flex>() {
+        Ok(p) if p.is_contiguous() => {
+            let at = p.layout().start_offset();
+            match from {
+                DType::F32 => to_f16(&p.storage::<f32>()[at..at + n], shape),
+                _ => to_f32(&p.storage::<half::f16>()[at..at + n], shape),
+            }
         }
-        (DType::F16, DType::F32) => {
-            let src = data.as_slice::<half::f16>().expect("f16 data");
-            let mut out = vec![0f32; src.len()];
-            src.convert_to_f32_slice(&mut out);
-            TensorData::new(out, shape)
+        _ => {
+            let d = t.into_data();
+            match from {
+                DType::F32 => to_f16(d.as_slice::<f32>().expect("f32 data"), shape),
+                _ => to_f32(d.as_slice::<half::f16>().expect("f16 data"), shape),
+            }
         }
-        _ => unreachable!("checked above"),
     };
     Tensor::from_data(data, (&device, dtype))
+}
+
+/// `src` rounded to f16 (F16C vector instructions where the CPU has them).
+fn to_f16(src: &[f32], shape: burn::tensor::Shape) -> TensorData {
+    use half::slice::HalfFloatSliceExt;
+    let mut out = vec![half::f16::ZERO; src.len()];
+    out.convert_from_f32_slice(src);
+    TensorData::new(out, shape)
+}
+
+/// `src` widened to f32 (F16C vector instructions where the CPU has them).
+fn to_f32(src: &[half::f16], shape: burn::tensor::Shape) -> TensorData {
+    use half::slice::HalfFloatSliceExt;
+    let mut out = vec![0f32; src.len()];
+    src.convert_to_f32_slice(&mut out);
+    TensorData::new(out, shape)
 }
 
 /// A `LayerNorm` of the checkpoint (`prefix.weight`, `prefix.bias`).
@@ -292,10 +390,11 @@ pub fn attention(q: Tensor<3>, k: Tensor<3>, v: Tensor<3>, mask: &Mask) -> Tenso
 /// (decode at a 2k context: 7.0 against 5.6-6.0 tokens/s on flex, 2.7 against 1.2 on ndarray).
 /// The kernel's own plain-loop path ([`cpu::attention::FEW_ROWS`]) then only serves a ragged
 /// last block of rows.
-const HOST_ATTENTION_ROWS: usize = cpu::attention::FEW_ROWS;
+const HOST_ATTENTION_ROWS: usize = 1;
 
-/// [`attention`] through [`cpu::attention::attend`]: the tensors are read to the host and the
-/// result written back (7 MB each way for a 2k-token prompt at 0.5B, against 14 GFLOP).
+/// [`attention`] through [`cpu::attention::attend_in`]: `q` is read to the host and the result
+/// written back (7 MB each way for a 2k-token prompt at 0.5B, against 14 GFLOP); keys and values
+/// are read where burn-flex holds them (a KV cache in place, see [`HostBlocks`]).
 fn attention_on_host(q: Tensor<3>, k: Tensor<3>, v: Tensor<3>, causal_past: Option<usize>) -> Tensor<3> {
     let [groups, rows, d] = q.dims();
     let [_, keys, dv] = v.dims();
@@ -304,11 +403,52 @@ fn attention_on_host(q: Tensor<3>, k: Tensor<3>, v: Tensor<3>, causal_past: Opti
         None => (rows, 1),
     };
     let device = q.device();
+    let (kh, k_stride) = HostBlocks::of(k.clone());
+    let (vh, v_stride) = HostBlocks::of(v.clone());
+    // both read in place with the same room per group, or both as compact copies
+    let (kh, vh, cap) = if k_stride / d == v_stride / dv && k_stride % d == 0 && v_stride % dv == 0 {
+        (kh, vh, k_stride / d)
+    } else {
+        (HostBlocks::Copy(host_vec(k)), HostBlocks::Copy(host_vec(v)), keys)
+    };
     let mut out = vec![0f32; groups * rows * dv];
     let shape = cpu::attention::Shape { groups, rep, t, keys, d, dv };
     let scale = 1.0 / (d as f32).sqrt();
-    cpu::attention::attend(&host_vec(q), &host_vec(k), &host_vec(v), shape, scale, causal_past, &mut out);
+    cpu::attention::attend_in(&host_vec(q), kh.values(), vh.values(), shape, cap, scale, causal_past, &mut out);
     Tensor::from_data(TensorData::new(out, [groups, rows, dv]), &device)
+}
+
+/// A `[G, N, W]` f32 tensor's values on the host, each of its `G` blocks of `N x W` contiguous:
+/// borrowed where burn-flex holds them (no copy; the blocks may lie apart, as in a KV cache with
+/// room to grow) or else a compact copy.
+enum HostBlocks {
+    Flex(burn::backend::flex::FlexTensor),
+    Copy(Vec<f32>),
+}
+
+impl HostBlocks {
+    /// The values and the distance (in elements) from one block's start to the next.
+    fn of(t: Tensor<3>) -> (Self, usize) {
+        let [_, n, w] = t.dims();
+        if !t.device().is_autodiff()
+            && let Ok(p) = t.clone().try_into_primitive::<burn::backend::Flex>()
+            && p.dtype() == DType::F32
+            && let [s0, s1, 1] = *p.layout().strides()
+            && s1 == w as isize
+            && s0 >= (n * w) as isize
+        {
+            return (HostBlocks::Flex(p), s0 as usize);
+        }
+        (HostBlocks::Copy(host_vec(t)), n * w)
+    }
+
+    /// From the first block's first value to the end of the storage.
+    fn values(&self) -> &[f32] {
+        match self {
+            HostBlocks::Flex(p) => &p.storage::<f32>()[p.layout().start_offset()..],
+            HostBlocks::Copy(v) => v,
+        }
+    }
 }
 
 /// [`attention`] on one thread, also returning the attention weights `[B, Tq, Tk]`.

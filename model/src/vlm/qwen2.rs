@@ -7,8 +7,8 @@
 use super::VlmError;
 use super::config::TextConfig;
 use super::layers::{
-    Mask, attention, attention_probs, gated, half_linear, in_dtype, in_precision, init_linear, init_rms_norm, linear,
-    load_linear, load_rms_norm, normal,
+    Mask, attention, attention_probs, few_rows_product, gated, half_linear, in_dtype, in_precision, init_linear,
+    init_rms_norm, linear, load_linear, load_rms_norm, normal,
 };
 use super::weights::{HfTensors, WeightStore};
 use crate::rng::Rng;
@@ -46,20 +46,64 @@ impl DecoderLayer {
     }
 }
 
-/// Keys and values of every layer so far, `[1, kv_heads, T, head_dim]` each.
+/// Keys and values of every layer so far, `[kv_heads, room, head_dim]` each with the first `len`
+/// positions filled: a step writes its keys after them in place (burn-flex writes into a tensor
+/// nothing else holds without copying it) instead of concatenating, which copied the whole cache
+/// (2 MB per layer at a 2k context at 0.5B) in every layer of every decoded token.
 #[derive(Clone, Debug, Default)]
 pub struct KvCache {
-    layers: Vec<(Tensor<4>, Tensor<4>)>,
+    layers: Vec<Option<(Tensor<3>, Tensor<3>)>>,
     len: usize,
+    /// Positions to make room for at the first write (grown by doubling past it).
+    reserve: usize,
 }
 
 impl KvCache {
+    /// A cache that will hold `tokens` positions without growing.
+    pub fn with_capacity(tokens: usize) -> Self {
+        Self { reserve: tokens, ..Self::default() }
+    }
+
     /// Tokens already in the cache (the position of the next token).
     pub fn len(&self) -> usize {
         self.len
     }
     pub fn is_empty(&self) -> bool {
         self.len == 0
+    }
+
+    /// Writes `layer`'s keys and values `[kv_heads, t, head_dim]` of the `t` positions after the
+    /// cached ones and returns all of that layer's so far, `[kv_heads, len + t, head_dim]` (views
+    /// into the cache). The caller advances `len` once every layer has written.
+    fn append(&mut self, layer: usize, k: Tensor<3>, v: Tensor<3>) -> (Tensor<3>, Tensor<3>) {
+        let (past, t) = (self.len, k.dims()[1]);
+        let need = past + t;
+        let reserve = self.reserve;
+        let write = |held: Option<Tensor<3>>, new: Tensor<3>| {
+            let [h, _, d] = new.dims();
+            let room = held.as_ref().map_or(0, |c| c.dims()[1]);
+            let store = match held {
+                Some(c) if room >= need => c,
+                held => {
+                    let room = need.max(reserve).max(2 * room);
+                    let fresh = Tensor::<3>::zeros([h, room, d], &new.device()).cast(new.dtype());
+                    match held {
+                        Some(c) if past > 0 => fresh.slice_assign([0..h, 0..past, 0..d], c.narrow(1, 0, past)),
+                        _ => fresh,
+                    }
+                }
+            };
+            store.slice_assign([0..h, past..need, 0..d], new)
+        };
+        if self.layers.len() <= layer {
+            self.layers.resize(layer + 1, None);
+        }
+        // taken out, so that the write finds the cache held nowhere else
+        let (hk, hv) = self.layers[layer].take().unzip();
+        let (ck, cv) = (write(hk, k), write(hv, v));
+        let seen = (ck.clone().narrow(1, 0, need), cv.clone().narrow(1, 0, need));
+        self.layers[layer] = Some((ck, cv));
+        seen
     }
 }
 
@@ -285,25 +329,18 @@ impl Qwen2 {
             let hs = l.ln1.forward(x.clone());
             let heads = |y: Tensor<3>, n: usize| y.reshape([b, t, n, hd]).swap_dims(1, 2);
             let q = rotate(heads(linear(&l.q, hs.clone()), h));
-            let mut k = rotate(heads(linear(&l.k, hs.clone()), kvh));
-            let mut v = heads(linear(&l.v, hs), kvh);
-            if let Some(c) = cache.as_deref_mut() {
-                if let Some((pk, pv)) = c.layers.get(li) {
-                    k = Tensor::cat(vec![pk.clone(), k], 2);
-                    v = Tensor::cat(vec![pv.clone(), v], 2);
-                }
-                if li < c.layers.len() {
-                    c.layers[li] = (k.clone(), v.clone());
-                } else {
-                    c.layers.push((k.clone(), v.clone()));
-                }
-            }
-            let total = k.dims()[2];
+            let k = rotate(heads(linear(&l.k, hs.clone()), kvh)).reshape([b * kvh, t, hd]);
+            let v = heads(linear(&l.v, hs), kvh).reshape([b * kvh, t, hd]);
+            // the cache holds one sequence (b = 1: `forward`)
+            let (k, v) = match cache.as_deref_mut() {
+                Some(c) => c.append(li, k, v),
+                None => (k, v),
+            };
             // grouped-query attention: query head i uses kv head i / rep, so the rep query heads
             // of a kv head attend as one block of rep * t rows (no copy of the keys and values
             // per query head: at decode the cache would be copied rep times per layer and token)
             let q = q.reshape([b * kvh, rep * t, hd]);
-            let (k, v) = (k.reshape([b * kvh, total, hd]), v.reshape([b * kvh, total, hd]));
+            let total = k.dims()[1];
             let o = match probe.as_deref_mut() {
                 Some(p) if p.layers.contains(&li) => {
                     let m = mask.additive(rep * t, total, &q.device());
@@ -357,7 +394,9 @@ impl Qwen2 {
                 // (E h^T)^T rather than h E^T: E^T as a strided view makes burn-ndarray copy the whole
                 // [vocab, D] embedding on every call (3.0 s vs 0.13 s per decode step at vocab 152k, D 896)
                 let e = self.embed.weight.val();
-                let y = in_precision(e.dtype(), hidden.reshape([rows, d]), |h| e.matmul(h.transpose()).transpose());
+                // a decode step's few rows: E read once where it lies, in its precision
+                let y = few_rows_product(hidden.reshape([rows, d]), &e.clone().transpose(), None)
+                    .unwrap_or_else(|h| in_precision(e.dtype(), h, |h| e.matmul(h.transpose()).transpose()));
                 let mut out = dims;
                 out[N - 1] = self.cfg.vocab_size;
                 y.reshape(out)

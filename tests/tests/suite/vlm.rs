@@ -631,8 +631,35 @@ fn cpu_attention_matches_an_f64_reference_and_burns_softmax() {
             };
             let (tq, tk, tv) = (t3(&q, rows, s.d), t3(&k, s.keys, s.d), t3(&v, s.keys, s.dv));
             let fast = host(attention(tq.clone(), tk.clone(), tv.clone(), &mask));
-            let composed = host(attention_probs(tq, tk, tv, mask.additive(rows, s.keys, &dev)).0);
+            let composed = host(attention_probs(tq, tk, tv.clone(), mask.additive(rows, s.keys, &dev)).0);
             assert_close(&format!("{what}: layers::attention vs burn's softmax on {dev:?}"), &fast, &composed, 2e-5);
+            // keys and values as the first rows of room for 9 more (a KV cache read in place)
+            let roomy = |x: Tensor<3>| {
+                let [g, n, w] = x.dims();
+                Tensor::cat(vec![x, Tensor::<3>::ones([g, 9, w], &dev) * 1e3], 1).narrow(1, 0, n)
+            };
+            let in_room = host(attention(t3(&q, rows, s.d), roomy(t3(&k, s.keys, s.d)), roomy(tv), &mask));
+            assert_close(&format!("{what}: keys and values with room to grow on {dev:?}"), &in_room, &fast, 1e-6);
         }
+    }
+}
+
+/// Decoding through the KV cache (room for 5 positions at first, so it grows twice, each token's
+/// keys written in place) gives at every position the logits of one forward over the whole
+/// sequence, on ndarray and flex (whose decode steps take the few-row products and host attention).
+#[test]
+fn decoding_through_the_kv_cache_matches_a_full_forward() {
+    use model::vlm::qwen2::KvCache;
+    let ids: Vec<u32> = (0..14).map(|i| (i * 37 + 5) % 97).collect();
+    for dev in [Device::ndarray(), Device::flex()] {
+        let m = LlavaOnevision::load(&fixture(), &dev).unwrap();
+        let full = host(m.llm.logits(m.llm.forward(m.llm.embed(&ids), &mut KvCache::default())));
+        let mut cache = KvCache::with_capacity(5);
+        let mut stepped = host(m.llm.logits(m.llm.forward(m.llm.embed(&ids[..3]), &mut cache)));
+        for i in 3..ids.len() {
+            stepped.extend(host(m.llm.logits(m.llm.forward(m.llm.embed(&ids[i..i + 1]), &mut cache))));
+        }
+        assert_eq!(cache.len(), ids.len());
+        assert_close(&format!("decoded vs full logits on {dev:?}"), &stepped, &full, 1e-4);
     }
 }

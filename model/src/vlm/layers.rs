@@ -28,9 +28,11 @@ pub fn half_linear(l: Linear) -> Linear {
     }
 }
 
-/// `l(x)`, also for a layer held in another precision than `x` (f16 weights, f32 activations):
-/// `x` is rounded to the weights' precision for the matmul (accumulated in f32 by the CPU's
-/// gemm) and the result returned in `x`'s.
+/// `l(x)`, also for a layer held in another precision than `x` (f16 weights, f32 activations).
+/// CPU inference on flex takes a few rows (a decode step) through [`few_rows_product`] (the
+/// weights read where they lie, in f32 or f16, `x` kept in f32) and widens f16 weights for a
+/// product of many rows; elsewhere `x` is rounded to the weights' precision for the matmul
+/// (accumulated in f32 by the CPU's gemm) and the result returned in `x`'s.
 pub fn linear<const D: usize>(l: &Linear, x: Tensor<D>) -> Tensor<D> {
     let bias = l.bias.as_ref().map(|b| b.val());
     let w = l.weight.val();
@@ -74,7 +76,8 @@ pub fn few_rows_product<const D: usize>(
     let dims = x.dims();
     let (k, rows) = (dims[D - 1], dims[..D - 1].iter().product::<usize>());
     let device = x.device();
-    if rows > FEW_ROWS_PRODUCT || device.is_autodiff() || device != Device::flex() || x.dtype() != DType::F32 {
+    let inference_on_flex = !device.is_autodiff() && device == Device::flex() && x.dtype() == DType::F32;
+    if !(1..=FEW_ROWS_PRODUCT).contains(&rows) || !inference_on_flex {
         return Err(x);
     }
     let Ok(wt) = w.clone().try_into_primitive::<Flex>() else { return Err(x) };

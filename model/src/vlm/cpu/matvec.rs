@@ -47,6 +47,9 @@ pub fn matmul(x: &[f32], w: Held, order: Order, rows: usize, k: usize, n: usize,
         Held::F16(w) => w.len(),
     };
     assert_eq!(held, k * n, "matvec: the weights are not k x n");
+    if out.is_empty() {
+        return;
+    }
     match w {
         Held::F32(w) => run(x, w, order, rows, k, n, out),
         Held::F16(w) => run(x, w, order, rows, k, n, out),
@@ -285,10 +288,10 @@ mod tests {
 
     /// Both orders, f32 and f16 weights, one row and several, on one thread and on all: the same
     /// products as the f64 loop, on sizes that leave ragged blocks and vector tails (k = 203 is
-    /// not a multiple of 4 or 32, n = 1001 not of 8).
+    /// not a multiple of 4 or 32, n = 1001 not of 8), and empty ones (no rows, no inputs: zeros).
     #[test]
     fn few_row_products_match_the_plain_loop() {
-        for (rows, k, n) in [(1, 203, 1001), (3, 203, 1001), (1, 896, 8), (2, 5, 3)] {
+        for (rows, k, n) in [(1, 203, 1001), (3, 203, 1001), (1, 896, 8), (2, 5, 3), (0, 5, 3), (2, 0, 3)] {
             let x = values(rows * k, 7);
             let w32 = values(k * n, 11);
             let w16: Vec<f16> = w32.iter().map(|&v| f16::from_f32(v)).collect();

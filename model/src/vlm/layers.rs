@@ -325,10 +325,9 @@ impl Mask {
 
     /// The form in which a forward hands this mask to [`attention`] in every layer, for `rows`
     /// query rows against `keys` keys of tensors like `like`, found once for all layers. On the
-    /// host a causal mask stays causal ([`attention`] runs it in the kernel, or builds the small
-    /// mask of fewer than `HOST_ATTENTION_ROWS` rows per call); elsewhere a decode step (one
-    /// position after the cache) sees every key and any other causal mask becomes the additive
-    /// one, built and uploaded here once instead of in every layer.
+    /// host a causal mask stays causal ([`attention`] runs it in the host kernel); elsewhere a
+    /// decode step (one position after the cache) sees every key and any other causal mask
+    /// becomes the additive one, built and uploaded here once instead of in every layer.
     pub fn for_layers<const D: usize>(self, like: &Tensor<D>, rows: usize, keys: usize) -> Mask {
         match self {
             Mask::Causal { .. } if on_host(like) => self,
@@ -388,11 +387,11 @@ pub fn attention(q: Tensor<3>, k: Tensor<3>, v: Tensor<3>, mask: &Mask) -> Tenso
     attention_probs(q, k, v, m).0
 }
 
-/// Query rows (per key/value head) from which CPU attention runs in [`cpu::attention`]: below
-/// them (a decode step) burn-flex's fused kernel or burn's composed softmax were measured faster
-/// (decode at a 2k context: 7.0 against 5.6-6.0 tokens/s on flex, 2.7 against 1.2 on ndarray).
-/// The kernel's own plain-loop path ([`cpu::attention::FEW_ROWS`]) then only serves a ragged
-/// last block of rows.
+/// Query rows (per key/value head) from which CPU attention runs in [`cpu::attention`]: every
+/// call since its few-rows path ([`cpu::attention::FEW_ROWS`]) runs `matvec`'s vector kernels and
+/// reads a KV cache in place (a flex decode step at a 2k context: 11.3-11.7 tokens/s against 10.1
+/// through flex's fused kernel). The fused-kernel and composed branches of [`attention`] below it
+/// then serve only other devices (and a call of no rows).
 const HOST_ATTENTION_ROWS: usize = 1;
 
 /// [`attention`] through [`cpu::attention::attend_in`]: `q` is read to the host and the result

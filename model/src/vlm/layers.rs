@@ -4,12 +4,12 @@
 use super::VlmError;
 use super::config::Act;
 use super::cpu;
+use super::host::{HostTensor, HostValues};
 use super::weights::WeightStore;
 use crate::rng::Rng;
 use burn::module::Param;
 use burn::nn::{LayerNorm, LayerNormConfig, Linear, RmsNorm};
-use burn::tensor::ops::AttentionModuleOptions;
-use burn::tensor::{DType, Device, Tensor, TensorData, activation, module};
+use burn::tensor::{DType, Device, Tensor, TensorData, activation};
 
 /// A `torch.nn.Linear` of the checkpoint (`prefix.weight` `[out, in]`, `prefix.bias`), as a
 /// `burn::nn::Linear` (`weight` `[in, out]`).
@@ -61,9 +61,10 @@ const WIDEN_LIMIT: usize = 1 << 27;
 /// [`cpu::matvec`] (a decode step has one).
 const FEW_ROWS_PRODUCT: usize = 8;
 
-/// `x w (+ bias)` through [`cpu::matvec`], reading `w` and `bias` where burn-flex holds them (f32
-/// or f16, no copy), when `x` is at most [`FEW_ROWS_PRODUCT`] f32 rows at inference on flex and
-/// `w` `[k, n]` is row-major or the transposed view of a row-major `[n, k]`; `Err(x)` otherwise.
+/// `x w (+ bias)` through [`cpu::matvec`], reading `w` and `bias` where the CPU backend holds them
+/// ([`HostTensor`]: f32 or f16 on flex, f32 on ndarray; no copy), when `x` is at most
+/// [`FEW_ROWS_PRODUCT`] f32 rows at CPU inference and `w` `[k, n]` is row-major or the transposed
+/// view of a row-major `[n, k]`; `Err(x)` otherwise.
 // the input comes back by value (moved, not copied) when this path does not apply
 #[allow(clippy::result_large_err)]
 pub fn few_rows_product<const D: usize>(
@@ -71,44 +72,37 @@ pub fn few_rows_product<const D: usize>(
     w: &Tensor<2>,
     bias: Option<&Tensor<1>>,
 ) -> Result<Tensor<D>, Tensor<D>> {
-    use burn::backend::Flex;
     use cpu::matvec::{Held, Order};
     let dims = x.dims();
     let (k, rows) = (dims[D - 1], dims[..D - 1].iter().product::<usize>());
-    let device = x.device();
-    let inference_on_flex = !device.is_autodiff() && device == Device::flex() && x.dtype() == DType::F32;
-    if !(1..=FEW_ROWS_PRODUCT).contains(&rows) || !inference_on_flex {
+    if !(1..=FEW_ROWS_PRODUCT).contains(&rows) || !on_host(&x) {
         return Err(x);
     }
-    let Ok(wt) = w.clone().try_into_primitive::<Flex>() else { return Err(x) };
-    let layout = wt.layout();
-    let (shape, strides, start) = (layout.shape(), layout.strides(), layout.start_offset());
-    let n = shape[1];
-    let order = match strides {
-        _ if shape[0] != k => return Err(x),
-        [s, 1] if *s == n as isize => Order::InOut,
-        [1, s] if *s == k as isize => Order::OutIn,
+    let Some(wt) = HostTensor::of(w) else { return Err(x) };
+    let n = w.dims()[1];
+    let order = match wt.strides()[..] {
+        _ if w.dims()[0] != k => return Err(x),
+        [s, 1] if s == n as isize => Order::InOut,
+        [1, s] if s == k as isize => Order::OutIn,
         _ => return Err(x),
     };
-    let held = match wt.dtype() {
-        DType::F32 => Held::F32(&wt.storage::<f32>()[start..start + k * n]),
-        DType::F16 => Held::F16(&wt.storage::<half::f16>()[start..start + k * n]),
+    let held = match wt.values() {
+        Some(HostValues::F32(v)) if v.len() >= k * n => Held::F32(&v[..k * n]),
+        Some(HostValues::F16(v)) if v.len() >= k * n => Held::F16(&v[..k * n]),
         _ => return Err(x),
     };
-    let bias = match bias.map(|b| b.clone().try_into_primitive::<Flex>()) {
-        None => None,
-        Some(Ok(b)) if b.is_contiguous() && matches!(b.dtype(), DType::F32 | DType::F16) => Some(b),
-        Some(_) => return Err(x),
+    let bias_held = bias.and_then(HostTensor::of);
+    let bias = match (bias, bias_held.as_ref().and_then(|b| b.contiguous(n))) {
+        (None, _) => None,
+        (Some(_), Some(HostValues::F32(b))) => Some(b.to_vec()),
+        (Some(_), Some(HostValues::F16(b))) => Some(widened(b)),
+        (Some(_), None) => return Err(x),
     };
+    let device = x.device();
     let xs = host_vec(x);
     let mut out = vec![0f32; rows * n];
     cpu::matvec::matmul(&xs, held, order, rows, k, n, &mut out);
     if let Some(b) = bias {
-        let off = b.layout().start_offset();
-        let b: Vec<f32> = match b.dtype() {
-            DType::F32 => b.storage::<f32>()[off..off + n].to_vec(),
-            _ => b.storage::<half::f16>()[off..off + n].iter().map(|v| v.to_f32()).collect(),
-        };
         for row in out.chunks_exact_mut(n) {
             row.iter_mut().zip(&b).for_each(|(y, b)| *y += b);
         }
@@ -143,21 +137,16 @@ pub fn in_dtype<const D: usize>(t: Tensor<D>, dtype: DType) -> Tensor<D> {
     }
     let shape = t.shape();
     let n = shape.num_elements();
-    // read where flex holds it (a weight is shared with its parameter: `into_data` would copy it
-    // first), or else as data
-    let data = match t.clone().try_into_primitive::<burn::backend::Flex>() {
-        Ok(p) if p.is_contiguous() => {
-            let at = p.layout().start_offset();
-            match from {
-                DType::F32 => to_f16(&p.storage::<f32>()[at..at + n], shape),
-                _ => to_f32(&p.storage::<half::f16>()[at..at + n], shape),
-            }
-        }
-        _ => {
+    // read where flex holds it, or else as data
+    let held = HostTensor::of(&t);
+    let data = match held.as_ref().and_then(|h| h.contiguous(n)) {
+        Some(HostValues::F32(v)) => TensorData::new(narrowed(v), shape),
+        Some(HostValues::F16(v)) => TensorData::new(widened(v), shape),
+        None => {
             let d = t.into_data();
             match from {
-                DType::F32 => to_f16(d.as_slice::<f32>().expect("f32 data"), shape),
-                _ => to_f32(d.as_slice::<half::f16>().expect("f16 data"), shape),
+                DType::F32 => TensorData::new(narrowed(d.as_slice::<f32>().expect("f32 data")), shape),
+                _ => TensorData::new(widened(d.as_slice::<half::f16>().expect("f16 data")), shape),
             }
         }
     };
@@ -165,19 +154,19 @@ pub fn in_dtype<const D: usize>(t: Tensor<D>, dtype: DType) -> Tensor<D> {
 }
 
 /// `src` rounded to f16 (F16C vector instructions where the CPU has them).
-fn to_f16(src: &[f32], shape: burn::tensor::Shape) -> TensorData {
+fn narrowed(src: &[f32]) -> Vec<half::f16> {
     use half::slice::HalfFloatSliceExt;
     let mut out = vec![half::f16::ZERO; src.len()];
     out.convert_from_f32_slice(src);
-    TensorData::new(out, shape)
+    out
 }
 
 /// `src` widened to f32 (F16C vector instructions where the CPU has them).
-fn to_f32(src: &[half::f16], shape: burn::tensor::Shape) -> TensorData {
+fn widened(src: &[half::f16]) -> Vec<f32> {
     use half::slice::HalfFloatSliceExt;
     let mut out = vec![0f32; src.len()];
     src.convert_to_f32_slice(&mut out);
-    TensorData::new(out, shape)
+    out
 }
 
 /// A `LayerNorm` of the checkpoint (`prefix.weight`, `prefix.bias`).
@@ -364,7 +353,11 @@ pub fn attention(q: Tensor<3>, k: Tensor<3>, v: Tensor<3>, mask: &Mask) -> Tenso
     };
     let [_, rows, _] = q.dims();
     let keys = k.dims()[1];
-    if host && rows >= HOST_ATTENTION_ROWS {
+    if host && rows > 0 {
+        // every call, decode steps included: the few-rows path ([`cpu::attention::FEW_ROWS`]) runs
+        // `matvec`'s vector kernels and reads a flex KV cache in place (a flex decode step at a 2k
+        // context: 11.3-11.7 tokens/s against 10.1 through flex's fused kernel; ndarray, whose
+        // cache is copied per call: 9.3-9.4 against 7.9 through burn's ops)
         return attention_on_host(q, k, v, causal_past);
     }
     // a decode step sees every key
@@ -372,27 +365,8 @@ pub fn attention(q: Tensor<3>, k: Tensor<3>, v: Tensor<3>, mask: &Mask) -> Tenso
         Mask::Causal { past } if keys - past == 1 => None,
         m => m.additive(rows, keys, &q.device()),
     };
-    if host && q.device() == Device::flex() {
-        // burn-flex's fused kernel
-        let out = module::attention(
-            q.unsqueeze_dim::<4>(0),
-            k.unsqueeze_dim::<4>(0),
-            v.unsqueeze_dim::<4>(0),
-            None,
-            m.map(|m| m.unsqueeze_dims::<4>(&[0, 0])),
-            AttentionModuleOptions::default(),
-        );
-        return out.squeeze_dim::<3>(0);
-    }
     attention_probs(q, k, v, m).0
 }
-
-/// Query rows (per key/value head) from which CPU attention runs in [`cpu::attention`]: every
-/// call since its few-rows path ([`cpu::attention::FEW_ROWS`]) runs `matvec`'s vector kernels and
-/// reads a KV cache in place (a flex decode step at a 2k context: 11.3-11.7 tokens/s against 10.1
-/// through flex's fused kernel). The fused-kernel and composed branches of [`attention`] below it
-/// then serve only other devices (and a call of no rows).
-const HOST_ATTENTION_ROWS: usize = 1;
 
 /// [`attention`] through [`cpu::attention::attend_in`]: `q` is read to the host and the result
 /// written back (7 MB each way for a 2k-token prompt at 0.5B, against 14 GFLOP); keys and values
@@ -421,10 +395,10 @@ fn attention_on_host(q: Tensor<3>, k: Tensor<3>, v: Tensor<3>, causal_past: Opti
 }
 
 /// A `[G, N, W]` f32 tensor's values on the host, each of its `G` blocks of `N x W` contiguous:
-/// borrowed where burn-flex holds them (no copy; the blocks may lie apart, as in a KV cache with
-/// room to grow) or else a compact copy.
+/// borrowed where the CPU backend holds them ([`HostTensor`], no copy; on flex the blocks may lie
+/// apart, as in a KV cache with room to grow) or else a compact copy.
 enum HostBlocks {
-    Flex(burn::backend::flex::FlexTensor),
+    Held(HostTensor),
     Copy(Vec<f32>),
 }
 
@@ -432,14 +406,13 @@ impl HostBlocks {
     /// The values and the distance (in elements) from one block's start to the next.
     fn of(t: Tensor<3>) -> (Self, usize) {
         let [_, n, w] = t.dims();
-        if !t.device().is_autodiff()
-            && let Ok(p) = t.clone().try_into_primitive::<burn::backend::Flex>()
-            && p.dtype() == DType::F32
-            && let [s0, s1, 1] = *p.layout().strides()
+        if let Some(h) = HostTensor::of(&t)
+            && let [s0, s1, 1] = h.strides()[..]
             && s1 == w as isize
             && s0 >= (n * w) as isize
+            && matches!(h.values(), Some(HostValues::F32(_)))
         {
-            return (HostBlocks::Flex(p), s0 as usize);
+            return (HostBlocks::Held(h), s0 as usize);
         }
         (HostBlocks::Copy(host_vec(t)), n * w)
     }
@@ -447,7 +420,10 @@ impl HostBlocks {
     /// From the first block's first value to the end of the storage.
     fn values(&self) -> &[f32] {
         match self {
-            HostBlocks::Flex(p) => &p.storage::<f32>()[p.layout().start_offset()..],
+            HostBlocks::Held(h) => match h.values() {
+                Some(HostValues::F32(v)) => v,
+                _ => unreachable!("HostBlocks::of holds only f32 values it can read"),
+            },
             HostBlocks::Copy(v) => v,
         }
     }

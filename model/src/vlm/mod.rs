@@ -12,6 +12,7 @@
 pub mod config;
 pub mod cpu;
 pub mod generate;
+pub mod host;
 pub mod layers;
 pub mod llava;
 pub mod preprocess;

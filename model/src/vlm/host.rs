@@ -1,5 +1,5 @@
 //! A CPU tensor's values read where its backend holds them, without a copy: the weights a decode
-//! step multiplies by ([`super::layers::few_rows_product`]), a KV cache with room to grow
+//! step multiplies by ([`super::layers::host_product`]), a KV cache with room to grow
 //! ([`super::layers::attention`]), f16 weights widened on the host ([`super::layers::in_dtype`]).
 //! `into_data` would copy a weight first, since its parameter shares the storage.
 

@@ -29,45 +29,31 @@ pub fn half_linear(l: Linear) -> Linear {
 }
 
 /// `l(x)`, also for a layer held in another precision than `x` (f16 weights, f32 activations).
-/// CPU inference on flex takes a few rows (a decode step) through [`few_rows_product`] (the
-/// weights read where they lie, in f32 or f16, `x` kept in f32) and widens f16 weights for a
-/// product of many rows; elsewhere `x` is rounded to the weights' precision for the matmul
-/// (accumulated in f32 by the CPU's gemm) and the result returned in `x`'s.
+/// CPU inference (flex, ndarray) runs it in [`host_product`]: the weights read where they lie, in
+/// f32 or f16, `x` kept in f32. Elsewhere (training, wgpu) `x` is rounded to the weights'
+/// precision for burn's matmul and the result returned in `x`'s.
 pub fn linear<const D: usize>(l: &Linear, x: Tensor<D>) -> Tensor<D> {
     let bias = l.bias.as_ref().map(|b| b.val());
     let w = l.weight.val();
-    let x = match few_rows_product(x, &w, bias.as_ref()) {
+    let x = match host_product(x, &w, bias.as_ref()) {
         Ok(y) => return y,
         Err(x) => x,
     };
-    if w.dtype() == DType::F16 && on_host(&x) && w.shape().num_elements() <= WIDEN_LIMIT {
-        // many rows on the host: widen this layer's f16 weights for one f32 product (gemm's f16
-        // path ran the 0.5B vision tower at 0.54x transformers' speed against 0.77x in f32; the
-        // widening is ~3 % of a 2k-token product's time)
-        let wide = Linear {
-            weight: Param::from_tensor(in_dtype(w, DType::F32)),
-            bias: bias.map(|b| Param::from_tensor(in_dtype(b, DType::F32))),
-        };
-        return wide.forward(x);
-    }
     in_precision(w.dtype(), x, |x| l.forward(x))
 }
 
-/// Weights (elements) up to which [`linear`] widens f16 weights to f32 for a product of many rows
-/// (512 MB in f32: every layer of the 7B model but its 152k-row `lm_head`).
+/// Weights (elements) up to which [`host_product`] widens f16 weights to f32 for a product of many
+/// rows (512 MB in f32: every layer of the 7B model but its 152k-row `lm_head`).
 const WIDEN_LIMIT: usize = 1 << 27;
 
-/// Rows (all dimensions but the last) up to which CPU inference multiplies by a weight matrix in
-/// [`cpu::matvec`] (a decode step has one).
-const FEW_ROWS_PRODUCT: usize = 8;
-
-/// `x w (+ bias)` through [`cpu::matvec`], reading `w` and `bias` where the CPU backend holds them
-/// ([`HostTensor`]: f32 or f16 on flex, f32 on ndarray; no copy), when `x` is at most
-/// [`FEW_ROWS_PRODUCT`] f32 rows at CPU inference and `w` `[k, n]` is row-major or the transposed
-/// view of a row-major `[n, k]`; `Err(x)` otherwise.
+/// `x w (+ bias)` through [`cpu::product`], reading `x`, `w` and `bias` where the CPU backend holds
+/// them ([`HostTensor`]: f32 or f16 on flex, f32 on ndarray; no copy) and writing the result once,
+/// when `x` is f32 at CPU inference and `w` `[k, n]` is row-major or the transposed view of a
+/// row-major `[n, k]` (f16 weights of more than [`WIDEN_LIMIT`] elements only for a few rows);
+/// `Err(x)` otherwise.
 // the input comes back by value (moved, not copied) when this path does not apply
 #[allow(clippy::result_large_err)]
-pub fn few_rows_product<const D: usize>(
+pub fn host_product<const D: usize>(
     x: Tensor<D>,
     w: &Tensor<2>,
     bias: Option<&Tensor<1>>,
@@ -75,7 +61,7 @@ pub fn few_rows_product<const D: usize>(
     use cpu::matvec::{Held, Order};
     let dims = x.dims();
     let (k, rows) = (dims[D - 1], dims[..D - 1].iter().product::<usize>());
-    if !(1..=FEW_ROWS_PRODUCT).contains(&rows) || !on_host(&x) {
+    if !on_host(&x) {
         return Err(x);
     }
     let Some(wt) = HostTensor::of(w) else { return Err(x) };
@@ -88,25 +74,24 @@ pub fn few_rows_product<const D: usize>(
     };
     let held = match wt.values() {
         Some(HostValues::F32(v)) if v.len() >= k * n => Held::F32(&v[..k * n]),
-        Some(HostValues::F16(v)) if v.len() >= k * n => Held::F16(&v[..k * n]),
+        Some(HostValues::F16(v)) if v.len() >= k * n && (rows <= cpu::product::FEW_ROWS || k * n <= WIDEN_LIMIT) => {
+            Held::F16(&v[..k * n])
+        }
         _ => return Err(x),
     };
     let bias_held = bias.and_then(HostTensor::of);
     let bias = match (bias, bias_held.as_ref().and_then(|b| b.contiguous(n))) {
         (None, _) => None,
-        (Some(_), Some(HostValues::F32(b))) => Some(b.to_vec()),
-        (Some(_), Some(HostValues::F16(b))) => Some(widened(b)),
+        (Some(_), Some(HostValues::F32(b))) => Some(std::borrow::Cow::Borrowed(b)),
+        (Some(_), Some(HostValues::F16(b))) => Some(std::borrow::Cow::Owned(widened(b))),
         (Some(_), None) => return Err(x),
     };
     let device = x.device();
-    let xs = host_vec(x);
-    let mut out = vec![0f32; rows * n];
-    cpu::matvec::matmul(&xs, held, order, rows, k, n, &mut out);
-    if let Some(b) = bias {
-        for row in out.chunks_exact_mut(n) {
-            row.iter_mut().zip(&b).for_each(|(y, b)| *y += b);
-        }
-    }
+    let x_held = HostTensor::of(&x);
+    let out = match x_held.as_ref().and_then(|h| h.contiguous(rows * k)) {
+        Some(HostValues::F32(xs)) => cpu::product::product(xs, held, order, rows, k, n, bias.as_deref()),
+        _ => cpu::product::product(&host_vec(x), held, order, rows, k, n, bias.as_deref()),
+    };
     let mut shape = dims;
     shape[D - 1] = n;
     Ok(Tensor::from_data(TensorData::new(out, shape), &device))

@@ -7,7 +7,7 @@
 use super::VlmError;
 use super::config::TextConfig;
 use super::layers::{
-    Mask, attention, attention_probs, few_rows_product, gated, half_linear, in_dtype, in_precision, init_linear,
+    Mask, attention, attention_probs, gated, half_linear, host_product, in_dtype, in_precision, init_linear,
     init_rms_norm, linear, load_linear, load_rms_norm, normal,
 };
 use super::weights::{HfTensors, WeightStore};
@@ -394,8 +394,8 @@ impl Qwen2 {
                 // (E h^T)^T rather than h E^T: E^T as a strided view makes burn-ndarray copy the whole
                 // [vocab, D] embedding on every call (3.0 s vs 0.13 s per decode step at vocab 152k, D 896)
                 let e = self.embed.weight.val();
-                // a decode step's few rows: E read once where it lies, in its precision
-                let y = few_rows_product(hidden.reshape([rows, d]), &e.clone().transpose(), None)
+                // CPU inference: E read where it lies, in its precision
+                let y = host_product(hidden.reshape([rows, d]), &e.clone().transpose(), None)
                     .unwrap_or_else(|h| in_precision(e.dtype(), h, |h| e.matmul(h.transpose()).transpose()));
                 let mut out = dims;
                 out[N - 1] = self.cfg.vocab_size;

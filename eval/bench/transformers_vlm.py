@@ -9,6 +9,9 @@ Rust run; `eval/bench/vlm_vs_transformers.sh` runs both one after the other:
     python3 eval/bench/transformers_vlm.py --size 0.5b --threads 2 --prefill-tokens 2005 \
         --decode 16 --reps 1 --out /tmp/transformers_0.5b.json
 
+`--device cuda` times the same on a GPU (`eval/gpu/run.sh` does, beside chatsplat's wgpu figures);
+every timed region then ends with a device synchronisation.
+
 It builds `LlavaOnevisionForConditionalGeneration` from the published llava-hf config values
 (SigLIP 1152 x 26 at 384 / patch 14, Qwen2 896 x 24 or 3584 x 28, f32 weights, random init: speed
 does not depend on the values) and times, after one warm-up each:
@@ -62,6 +65,7 @@ def main():
     ap.add_argument("--prefill-tokens", type=int, default=2005)
     ap.add_argument("--decode", type=int, default=16)
     ap.add_argument("--reps", type=int, default=1)
+    ap.add_argument("--device", default="cpu", help="torch device: cpu (default) or cuda")
     ap.add_argument("--out", required=True, help="JSON file to write (atomically)")
     a = ap.parse_args()
     if a.threads < 1 or a.prefill_tokens < 1 or a.decode < 1 or a.reps < 1:
@@ -71,27 +75,38 @@ def main():
     import transformers
     from transformers import LlavaOnevisionForConditionalGeneration
 
+    if a.device.startswith("cuda") and not torch.cuda.is_available():
+        sys.exit(f"error: --device {a.device}: torch {torch.__version__} sees no CUDA device")
+    device = torch.device(a.device)
     torch.set_num_threads(a.threads)
     torch.manual_seed(0)
+
+    def sync():
+        if device.type == "cuda":
+            torch.cuda.synchronize(device)
+
     t0 = time.perf_counter()
     with torch.device("cpu"):
         model = LlavaOnevisionForConditionalGeneration(published(a.size)).eval()
+    model = model.to(device)
     build = time.perf_counter() - t0
     params = sum(p.numel() for p in model.parameters())
     print(f"built {a.size}: {params / 1e6:.1f} M parameters in {build:.0f} s", file=sys.stderr)
 
     def timed(f):
         f()  # warm-up
+        sync()
         t = time.perf_counter()
         for _ in range(a.reps):
             f()
+        sync()
         return (time.perf_counter() - t) / a.reps
 
-    pixels = torch.rand(1, 3, 384, 384) * 2 - 1
+    pixels = (torch.rand(1, 3, 384, 384) * 2 - 1).to(device)
     lm = model.model.language_model
     head = model.lm_head
     d = model.config.text_config.hidden_size
-    embeds = torch.randn(1, a.prefill_tokens, d) * 0.02
+    embeds = (torch.randn(1, a.prefill_tokens, d) * 0.02).to(device)
 
     def vision():
         out = model.model.vision_tower(pixels, output_hidden_states=True)
@@ -105,11 +120,13 @@ def main():
         # timed on its own: the prompt fills the KV cache first (not total minus prefill, whose
         # jitter would swamp the decode time)
         tok, cache = prefill()
+        sync()
         t = time.perf_counter()
         for _ in range(a.decode):
             out = lm(input_ids=tok, past_key_values=cache, use_cache=True)
             cache = out.past_key_values
             tok = head(out.last_hidden_state[:, -1:]).argmax(-1)[:, -1:]
+        sync()
         return time.perf_counter() - t
 
     with torch.inference_mode():
@@ -128,9 +145,11 @@ def main():
         "decode_tokens": a.decode,
         "decode_tokens_per_s": a.decode / dec,
         "peak_rss_gib": resource.getrusage(resource.RUSAGE_SELF).ru_maxrss / 2**20,
+        "peak_gpu_gib": torch.cuda.max_memory_allocated(device) / 2**30 if device.type == "cuda" else 0.0,
         "transformers": transformers.__version__,
         "torch": torch.__version__,
         "machine": f"{platform.machine()} {os.cpu_count()} cpus",
+        "device": torch.cuda.get_device_name(device) if device.type == "cuda" else "cpu",
     }
     tmp = a.out + ".tmp"
     with open(tmp, "w") as f:

@@ -2,19 +2,25 @@
 # GPU figures in one `device` call (issue 12, item 6). Two steps:
 #
 #   bash eval/gpu/run.sh pack            # here: release binaries, stripped and xz-compressed
-#                                        # (~40 MB for the four; a carry takes 64 MiB) into
-#                                        # .gpu/bin; the Vulkan loader .debs into .gl/ (both
-#                                        # git-excluded)
-#   bash eval/gpu/run.sh bench [OUTDIR]  # there (carry .gpu and .gl), or here on the CPU
+#                                        # together (24 MB for the four; a carry takes 64 MiB)
+#                                        # into .gpu/bin; the Vulkan loader .debs into .gl/; gsplat's
+#                                        # wheel into .whl/ (all three git-excluded)
+#   bash eval/gpu/run.sh bench [OUTDIR]  # there (carry .gpu .gl .whl), or here on the CPU
 #
 # `bench` unpacks the carried Vulkan loaders when the machine has none, then times, each with the
 # command line printed above its output (into OUTDIR, default $OUT or ./gpu-out):
-#   1. splat-bench: the splatting op on wgpu and ndarray, N = 1e5 and 1e6, C = 3 and 32;
-#   2. vlm-bench: the published 0.5B configuration (random weights), wgpu, flex and ndarray;
-#   3. geometry and language training s/iter on a built-in synthetic scene (wgpu), and
-#      lang-bench's views/s and objects/s (real-size encoder too) on it.
-# CHATSPLAT_GPU_QUICK=1 shrinks every size and trains on ndarray (a smoke run of the script on
-# the CPU: on lavapipe, 5 language iterations took over 25 minutes of kernel compilation).
+#   splat  splat-bench: the splatting op on wgpu and ndarray, N = 1e5 and 1e6, C = 3 and 32;
+#   peers  where torch sees CUDA: gsplat's CUDA rasterizer on the same N, C and image sizes
+#          (eval/gpu/gsplat_bench.py; its kernels compile on first use, timed apart) and
+#          transformers on CUDA at 0.5B (eval/bench/transformers_vlm.py --device cuda), the
+#          reference the vlm step prints its ratios against;
+#   vlm    vlm-bench: the published 0.5B configuration (random weights), wgpu, flex and ndarray;
+#   train  geometry and language training s/iter on a built-in synthetic scene (wgpu), and
+#          lang-bench's views/s and objects/s (real-size encoder too) on it.
+# CHATSPLAT_GPU_PARTS picks the parts (default "splat peers vlm train": split them over two calls
+# if one would pass the device's 10-minute limit per command). CHATSPLAT_GPU_QUICK=1 shrinks every
+# size and trains on ndarray (a smoke run of the script on the CPU: on lavapipe, 5 language
+# iterations took over 25 minutes of kernel compilation; the peers skip without CUDA).
 # Never part of CI.
 set -euo pipefail
 cd "$(dirname "$0")/../.."
@@ -25,20 +31,31 @@ pack() {
     cargo build --release -p chatsplat -p eval --bin chatsplat --bin splat-bench --bin vlm-bench --bin lang-bench
     rm -rf .gpu/bin
     mkdir -p .gpu/bin
+    local stripped
+    stripped=$(mktemp -d /tmp/chatsplat-strip.XXXX)
     for b in "${bins[@]}"; do
-        strip -o ".gpu/bin/$b" "target/release/$b"
-        xz -T0 -6 ".gpu/bin/$b"
+        strip -o "$stripped/$b" "target/release/$b"
     done
+    # one archive with a dictionary that spans all four binaries, which share most of their code:
+    # 24 MB against 43 MB compressed one by one (the carry, the working tree included, takes 64 MiB)
+    tar -C "$stripped" -cf - "${bins[@]}" | xz --lzma2=preset=6,dict=256MiB -T1 >.gpu/bin/bins.tar.xz
+    rm -rf "$stripped"
     du -sh .gpu/bin
     grep -qx '/.gpu/' .git/info/exclude || echo '/.gpu/' >>.git/info/exclude
     grep -qx '/.gl/' .git/info/exclude || echo '/.gl/' >>.git/info/exclude
+    grep -qx '/.whl/' .git/info/exclude || echo '/.whl/' >>.git/info/exclude
+    if ! ls .whl/gsplat-*.whl >/dev/null 2>&1; then
+        # pure Python (its CUDA kernels compile there on first use); numpy, torch, ninja, rich and
+        # jaxtyping, which it needs, are in the GPU machines' image
+        python3 -m pip download --no-deps --only-binary=:all: -d .whl gsplat==1.5.3
+    fi
     if ! ls .gl/libvulkan1_*.deb >/dev/null 2>&1; then
         local o='-oAPT::Architecture=amd64 -oAPT::Architectures=amd64 -oDir::State::Lists=/tmp/amd64'
         mkdir -p .gl /tmp/amd64/partial
         # shellcheck disable=SC2086
         apt-get $o update -qq && (cd .gl && apt-get $o download libvulkan1 libegl1 libglvnd0 libgl1 libglx0)
     fi
-    echo "carry: .gpu .gl; command: bash eval/gpu/run.sh bench"
+    echo "carry: .gpu .gl .whl; command: bash eval/gpu/run.sh bench"
 }
 
 step() {
@@ -55,19 +72,15 @@ bench() {
     local out=${1:-${OUT:-gpu-out}}
     mkdir -p "$out"
     local bin=target/release
-    if [ -f .gpu/bin/chatsplat.xz ]; then
+    if [ -f .gpu/bin/bins.tar.xz ]; then
         unpacked=$(mktemp -d /tmp/chatsplat-gpu.XXXX)
         trap 'rm -rf "$unpacked"' EXIT
         bin=$unpacked
-        for b in "${bins[@]}"; do
-            [ -f ".gpu/bin/$b.xz" ] || { echo "error: .gpu/bin/$b.xz is missing: run \`bash eval/gpu/run.sh pack\`" >&2; exit 1; }
-            if command -v xz >/dev/null; then
-                xz -dc ".gpu/bin/$b.xz" >"$bin/$b"
-            else
-                python3 -c 'import lzma, sys; sys.stdout.buffer.write(lzma.open(sys.argv[1]).read())' ".gpu/bin/$b.xz" >"$bin/$b"
-            fi
-            chmod +x "$bin/$b"
-        done
+        if command -v xz >/dev/null; then
+            xz -dc .gpu/bin/bins.tar.xz | tar -C "$bin" -xf -
+        else
+            python3 -c 'import sys, tarfile; tarfile.open(sys.argv[1]).extractall(sys.argv[2])' .gpu/bin/bins.tar.xz "$bin"
+        fi
     fi
     for b in "${bins[@]}"; do
         [ -x "$bin/$b" ] || { echo "error: $bin/$b is missing: run \`bash eval/gpu/run.sh pack\` first" >&2; exit 1; }
@@ -80,25 +93,52 @@ bench() {
         export VK_DRIVER_FILES=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json
     fi
     command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv
-    local quick=${CHATSPLAT_GPU_QUICK:-0}
+    local quick=${CHATSPLAT_GPU_QUICK:-0} parts=" ${CHATSPLAT_GPU_PARTS:-splat peers vlm train} "
     local n=100000,1000000 c=3,32 res=384x384,1280x720 vlm=0.5b views=32 side=96 geo=1000 lang=300 be=wgpu
     if [ "$quick" = 1 ]; then
         n=10000 c=3 res=384x384 views=8 side=64 geo=20 lang=5 be=ndarray
     fi
+    local cuda=0
+    if python3 -c 'import sys, torch; sys.exit(0 if torch.cuda.is_available() else 1)' 2>/dev/null; then
+        cuda=1
+    fi
     {
-        step "$bin/splat-bench" --n "$n" --c "$c" --res "$res" --impls wgpu,ndarray --max-secs 20
-        if [ "$quick" = 1 ]; then
-            step "$bin/vlm-bench" --backend wgpu flex ndarray --reps 1 --decode 4
-        else
-            step "$bin/vlm-bench" --random "$vlm" --backend wgpu flex ndarray --reps 2 --decode 16
+        if [[ $parts == *" splat "* ]]; then
+            step "$bin/splat-bench" --n "$n" --c "$c" --res "$res" --impls wgpu,ndarray --max-secs 20
         fi
-        local scene=$out/scene run=$out/run
-        rm -rf "$scene" "$run"
-        step "$bin/chatsplat" synth --out "$scene" --views "$views" --width "$side" --height "$side"
-        step "$bin/chatsplat" train --data "$scene" --out "$run" --iters "$geo" --backend "$be"
-        step "$bin/chatsplat" extract --data "$scene" --out "$scene/teacher" --backend "$be"
-        step "$bin/chatsplat" train-language --run "$run" --teacher "$scene/teacher" --iters "$lang" --backend "$be"
-        step "$bin/lang-bench" --run "$run" --backend "$be" --sweep-iters 0 --reps 3 --full-size
+        local reference=()
+        if [[ $parts == *" peers "* ]]; then
+            if [ "$cuda" = 1 ]; then
+                if ! python3 -c 'import gsplat' 2>/dev/null && ls .whl/*.whl >/dev/null 2>&1; then
+                    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site .whl/*.whl
+                    export PYTHONPATH=/tmp/site${PYTHONPATH:+:$PYTHONPATH}
+                fi
+                MAX_JOBS=$(nproc) step python3 eval/gpu/gsplat_bench.py --n "$n" --c "$c" --res "$res" \
+                    --out "$out/gsplat.json" || echo "gsplat-bench failed (exit $?)"
+                if [ "$quick" != 1 ] && step python3 eval/bench/transformers_vlm.py --size "$vlm" --device cuda \
+                    --threads "$(nproc)" --reps 2 --decode 16 --out "$out/transformers_cuda.json"; then
+                    reference=(--reference "$out/transformers_cuda.json")
+                fi
+            else
+                echo "peers: skipped (python3's torch sees no CUDA device)"
+            fi
+        fi
+        if [[ $parts == *" vlm "* ]]; then
+            if [ "$quick" = 1 ]; then
+                step "$bin/vlm-bench" --backend wgpu flex ndarray --reps 1 --decode 4
+            else
+                step "$bin/vlm-bench" --random "$vlm" --backend wgpu flex ndarray --reps 2 --decode 16 "${reference[@]}"
+            fi
+        fi
+        if [[ $parts == *" train "* ]]; then
+            local scene=$out/scene run=$out/run
+            rm -rf "$scene" "$run"
+            step "$bin/chatsplat" synth --out "$scene" --views "$views" --width "$side" --height "$side"
+            step "$bin/chatsplat" train --data "$scene" --out "$run" --iters "$geo" --backend "$be"
+            step "$bin/chatsplat" extract --data "$scene" --out "$scene/teacher" --backend "$be"
+            step "$bin/chatsplat" train-language --run "$run" --teacher "$scene/teacher" --iters "$lang" --backend "$be"
+            step "$bin/lang-bench" --run "$run" --backend "$be" --sweep-iters 0 --reps 3 --full-size
+        fi
     } 2>&1 | tee "$out/gpu_bench.log"
 }
 

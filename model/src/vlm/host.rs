@@ -12,7 +12,7 @@ use burn::tensor::{DType, Tensor};
 pub enum HostTensor {
     /// burn-flex: a storage buffer, a start offset and strides (a view may lie inside it).
     Flex(FlexTensor),
-    /// burn-ndarray (f32 only: it holds no f16).
+    /// burn-ndarray, f32 (it holds no f16; other element types are not taken).
     Ndarray(NdArrayTensor),
 }
 
@@ -23,15 +23,18 @@ pub enum HostValues<'a> {
 }
 
 impl HostTensor {
-    /// `t`'s primitive when it lies on burn-flex or burn-ndarray outside autodiff, with strides
-    /// that are not negative; `None` elsewhere (wgpu, training).
+    /// `t`'s primitive when it lies on burn-flex or burn-ndarray (f32) outside autodiff, with
+    /// strides that are not negative; `None` elsewhere (wgpu, training).
     pub fn of<const D: usize>(t: &Tensor<D>) -> Option<Self> {
         if t.device().is_autodiff() {
             return None;
         }
         let held = match t.clone().try_into_primitive::<Flex>() {
             Ok(p) => HostTensor::Flex(p),
-            Err(_) => HostTensor::Ndarray(t.clone().try_into_primitive::<NdArray>().ok()?),
+            Err(_) => match t.clone().try_into_primitive::<NdArray>().ok()? {
+                p @ NdArrayTensor::F32(_) => HostTensor::Ndarray(p),
+                _ => return None,
+            },
         };
         held.strides().iter().all(|&s| s >= 0).then_some(held)
     }
@@ -42,15 +45,6 @@ impl HostTensor {
             HostTensor::Flex(p) => p.layout().strides().to_vec(),
             HostTensor::Ndarray(NdArrayTensor::F32(s)) => s.view().strides().to_vec(),
             HostTensor::Ndarray(_) => Vec::new(),
-        }
-    }
-
-    /// The element type.
-    pub fn dtype(&self) -> DType {
-        match self {
-            HostTensor::Flex(p) => p.dtype(),
-            HostTensor::Ndarray(NdArrayTensor::F32(_)) => DType::F32,
-            HostTensor::Ndarray(_) => DType::F64,
         }
     }
 
@@ -124,7 +118,7 @@ mod tests {
     }
 
     #[test]
-    fn half_values_on_flex_and_nothing_under_autodiff() {
+    fn half_values_on_flex_and_nothing_under_autodiff_or_in_f64() {
         let t = tensor(&Device::flex()).cast(DType::F16);
         let h = HostTensor::of(&t).expect("a flex tensor");
         match h.contiguous(12) {
@@ -132,5 +126,7 @@ mod tests {
             _ => panic!("f16 values expected"),
         }
         assert!(HostTensor::of(&tensor(&Device::flex().autodiff())).is_none());
+        // burn-ndarray in f64: not taken (the kernels read f32)
+        assert!(HostTensor::of(&tensor(&Device::ndarray()).cast(DType::F64)).is_none());
     }
 }

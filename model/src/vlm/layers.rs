@@ -4,6 +4,7 @@
 use super::VlmError;
 use super::config::Act;
 use super::cpu;
+use super::cpu::convert::{narrowed, widened};
 use super::host::{HostTensor, HostValues};
 use super::weights::WeightStore;
 use crate::rng::Rng;
@@ -136,22 +137,6 @@ pub fn in_dtype<const D: usize>(t: Tensor<D>, dtype: DType) -> Tensor<D> {
         }
     };
     Tensor::from_data(data, (&device, dtype))
-}
-
-/// `src` rounded to f16 (F16C vector instructions where the CPU has them).
-fn narrowed(src: &[f32]) -> Vec<half::f16> {
-    use half::slice::HalfFloatSliceExt;
-    let mut out = vec![half::f16::ZERO; src.len()];
-    out.convert_from_f32_slice(src);
-    out
-}
-
-/// `src` widened to f32 (F16C vector instructions where the CPU has them).
-fn widened(src: &[half::f16]) -> Vec<f32> {
-    use half::slice::HalfFloatSliceExt;
-    let mut out = vec![0f32; src.len()];
-    src.convert_to_f32_slice(&mut out);
-    out
 }
 
 /// A `LayerNorm` of the checkpoint (`prefix.weight`, `prefix.bias`).

@@ -198,6 +198,15 @@ mod avx2 {
         }
     }
 
+    /// Rows `first..first + b` (`b` in 1..=4) of `w`, each `len` long, as four slices (the last
+    /// repeated where `b < 4`, so a kernel's four lanes always read valid rows).
+    fn block_of_rows<W>(w: &[W], first: usize, b: usize, len: usize) -> [&[W]; 4] {
+        std::array::from_fn(|q| {
+            let r = first + q.min(b - 1);
+            &w[r * len..(r + 1) * len]
+        })
+    }
+
     /// [`super::axpy_rows`]: four weight rows per pass over `y`, 8 lanes at a time.
     ///
     /// # Safety
@@ -210,7 +219,7 @@ mod avx2 {
         let mut i = 0;
         while i < x.len() {
             let b = 4.min(x.len() - i);
-            let rows: [&[W]; 4] = std::array::from_fn(|q| &w[(i + q.min(b - 1)) * n..(i + q.min(b - 1) + 1) * n]);
+            let rows = block_of_rows(w, i, b, n);
             let a: [f32; 4] = std::array::from_fn(|q| if q < b { x[i + q] } else { 0.0 });
             let av = a.map(|v| _mm256_set1_ps(v));
             let mut j = 0;
@@ -244,7 +253,7 @@ mod avx2 {
         let mut j = 0;
         while j < y.len() {
             let b = 4.min(y.len() - j);
-            let rows: [&[W]; 4] = std::array::from_fn(|q| &w[(j + q.min(b - 1)) * k..(j + q.min(b - 1) + 1) * k]);
+            let rows = block_of_rows(w, j, b, k);
             let mut acc = [_mm256_setzero_ps(); 4];
             let mut i = 0;
             while i < vec_k {

@@ -11,6 +11,7 @@
 //! `i`, output `j`) in one of matvec's [`Order`]s, in f32 or f16 ([`Held`]: f16 is widened to f32
 //! for a product of many rows, where gemm's f16 path is slower than its f32 one).
 
+use super::convert::widened;
 use super::matvec::{self, Held, Order};
 
 /// Rows up to which a product runs in [`matvec`] (each weight read once) instead of gemm.
@@ -39,15 +40,12 @@ pub fn product(x: &[f32], w: Held, order: Order, rows: usize, k: usize, n: usize
         }
         return out;
     }
-    let widened;
+    let wide;
     let w = match w {
         Held::F32(w) => w,
         Held::F16(w) => {
-            use half::slice::HalfFloatSliceExt;
-            let mut wide = vec![0f32; w.len()];
-            w.convert_to_f32_slice(&mut wide);
-            widened = wide;
-            &widened
+            wide = widened(w);
+            &wide
         }
     };
     assert_eq!(w.len(), k * n, "product: the weights are not k x n");

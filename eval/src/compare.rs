@@ -11,7 +11,7 @@
 //! All three feed the LLM the same layout: one token grid per image, projector, newline.
 
 use crate::score::normalize;
-use model::chat::{ChatSession, answer};
+use model::chat::{ChatSession, DEFAULT_SCENE_VIEWS, answer};
 use model::data::Dataset;
 use model::error::{Error, Result};
 use model::language::ObjectCrop;
@@ -184,7 +184,7 @@ pub fn answer_file(
             }
             Source::ChatSplat => {
                 let s = session.ok_or_else(|| Error::input("ChatSplat needs a trained scene"))?;
-                s.tokens(&target_of(file, q, s, 4)?)?.images
+                s.tokens(&target_of(file, q, s, DEFAULT_SCENE_VIEWS)?)?
             }
         };
         let g = answer(vlm, &tokens, &q.question, &opts, |_| {})?;

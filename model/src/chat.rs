@@ -1,7 +1,12 @@
-//! Chatting with a trained scene (ChatSplat, Sec. 3.6): view level (one view's tokens), object
-//! level (a clicked pixel -> the rendered identity picks the object -> its masked object map ->
-//! tokens) and scene level (tokens of several views in LLaVA-OneVision's multi-image layout).
-//! Tokens go through the LLaVA-OneVision projector into the LLM.
+//! Chatting with a trained scene (ChatSplat, Sec. 3.6): view level (the tokens of a view from any
+//! camera), object level (a click -> the rendered identity picks the object -> its masked object
+//! map -> tokens) and scene level (tokens of several views in LLaVA-OneVision's multi-image
+//! layout). Tokens go through the LLaVA-OneVision projector into the LLM.
+//!
+//! One API serves the REPL (`chatsplat chat`), `chatsplat ask`, `chatsplat vqa` and the browser
+//! viewer (`chatsplat serve`): a click is resolved once, by [`ChatSession::click`], into a
+//! [`Picked`] that [`Target::Object`] carries; its tokens are computed at its first question and
+//! kept for the follow-ups.
 
 use crate::error::{Error, Result};
 use crate::language::FrozenEncoder;
@@ -10,34 +15,59 @@ use crate::scene::{LanguageScene, highlight, spread_views};
 use crate::vlm::{GenerateOptions, Generation, LlavaOnevision};
 use burn::tensor::{Device, Tensor};
 use splat_kernels::Camera;
+use std::ops::ControlFlow;
 use std::path::Path;
+use std::sync::{Arc, OnceLock};
+
+/// Views that scene-level chat spreads around the scene when the user does not say how many.
+pub const DEFAULT_SCENE_VIEWS: usize = 4;
+
+/// An object picked by a click in a view: resolved once (one identity render of the view) and
+/// carried by [`Target::Object`]. Clones share the object's tokens once computed.
+#[derive(Clone, Debug)]
+pub struct Picked {
+    /// The camera the object was picked in (any pose and size).
+    pub camera: Camera,
+    /// The object's instance id (1..=255; 0 is the background).
+    pub id: u8,
+    /// The object's crop box in the view, `[x0, y0, x1, y1)` (mask box + the teacher's margin).
+    pub bbox: [usize; 4],
+    /// The rendered identity of the whole view, `[H * W]` row-major: the object is where it is `id`.
+    pub ids: Vec<u8>,
+    tokens: Arc<OnceLock<Tensor<2>>>,
+}
+
+impl Picked {
+    /// The object's pixels in the view (`ids == id`).
+    pub fn pixels(&self) -> usize {
+        self.ids.iter().filter(|&&i| i == self.id).count()
+    }
+
+    /// Whether view pixel `(x, y)` shows the object.
+    pub fn covers(&self, x: usize, y: usize) -> bool {
+        x < self.camera.width as usize && self.ids.get(y * self.camera.width as usize + x) == Some(&self.id)
+    }
+}
 
 /// What a question is about.
-#[derive(Clone, Debug, PartialEq)]
+#[derive(Clone, Debug)]
 pub enum Target {
-    /// View-level chat with view `i` (training views, then held-out views).
-    View(usize),
-    /// Object-level chat: the object under pixel `(x, y)` of view `view`.
-    Object { view: usize, x: usize, y: usize },
-    /// Scene-level chat over these views.
-    Scene(Vec<usize>),
+    /// View level: the view from this camera (a training view's or any other).
+    View(Camera),
+    /// Object level: a picked object.
+    Object(Picked),
+    /// Scene level: the views from these cameras together.
+    Scene(Vec<Camera>),
 }
 
 impl std::fmt::Display for Target {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
-            Target::View(v) => write!(f, "view {v}"),
-            Target::Object { view, x, y } => write!(f, "view {view} object at ({x}, {y})"),
-            Target::Scene(vs) => write!(f, "scene {vs:?}"),
+            Target::View(c) => write!(f, "view {}x{}", c.width, c.height),
+            Target::Object(p) => write!(f, "object {}", p.id),
+            Target::Scene(cs) => write!(f, "scene ({} views)", cs.len()),
         }
     }
-}
-
-/// Vision tokens for a question, and the picked object when there is one.
-pub struct TargetTokens {
-    /// One `[T, vision D]` token grid per image.
-    pub images: Vec<Tensor<2>>,
-    pub picked: Option<u8>,
 }
 
 /// Answers `question` about token grids `images` (each `[T, vision D]`, one base view each, as
@@ -47,11 +77,28 @@ pub fn answer(
     images: &[Tensor<2>],
     question: &str,
     opts: &GenerateOptions,
-    on_text: impl FnMut(&str),
+    mut on_text: impl FnMut(&str),
+) -> Result<Generation> {
+    answer_until(vlm, images, question, opts, |piece| {
+        if !piece.is_empty() {
+            on_text(piece);
+        }
+        ControlFlow::Continue(())
+    })
+}
+
+/// [`answer`], where `on_step` sees every decoding step (with the new text, possibly empty) and
+/// stops the generation by returning `Break` (a closed connection, a stop button).
+pub fn answer_until(
+    vlm: &LlavaOnevision,
+    images: &[Tensor<2>],
+    question: &str,
+    opts: &GenerateOptions,
+    on_step: impl FnMut(&str) -> ControlFlow<()>,
 ) -> Result<Generation> {
     let embeds: Vec<Tensor<2>> = images.iter().map(|t| vlm.token_embeds(t.clone())).collect();
     let prompt = vlm.prompt_embeds(question, &embeds)?;
-    Ok(vlm.generate(prompt, opts, on_text)?)
+    Ok(vlm.generate_until(prompt, opts, on_step)?)
 }
 
 /// A loaded scene + LLaVA-OneVision, ready to answer.
@@ -115,62 +162,125 @@ impl ChatSession {
         Ok(spread_views(&self.cameras[..self.train_views], k))
     }
 
-    /// View-level tokens `[T, D]` of view `view`.
-    pub fn view_tokens(&self, view: usize) -> Result<Tensor<2>> {
-        let map = self.scene.view_map(&self.scene.field, self.camera(view)?)?;
+    /// Scene level over `k` views spread around the training views.
+    pub fn scene_target(&self, k: usize) -> Result<Target> {
+        Ok(Target::Scene(self.scene_views(k)?.into_iter().map(|v| self.cameras[v]).collect()))
+    }
+
+    /// View-level tokens `[T, D]` of the view from `camera` (any pose and size).
+    pub fn view_tokens(&self, camera: &Camera) -> Result<Tensor<2>> {
+        let map = self.scene.view_map(&self.scene.field, camera)?;
         Ok(self.encoder.forward_level(map, false))
     }
 
-    /// Tokens of a target. Object level errors when the pixel shows no object.
-    pub fn tokens(&self, target: &Target) -> Result<TargetTokens> {
+    /// The object under pixel `(x, y)` of the view from `camera`: one identity render of the
+    /// view. `None` for the background; a pixel outside the view is an error, and so is a scene
+    /// trained without instance masks.
+    pub fn click(&self, camera: &Camera, x: usize, y: usize) -> Result<Option<Picked>> {
+        let (w, h) = (camera.width as usize, camera.height as usize);
+        if x >= w || y >= h {
+            return Err(Error::input(format!("pixel ({x}, {y}) lies outside the {w}x{h} view")));
+        }
+        self.scene.check_masks()?;
+        let ids = self.scene.splats.render_ids(camera)?;
+        Ok(self.picked(camera, ids[y * w + x], ids))
+    }
+
+    /// Object `id` in the view from `camera` (a selection followed to a new camera): `None` when
+    /// the object is not visible there.
+    pub fn select(&self, camera: &Camera, id: u8) -> Result<Option<Picked>> {
+        self.scene.check_masks()?;
+        let ids = self.scene.splats.render_ids(camera)?;
+        Ok(self.picked(camera, id, ids))
+    }
+
+    fn picked(&self, camera: &Camera, id: u8, ids: Vec<u8>) -> Option<Picked> {
+        if id == 0 {
+            return None;
+        }
+        let (w, h) = (camera.width as usize, camera.height as usize);
+        let bbox = crate::language::object_box(&ids, w, h, id, self.scene.margin)?;
+        Some(Picked { camera: *camera, id, bbox, ids, tokens: Arc::default() })
+    }
+
+    /// Object-level tokens `[T, D]` of a picked object: its masked object map (the crop's identity
+    /// and object features in one render), encoded; computed once per pick and kept.
+    pub fn object_tokens(&self, picked: &Picked) -> Result<Tensor<2>> {
+        if let Some(t) = picked.tokens.get() {
+            return Ok(t.clone());
+        }
+        let map = self.scene.object_map_in(&picked.camera, picked.id, picked.bbox)?;
+        Ok(picked.tokens.get_or_init(|| self.encoder.forward_level(map, true)).clone())
+    }
+
+    /// The token grids of a target, one `[T, D]` per image.
+    pub fn tokens(&self, target: &Target) -> Result<Vec<Tensor<2>>> {
         match target {
-            Target::View(v) => Ok(TargetTokens { images: vec![self.view_tokens(*v)?], picked: None }),
-            Target::Scene(vs) => {
-                if vs.is_empty() {
+            Target::View(c) => Ok(vec![self.view_tokens(c)?]),
+            Target::Object(p) => Ok(vec![self.object_tokens(p)?]),
+            Target::Scene(cs) => {
+                if cs.is_empty() {
                     return Err(Error::input("scene level needs at least one view"));
                 }
-                let images = vs.iter().map(|&v| self.view_tokens(v)).collect::<Result<_>>()?;
-                Ok(TargetTokens { images, picked: None })
-            }
-            Target::Object { view, x, y } => {
-                let cam = self.camera(*view)?;
-                match self.scene.object_map_at(cam, *x, *y)? {
-                    Some((id, map)) => {
-                        Ok(TargetTokens { images: vec![self.encoder.forward_level(map, true)], picked: Some(id) })
-                    }
-                    None => Err(Error::input(format!(
-                        "pixel ({x}, {y}) of view {view} ({}x{}) shows no object",
-                        cam.width, cam.height
-                    ))),
-                }
+                cs.iter().map(|c| self.view_tokens(c)).collect()
             }
         }
     }
 
-    /// Answers a question about `target`, streaming text to `on_text`; returns the generation
-    /// and the picked object (object level).
+    /// Prompt length in tokens of `question` about `images` token grids, or an error when the
+    /// question is empty or the prompt does not fit the model's context (before any rendering).
+    pub fn check_question(&self, question: &str, images: usize) -> Result<usize> {
+        if question.trim().is_empty() {
+            return Err(Error::input("the question is empty"));
+        }
+        Ok(self.vlm.prompt_len(question, &vec![self.scene.cfg.tokens() + 1; images])?)
+    }
+
+    /// Answers a question about `target`, streaming text to `on_text`.
     pub fn ask(
         &self,
         target: &Target,
         question: &str,
         opts: &GenerateOptions,
-        on_text: impl FnMut(&str),
-    ) -> Result<(Generation, Option<u8>)> {
-        let t = self.tokens(target)?;
-        Ok((answer(&self.vlm, &t.images, question, opts, on_text)?, t.picked))
+        mut on_text: impl FnMut(&str),
+    ) -> Result<Generation> {
+        self.ask_until(target, question, opts, |piece| {
+            if !piece.is_empty() {
+                on_text(piece);
+            }
+            ControlFlow::Continue(())
+        })
     }
 
-    /// Writes the rendered view as PNG, with `picked` highlighted in red when given.
-    pub fn show(&self, view: usize, picked: Option<u8>, path: &Path) -> Result<()> {
-        let cam = self.camera(view)?;
-        let r = self.scene.render(cam)?;
-        let rgb = match picked {
-            Some(id) => highlight(&r.rgb, &r.ids, id),
+    /// [`ask`](Self::ask), stoppable at every decoding step (see [`answer_until`]).
+    pub fn ask_until(
+        &self,
+        target: &Target,
+        question: &str,
+        opts: &GenerateOptions,
+        on_step: impl FnMut(&str) -> ControlFlow<()>,
+    ) -> Result<Generation> {
+        let images = self.tokens(target)?;
+        answer_until(&self.vlm, &images, question, opts, on_step)
+    }
+
+    /// The view from `camera` as RGB `[H * W * 3]` in [0, 1], with `picked` highlighted in red
+    /// (the paper's display of a picked object) when given; `picked` must come from `camera`.
+    pub fn view_image(&self, camera: &Camera, picked: Option<&Picked>) -> Result<Vec<f32>> {
+        let r = self.scene.render(camera)?;
+        Ok(match picked {
+            Some(p) if p.ids.len() == r.ids.len() => highlight(&r.rgb, &p.ids, p.id),
+            Some(_) => return Err(Error::input("the picked object belongs to a view of another size")),
             None => r.rgb.iter().map(|v| v.clamp(0.0, 1.0)).collect(),
-        };
+        })
+    }
+
+    /// Writes [`view_image`](Self::view_image) as PNG (creating the folder).
+    pub fn show(&self, camera: &Camera, picked: Option<&Picked>, path: &Path) -> Result<()> {
+        let rgb = self.view_image(camera, picked)?;
         if let Some(dir) = path.parent().filter(|d| !d.as_os_str().is_empty()) {
             crate::io::create_dir(dir)?;
         }
-        crate::images::write_rgb(path, cam.width, cam.height, &rgb)
+        crate::images::write_rgb(path, camera.width, camera.height, &rgb)
     }
 }

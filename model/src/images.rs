@@ -61,6 +61,31 @@ pub fn read_gray16(path: &Path) -> Result<(u32, u32, Vec<u16>)> {
     Ok((info.width, info.height, values))
 }
 
+/// An 8-bit RGB PNG of `[H, W, 3]` bytes, in memory (e.g. a frame served over HTTP).
+pub fn encode_rgb8(width: u32, height: u32, bytes: &[u8]) -> Result<Vec<u8>> {
+    assert_eq!(bytes.len(), (width * height * 3) as usize);
+    let mut out = Vec::new();
+    encode_png(&mut out, width, height, bytes, png::ColorType::Rgb, png::BitDepth::Eight)
+        .map_err(|e| Error::input(format!("cannot encode PNG: {e}")))?;
+    Ok(out)
+}
+
+fn encode_png(
+    to: impl std::io::Write,
+    width: u32,
+    height: u32,
+    bytes: &[u8],
+    color: png::ColorType,
+    depth: png::BitDepth,
+) -> std::result::Result<(), png::EncodingError> {
+    let mut enc = png::Encoder::new(to, width, height);
+    enc.set_color(color);
+    enc.set_depth(depth);
+    let mut w = enc.write_header()?;
+    w.write_image_data(bytes)?;
+    w.finish()
+}
+
 fn write_png(
     path: &Path,
     width: u32,
@@ -73,14 +98,9 @@ fn write_png(
         crate::io::create_dir(dir)?;
     }
     crate::io::write_atomic_with(path, |tmp| {
-        let err = |e: png::EncodingError| Error::invalid(tmp, format!("cannot write PNG: {e}"));
         let file = std::fs::File::create(tmp).at(tmp, "cannot write PNG")?;
-        let mut enc = png::Encoder::new(BufWriter::new(file), width, height);
-        enc.set_color(color);
-        enc.set_depth(depth);
-        let mut w = enc.write_header().map_err(err)?;
-        w.write_image_data(bytes).map_err(err)?;
-        w.finish().map_err(err)
+        encode_png(BufWriter::new(file), width, height, bytes, color, depth)
+            .map_err(|e| Error::invalid(tmp, format!("cannot write PNG: {e}")))
     })
 }
 

@@ -273,8 +273,9 @@ fn find_header_end(bytes: &[u8]) -> Option<(usize, usize)> {
     Some((pos, body))
 }
 
-/// Writes `cloud` as a binary little-endian Inria-layout `.ply` (atomically: temp file + rename).
-pub fn write(path: &Path, cloud: &GaussianCloud) -> Result<()> {
+/// `cloud` as the bytes of a binary little-endian Inria-layout `.ply` (what [`write`] writes;
+/// the viewer serves it to the browser's splat renderer).
+pub fn encode(cloud: &GaussianCloud) -> Vec<u8> {
     let n = cloud.len();
     let mut names: Vec<String> =
         ["x", "y", "z", "nx", "ny", "nz", "f_dc_0", "f_dc_1", "f_dc_2"].iter().map(|s| s.to_string()).collect();
@@ -307,6 +308,12 @@ pub fn write(path: &Path, cloud: &GaussianCloud) -> Result<()> {
             bytes.extend_from_slice(&v.to_le_bytes());
         }
     }
+    bytes
+}
+
+/// Writes `cloud` as a binary little-endian Inria-layout `.ply` (atomically: temp file + rename).
+pub fn write(path: &Path, cloud: &GaussianCloud) -> Result<()> {
+    let bytes = encode(cloud);
     crate::io::write_atomic_with(path, |tmp| {
         let mut f = std::fs::File::create(tmp).at(tmp, "cannot write")?;
         f.write_all(&bytes).at(tmp, "cannot write")?;

@@ -109,6 +109,18 @@ impl LanguageScene {
         Ok(field.encoder.forward_level(self.object_map(field, oc, mask)?, true))
     }
 
+    /// An error unless the geometry was trained with instance masks (what object level needs).
+    pub fn check_masks(&self) -> Result<()> {
+        if self.masks {
+            return Ok(());
+        }
+        Err(Error::input(
+            "object level needs instance masks, and this scene's dataset has none: give the capture masks \
+             (masks/, Gaussian Grouping's object_mask/, or --masks DIR on train and extract) and train \
+             again; view and scene level work without",
+        ))
+    }
+
     /// The object under pixel `(x, y)` of `cam` and its crop box (from the rendered identity);
     /// `None` for the background (id 0). A pixel outside the image is an error.
     pub fn pick(&self, cam: &Camera, x: usize, y: usize) -> Result<Option<(u8, [usize; 4])>> {
@@ -116,13 +128,7 @@ impl LanguageScene {
         if x >= w || y >= h {
             return Err(Error::input(format!("pixel ({x}, {y}) lies outside the {w}x{h} view")));
         }
-        if !self.masks {
-            return Err(Error::input(
-                "object level needs instance masks, and this scene's dataset has none: give the capture masks \
-                 (masks/, Gaussian Grouping's object_mask/, or --masks DIR on train and extract) and train \
-                 again; view and scene level work without",
-            ));
-        }
+        self.check_masks()?;
         let ids = self.splats.render_ids(cam)?;
         let id = ids[y * w + x];
         if id == 0 {
@@ -131,15 +137,21 @@ impl LanguageScene {
         Ok(crate::language::object_box(&ids, w, h, id, self.margin).map(|b| (id, b)))
     }
 
-    /// The masked object map `[r, r, Co]` of a click at `(x, y)` with the scene's field: `(id,
-    /// map)`, `None` when the pixel shows no object. The crop's identity and object features are
-    /// rendered in one pass: the same map as [`object_crop`](Self::object_crop) +
-    /// [`object_map`](Self::object_map), one render fewer.
-    pub fn object_map_at(&self, cam: &Camera, x: usize, y: usize) -> Result<Option<(u8, Tensor<3>)>> {
-        let Some((id, bbox)) = self.pick(cam, x, y)? else { return Ok(None) };
+    /// The masked object map `[r, r, Co]` of object `id` with crop box `bbox` in the view from
+    /// `cam`, with the scene's field. The crop's identity and object features are rendered in one
+    /// pass: the same map as [`object_crop`](Self::object_crop) + [`object_map`](Self::object_map),
+    /// one render fewer.
+    pub fn object_map_in(&self, cam: &Camera, id: u8, bbox: [usize; 4]) -> Result<Tensor<3>> {
         let oc = self.cfg.object_camera(cam, bbox);
         let (ids, map) = self.splats.render_ids_with(&oc, self.field.object_features.val())?;
-        Ok(Some((id, cut_out(map, crop_mask(cam, &oc, bbox, &ids, id)))))
+        Ok(cut_out(map, crop_mask(cam, &oc, bbox, &ids, id)))
+    }
+
+    /// The masked object map `[r, r, Co]` of a click at `(x, y)` with the scene's field: `(id,
+    /// map)`, `None` when the pixel shows no object ([`pick`](Self::pick) + [`object_map_in`](Self::object_map_in)).
+    pub fn object_map_at(&self, cam: &Camera, x: usize, y: usize) -> Result<Option<(u8, Tensor<3>)>> {
+        let Some((id, bbox)) = self.pick(cam, x, y)? else { return Ok(None) };
+        Ok(Some((id, self.object_map_in(cam, id, bbox)?)))
     }
 
     /// The scene restricted to Gaussians `keep` (row indices): "model only what a scene needs".

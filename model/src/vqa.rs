@@ -149,17 +149,26 @@ pub fn scene_view(file: &QuestionFile, images: &[String], view: usize) -> Result
 }
 
 /// What a question asks about; `scene_views` spread views for scene questions without `views`.
+/// An object question's click is resolved here: a click on no object is an error.
 pub fn target_of(file: &QuestionFile, q: &Question, session: &ChatSession, scene_views: usize) -> Result<Target> {
     let view = |v: Option<usize>| scene_view(file, &session.images, v.unwrap_or(0));
     Ok(match q.level {
-        Level::View => Target::View(view(q.view)?),
-        Level::Scene => Target::Scene(match &q.views {
-            Some(v) => v.iter().map(|&i| scene_view(file, &session.images, i)).collect::<Result<_>>()?,
-            None => session.scene_views(scene_views)?,
-        }),
+        Level::View => Target::View(*session.camera(view(q.view)?)?),
+        Level::Scene => match &q.views {
+            Some(v) => Target::Scene(
+                v.iter()
+                    .map(|&i| Ok(*session.camera(scene_view(file, &session.images, i)?)?))
+                    .collect::<Result<_>>()?,
+            ),
+            None => session.scene_target(scene_views)?,
+        },
         Level::Object => {
-            let [x, y] = q.object.unwrap_or([0.0, 0.0]);
-            Target::Object { view: view(q.view)?, x: x as usize, y: y as usize }
+            let v = view(q.view)?;
+            let [x, y] = q.object.unwrap_or([0.0, 0.0]).map(|c| c as usize);
+            match session.click(session.camera(v)?, x, y)? {
+                Some(p) => Target::Object(p),
+                None => return Err(Error::input(format!("pixel ({x}, {y}) of view {v} shows no object"))),
+            }
         }
     })
 }
@@ -176,7 +185,10 @@ pub fn answer_all(
 ) -> Result<Vec<Answer>> {
     let mut out = Vec::with_capacity(file.questions.len());
     for (i, q) in file.questions.iter().enumerate() {
-        let asked = target_of(file, q, session, scene_views).and_then(|t| session.ask(&t, &q.question, opts, |_| {}));
+        let asked = target_of(file, q, session, scene_views).and_then(|t| {
+            let picked = if let Target::Object(p) = &t { Some(p.id) } else { None };
+            Ok((session.ask(&t, &q.question, opts, |_| {})?, picked))
+        });
         let a = match asked {
             Ok((g, picked)) => Answer { text: Ok(g.text), picked },
             Err(e @ (Error::Backend { .. } | Error::Io { .. })) => return Err(e),

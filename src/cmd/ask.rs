@@ -4,7 +4,7 @@
 use super::{SamplingArgs, SceneArgs, print_piece};
 use anyhow::bail;
 use model::Backend;
-use model::chat::Target;
+use model::chat::{DEFAULT_SCENE_VIEWS, Target};
 use model::vlm::{LlavaOnevision, RgbImage};
 use std::path::PathBuf;
 
@@ -35,7 +35,7 @@ pub struct Args {
     #[arg(long)]
     pub scene: bool,
     /// Views for scene level.
-    #[arg(long, default_value_t = 4)]
+    #[arg(long, default_value_t = DEFAULT_SCENE_VIEWS)]
     pub views: usize,
     /// The question.
     pub question: String,
@@ -95,14 +95,18 @@ fn ask_scene(a: &Args, run: PathBuf) -> anyhow::Result<()> {
     let opts = a.sampling.options()?;
     let scene = SceneArgs { run, language: a.language.clone(), vlm: a.vlm.clone(), backend: a.backend };
     let s = scene.open()?;
+    let camera = *s.camera(a.view)?;
     let target = match (&a.object, a.scene) {
         (Some(_), true) => bail!("--object and --scene exclude each other"),
-        (Some(xy), false) => Target::Object { view: a.view, x: xy[0], y: xy[1] },
-        (None, true) => Target::Scene(s.scene_views(a.views)?),
-        (None, false) => Target::View(a.view),
+        (Some(xy), false) => match s.click(&camera, xy[0], xy[1])? {
+            Some(p) => Target::Object(p),
+            None => bail!("pixel ({}, {}) of view {} shows no object", xy[0], xy[1], a.view),
+        },
+        (None, true) => s.scene_target(a.views)?,
+        (None, false) => Target::View(camera),
     };
     let t1 = std::time::Instant::now();
-    let (out, picked) = model::catch_backend("generation", || s.ask(&target, &a.question, &opts, print_piece))??;
+    let out = model::catch_backend("generation", || s.ask(&target, &a.question, &opts, print_piece))??;
     println!();
     eprintln!(
         "{} prompt tokens, {} new tokens in {:.2} s",
@@ -110,10 +114,10 @@ fn ask_scene(a: &Args, run: PathBuf) -> anyhow::Result<()> {
         out.ids.len(),
         t1.elapsed().as_secs_f64()
     );
-    if let Some(id) = picked {
-        let path = s.language.picked(a.view, id);
-        s.show(a.view, Some(id), &path)?;
-        eprintln!("picked object {id}; highlighted view -> {}", path.display());
+    if let Target::Object(p) = &target {
+        let path = s.language.picked(a.view, p.id);
+        s.show(&camera, Some(p), &path)?;
+        eprintln!("picked object {}; highlighted view -> {}", p.id, path.display());
     }
     Ok(())
 }

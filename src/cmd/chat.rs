@@ -1,7 +1,7 @@
 //! `chatsplat chat`: an interactive session with a trained scene.
 
 use super::{SceneArgs, print_piece};
-use model::chat::{ChatSession, Target};
+use model::chat::{ChatSession, DEFAULT_SCENE_VIEWS, Target};
 use std::io::BufRead;
 
 #[derive(clap::Args)]
@@ -38,7 +38,7 @@ fn parse(line: &str) -> Result<Line, String> {
         Some(":help") => Line::Help,
         Some(":view") => Line::View(num(1, ":view N")?),
         Some(":click") => Line::Click(num(1, ":click X Y")?, num(2, ":click X Y")?),
-        Some(":scene") if words.len() == 1 => Line::Scene(4),
+        Some(":scene") if words.len() == 1 => Line::Scene(DEFAULT_SCENE_VIEWS),
         Some(":scene") => match num(1, ":scene [K] with K >= 1")? {
             0 => return Err("usage: :scene [K] with K >= 1".into()),
             k => Line::Scene(k),
@@ -49,62 +49,67 @@ fn parse(line: &str) -> Result<Line, String> {
     })
 }
 
+/// Where the conversation is: the current view and what questions are about.
+struct State {
+    view: usize,
+    target: Target,
+    /// How the prompt names the target.
+    label: String,
+}
+
 pub fn run(a: Args) -> anyhow::Result<()> {
     let s = a.scene.open()?;
     eprintln!("{} views ({} training), {} Gaussians. {HELP}", s.cameras.len(), s.train_views, s.scene.field.len());
     let opts = model::vlm::GenerateOptions { max_new_tokens: a.max_new_tokens, ..Default::default() };
-    let mut view = 0usize;
-    let mut target = Target::View(0);
-    eprint!("[view 0] > ");
+    let mut state = State { view: 0, target: Target::View(*s.camera(0)?), label: "view 0".into() };
+    eprint!("[{}] > ", state.label);
     for line in std::io::stdin().lock().lines() {
         let line = line.map_err(|e| anyhow::anyhow!("stdin: {e}"))?;
         match parse(&line) {
             Ok(Line::Quit) => break,
             Ok(cmd) => {
-                if let Err(e) = apply(&s, cmd, &mut view, &mut target, &opts) {
+                if let Err(e) = apply(&s, cmd, &mut state, &opts) {
                     eprintln!("error: {e}");
                 }
             }
             Err(e) => eprintln!("{e}"),
         }
-        eprint!("[{target}] > ");
+        eprint!("[{}] > ", state.label);
     }
     eprintln!();
     Ok(())
 }
 
-fn apply(
-    s: &ChatSession,
-    cmd: Line,
-    view: &mut usize,
-    target: &mut Target,
-    opts: &model::vlm::GenerateOptions,
-) -> model::Result<()> {
+fn apply(s: &ChatSession, cmd: Line, state: &mut State, opts: &model::vlm::GenerateOptions) -> model::Result<()> {
     match cmd {
         Line::Empty | Line::Quit => {}
         Line::Help => eprintln!("{HELP}"),
         Line::View(v) => {
-            s.camera(v)?;
-            *view = v;
-            *target = Target::View(v);
+            *state = State { view: v, target: Target::View(*s.camera(v)?), label: format!("view {v}") };
         }
-        Line::Click(x, y) => match s.scene.pick(s.camera(*view)?, x, y)? {
-            Some((id, _)) => {
-                let path = s.language.picked(*view, id);
-                s.show(*view, Some(id), &path)?;
-                eprintln!("object {id} picked; highlighted -> {}", path.display());
-                *target = Target::Object { view: *view, x, y };
+        // one identity render picks the object; its tokens are computed at the first question
+        // and kept for the follow-ups
+        Line::Click(x, y) => match s.click(s.camera(state.view)?, x, y)? {
+            Some(p) => {
+                let path = s.language.picked(state.view, p.id);
+                s.show(&p.camera, Some(&p), &path)?;
+                eprintln!("object {} picked; highlighted -> {}", p.id, path.display());
+                state.label = format!("view {} object {}", state.view, p.id);
+                state.target = Target::Object(p);
             }
             None => eprintln!("pixel ({x}, {y}) shows no object"),
         },
-        Line::Scene(k) => *target = Target::Scene(s.scene_views(k)?),
+        Line::Scene(k) => {
+            state.target = s.scene_target(k)?;
+            state.label = format!("scene, {k} views");
+        }
         Line::Show => {
-            let path = s.language.view_png(*view);
-            s.show(*view, None, &path)?;
+            let path = s.language.view_png(state.view);
+            s.show(s.camera(state.view)?, None, &path)?;
             eprintln!("-> {}", path.display());
         }
         Line::Question(q) => {
-            model::catch_backend("generation", || s.ask(target, &q, opts, print_piece))??;
+            model::catch_backend("generation", || s.ask(&state.target, &q, opts, print_piece))??;
             println!();
         }
     }

@@ -148,5 +148,12 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         lang.dir.display(),
         lang.dir.display()
     );
+    let vlm_arg = a.vlm.as_ref().map(|v| format!(" --vlm {}", v.display())).unwrap_or_default();
+    println!(
+        "\nLook at the scene, click objects and chat with it in the browser:\n  chatsplat serve --run {}{vlm_arg}\n\
+         (in a checkout: cargo run --release -- serve --run {}{vlm_arg}), then open http://127.0.0.1:7860/",
+        run.dir.display(),
+        run.dir.display()
+    );
     Ok(())
 }

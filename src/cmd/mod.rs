@@ -7,6 +7,7 @@ mod export_encoder;
 mod export_ply;
 mod extract;
 mod render;
+mod serve;
 mod synth;
 mod train;
 mod train_language;
@@ -68,6 +69,10 @@ enum Command {
     /// Interactive chat with a trained scene: view, object (click) and scene level.
     #[command(allow_negative_numbers = true)]
     Chat(chat::Args),
+    /// Chat with a trained scene in the browser: look around, click an object (highlighted in
+    /// red), ask about the view, the object or the whole scene; answers stream as they come.
+    #[command(allow_negative_numbers = true)]
+    Serve(serve::Args),
     /// Answer an annotated question file about a trained scene and score the answers (offline
     /// exact-match/keyword scorer; plus an OpenAI-compatible grader when CHATSPLAT_GRADER_URL is set).
     #[command(allow_negative_numbers = true)]
@@ -96,6 +101,7 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::TrainVlm(a) => train_vlm::run(a),
         Command::Ask(a) => ask::run(a),
         Command::Chat(a) => chat::run(a),
+        Command::Serve(a) => serve::run(a),
         Command::Vqa(a) => vqa::run(a),
     }
 }

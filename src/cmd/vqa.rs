@@ -18,7 +18,7 @@ pub struct Args {
     #[arg(long)]
     pub out: Option<PathBuf>,
     /// Scene-level questions without their own views use this many views spread around the scene.
-    #[arg(long, default_value_t = 4)]
+    #[arg(long, default_value_t = model::chat::DEFAULT_SCENE_VIEWS)]
     pub views: usize,
     #[arg(long, default_value_t = 64)]
     pub max_new_tokens: usize,

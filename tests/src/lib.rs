@@ -7,6 +7,10 @@ use splat_kernels::{Camera, Gaussians};
 
 pub use model::rng::Rng;
 
+pub mod browser;
+pub mod fixture;
+pub mod http;
+
 /// Host copy of a scene's inputs (the op's own host layout).
 pub type Scene = splat_kernels::ext::HostInputs;
 

@@ -13,13 +13,13 @@ use burn::tensor::Device;
 use clap::Parser;
 use eval::compare::{Source, Tally, answer_file};
 use eval::progress::Progress;
-use model::chat::{ChatSession, Target};
+use model::chat::{ChatSession, DEFAULT_SCENE_VIEWS};
 use model::data::synth::{SynthOptions, write_dataset};
 use model::data::{LoadOptions, load_any};
 use model::run::{GeometryRun, LanguageRun, TeacherDir};
 use model::splats::host;
 use model::vlm::{LlavaOnevision, RgbImage};
-use model::vqa::{Level, load_questions, target_of};
+use model::vqa::{Level, load_questions, scene_view, target_of};
 use model::{Backend, Result, catch_backend};
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -170,12 +170,9 @@ fn bench(a: &Args) -> Result<()> {
             if q.level == Level::Scene {
                 continue;
             }
-            let target = target_of(&qf, q, &session, 4)?;
-            let (view, obj) = match target {
-                Target::View(v) => (v, None),
-                Target::Object { view, x, y } => (view, Some((x, y))),
-                Target::Scene(_) => continue,
-            };
+            let target = target_of(&qf, q, &session, DEFAULT_SCENE_VIEWS)?;
+            let view = scene_view(&qf, &session.images, q.view.unwrap_or(0))?;
+            let obj = q.object.filter(|_| q.level == Level::Object).map(|[x, y]| (x as usize, y as usize));
             let cam = session.camera(view)?;
             let frame = &ds.train.iter().chain(&ds.test).find(|v| {
                 v.image_path.file_name().map(|n| n.to_string_lossy().into_owned()).as_deref()
@@ -208,7 +205,7 @@ fn bench(a: &Args) -> Result<()> {
             e.1 += 1;
             // (c): ChatSplat tokens
             let t0 = Instant::now();
-            let c = host(session.tokens(&target)?.images.remove(0));
+            let c = host(session.tokens(&target)?.remove(0));
             let e = seconds.entry((Source::ChatSplat, level)).or_default();
             e.0 += t0.elapsed().as_secs_f64();
             e.1 += 1;

@@ -6,6 +6,7 @@ use super::llava::LlavaOnevision;
 use super::qwen2::KvCache;
 use crate::rng::Rng;
 use burn::tensor::Tensor;
+use std::ops::ControlFlow;
 
 /// How to pick tokens.
 #[derive(Clone, Debug, PartialEq)]
@@ -33,6 +34,8 @@ pub struct Generation {
     pub text: String,
     /// Whether a stop token ended it (the stop token is not in `ids`).
     pub stopped: bool,
+    /// Whether the caller stopped it (`generate_until`'s callback returned `Break`).
+    pub cancelled: bool,
     /// Prompt length in tokens.
     pub prompt_tokens: usize,
 }
@@ -86,6 +89,23 @@ impl LlavaOnevision {
         opts: &GenerateOptions,
         mut on_text: impl FnMut(&str),
     ) -> Result<Generation, VlmError> {
+        self.generate_until(prompt, opts, |piece| {
+            if !piece.is_empty() {
+                on_text(piece);
+            }
+            ControlFlow::Continue(())
+        })
+    }
+
+    /// [`generate`](Self::generate), where `on_step` is called after every decoding step with the
+    /// new text (empty while a piece is held back) and stops the generation by returning `Break`
+    /// (`Generation::cancelled`).
+    pub fn generate_until(
+        &self,
+        prompt: Tensor<2>,
+        opts: &GenerateOptions,
+        mut on_step: impl FnMut(&str) -> ControlFlow<()>,
+    ) -> Result<Generation, VlmError> {
         let prompt_tokens = prompt.dims()[0];
         let max = self.cfg.text.max_positions;
         if prompt_tokens >= max {
@@ -102,7 +122,7 @@ impl LlavaOnevision {
         let mut logits = last_row(self.llm.logits(hidden.narrow(0, t - 1, 1).reshape([1, d])));
         let mut ids = Vec::new();
         let mut printed = String::new();
-        let mut stopped = false;
+        let (mut stopped, mut cancelled) = (false, false);
         for step in 0..new_tokens {
             let next = pick(&logits, opts, &mut rng);
             if !opts.ignore_stop && self.tokenizer.stop_ids.contains(&next) {
@@ -112,9 +132,16 @@ impl LlavaOnevision {
             ids.push(next);
             let text = self.tokenizer.decode(&ids, true)?;
             // Hold back an incomplete UTF-8 sequence (decoded as U+FFFD) until its bytes arrive.
-            if !text.ends_with('\u{fffd}') && text.len() > printed.len() && text.starts_with(&printed) {
-                on_text(&text[printed.len()..]);
+            let piece = if !text.ends_with('\u{fffd}') && text.len() > printed.len() && text.starts_with(&printed) {
+                let piece = text[printed.len()..].to_string();
                 printed = text;
+                piece
+            } else {
+                String::new()
+            };
+            if on_step(&piece).is_break() {
+                cancelled = true;
+                break;
             }
             if step + 1 == new_tokens {
                 break;
@@ -124,9 +151,9 @@ impl LlavaOnevision {
             logits = last_row(self.llm.logits(h));
         }
         let text = self.tokenizer.decode(&ids, true)?;
-        if text.len() > printed.len() && text.starts_with(&printed) {
-            on_text(&text[printed.len()..]);
+        if !cancelled && text.len() > printed.len() && text.starts_with(&printed) {
+            let _ = on_step(&text[printed.len()..]);
         }
-        Ok(Generation { ids, text, stopped, prompt_tokens })
+        Ok(Generation { ids, text, stopped, cancelled, prompt_tokens })
     }
 }

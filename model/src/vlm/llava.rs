@@ -240,19 +240,30 @@ impl LlavaOnevision {
     /// `token_embeds` of a token grid): the chat template with one `<image>` per image, each
     /// expanded to its number of rows. The one place prompts are assembled.
     pub fn prompt_embeds(&self, question: &str, images: &[Tensor<2>]) -> Result<Tensor<2>, VlmError> {
-        let prompt = self.tokenizer.prompt(&[Turn::user(images.len(), question.to_string())], true);
         let counts: Vec<usize> = images.iter().map(|e| e.dims()[0]).collect();
-        let ids = self.expand_image_tokens(&self.tokenizer.encode(&prompt)?, &counts)?;
+        let ids = self.prompt_ids(question, &counts)?;
+        self.embed_prompt(&ids, images)
+    }
+
+    /// Length in tokens of the prompt [`prompt_embeds`](Self::prompt_embeds) builds for `question`
+    /// about images of `counts` rows each, or an error when it does not fit the model's context.
+    pub fn prompt_len(&self, question: &str, counts: &[usize]) -> Result<usize, VlmError> {
+        Ok(self.prompt_ids(question, counts)?.len())
+    }
+
+    fn prompt_ids(&self, question: &str, counts: &[usize]) -> Result<Vec<u32>, VlmError> {
+        let prompt = self.tokenizer.prompt(&[Turn::user(counts.len(), question.to_string())], true);
+        let ids = self.expand_image_tokens(&self.tokenizer.encode(&prompt)?, counts)?;
         let max = self.cfg.text.max_positions;
         if ids.len() >= max {
             return Err(VlmError::prompt(format!(
                 "the prompt is {} tokens (question {} characters, {} image(s)) but the model takes at most {max}",
                 ids.len(),
                 question.len(),
-                images.len()
+                counts.len()
             )));
         }
-        self.embed_prompt(&ids, images)
+        Ok(ids)
     }
 
     /// Number of `<image>` placeholders one image expands to.

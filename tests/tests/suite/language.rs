@@ -325,24 +325,65 @@ fn end_to_end_language_field_chat_and_export() {
             .unwrap()
             .len()
     };
+    let cam0 = *session.camera(0).unwrap();
+    let picked = session.click(&cam0, p % w0, p / w0).unwrap().expect("the pixel shows an object");
+    assert_eq!(picked.id, first[p]);
+    assert!(picked.covers(p % w0, p / w0) && picked.pixels() > 0);
+    // the selection followed to the same camera is the same object and box
+    let again = session.select(&cam0, picked.id).unwrap().unwrap();
+    assert_eq!((again.bbox, &again.ids), (picked.bbox, &picked.ids));
+    // a view that is no training view: a camera between two training cameras
+    let (c1, c2) = (session.camera(1).unwrap(), session.camera(2).unwrap());
+    let eye = |c: &splat_kernels::Camera| c.world_to_cam.inverse().w_axis.truncate();
+    let novel = splat_kernels::Camera::look_at(
+        (eye(c1) + eye(c2)) * 0.5,
+        glam::Vec3::ZERO,
+        glam::Vec3::Y,
+        40.0,
+        cam0.width,
+        cam0.height,
+    );
     for (target, images) in [
-        (Target::View(0), 1),
-        (Target::Object { view: 0, x: p % w0, y: p / w0 }, 1),
-        (Target::Scene(session.scene_views(3).unwrap()), 3),
+        (Target::View(cam0), 1),
+        (Target::View(novel), 1),
+        (Target::Object(picked.clone()), 1),
+        (session.scene_target(3).unwrap(), 3),
     ] {
         let t = session.tokens(&target).unwrap();
-        assert_eq!(t.images.len(), images);
-        assert!(t.images.iter().all(|x| x.dims() == [729, vlm.cfg.vision.hidden_size]));
-        let (g, picked) = session.ask(&target, "What is this?", &opts, |_| {}).unwrap();
+        assert_eq!(t.len(), images);
+        assert!(t.iter().all(|x| x.dims() == [729, vlm.cfg.vision.hidden_size]));
+        let g = session.ask(&target, "What is this?", &opts, |_| {}).unwrap();
         assert_eq!(g.ids.len(), 4, "{target:?}");
         // prompt = the template's ids with each <image> expanded to 729 tokens + image_newline
         assert_eq!(g.prompt_tokens, tagged(images) - images + images * 730, "{target:?}");
-        assert_eq!(picked.is_some(), matches!(target, Target::Object { .. }));
+        assert_eq!(session.check_question("What is this?", images).unwrap(), g.prompt_tokens);
     }
+    // the object's tokens were computed once and are kept for the follow-ups (clones share them)
+    let kept = session.object_tokens(&picked).unwrap();
+    let (_, fresh) = session.scene.object_map_at(&cam0, p % w0, p / w0).unwrap().unwrap();
+    assert_eq!(host(kept), host(session.encoder.forward_level(fresh, true)));
+    // a generation stops when its caller says so, at that step
+    let long = GenerateOptions { max_new_tokens: 8, ignore_stop: true, ..Default::default() };
+    let mut steps = 0;
+    let g = session
+        .ask_until(&Target::View(cam0), "What is this?", &long, |_| {
+            steps += 1;
+            if steps == 2 { std::ops::ControlFlow::Break(()) } else { std::ops::ControlFlow::Continue(()) }
+        })
+        .unwrap();
+    assert!(g.cancelled && g.ids.len() == 2, "{} tokens, cancelled {}", g.ids.len(), g.cancelled);
+    // an empty question and one longer than the context are refused before any rendering
+    assert!(session.check_question("  ", 1).unwrap_err().to_string().contains("empty"));
+    let huge = "why ".repeat(vlm.cfg.text.max_positions);
+    assert!(session.check_question(&huge, 1).unwrap_err().to_string().contains("at most"));
     assert_eq!(session.scene_views(3).unwrap().len(), 3);
     let png = lang_dir.join("picked.png");
-    session.show(0, Some(first[p]), &png).unwrap();
+    session.show(&cam0, Some(&picked), &png).unwrap();
     assert!(png.exists());
+    let shown = session.view_image(&cam0, Some(&picked)).unwrap();
+    let plain = session.view_image(&cam0, None).unwrap();
+    let q = 3 * (p / w0 * w0 + p % w0);
+    assert!(shown[q] > 0.5 && shown[q + 1] < plain[q + 1] + 1e-6, "the picked object is tinted red");
 
     // --- export: the exported encoder reproduces the tokens bit-exactly
     let out = lang_dir.join("encoder.safetensors");

@@ -361,40 +361,22 @@ fn the_committed_model_answers_questions_on_held_out_scenes() {
 }
 
 /// ChatSplat with the committed model as teacher and reader, end to end on one small held-out
-/// scene: synth -> geometry -> teacher tokens -> language field -> every question of the scene
-/// answered from the ground-truth images and from ChatSplat's tokens (the paper's comparison in
-/// miniature; `vqa-bench` runs it at full size).
+/// scene: synth -> geometry -> teacher tokens -> language field (the shared fixture, also what the
+/// viewer's tests serve) -> every question of the scene answered from the ground-truth images and
+/// from ChatSplat's tokens (the paper's comparison in miniature; `vqa-bench` runs it at full size).
 #[test]
 fn chatsplat_tokens_answer_a_held_out_scene_nearly_as_well_as_ground_truth_images() {
     use eval::compare::{Source, answer_file};
     use model::data::{LoadOptions, load_any};
-    use model::run::{GeometryRun, LanguageRun, TeacherDir};
+    use model::run::GeometryRun;
     let dev = Device::ndarray();
-    let vlm_dir = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("../checkpoints/tabletop-llava-ov");
+    let scene = chatsplat_tests::fixture::tabletop(std::path::Path::new(env!("CARGO_TARGET_TMPDIR")));
+    let vlm_dir = chatsplat_tests::fixture::builtin_model();
     let vlm = LlavaOnevision::load(&vlm_dir, &dev).unwrap();
-    let data = temp_dir("chatsplat-accuracy-data");
-    let opts =
-        model::data::synth::SynthOptions { seed: 30_100, views: 16, width: 96, height: 96, ..Default::default() };
-    model::data::synth::write_dataset(&data, &opts, |_, _| {}).unwrap();
-    let load = LoadOptions::default();
-    let ds = load_any(&data, &load).unwrap();
-    let run_dir = temp_dir("chatsplat-accuracy-run");
-    let run = GeometryRun::new(&run_dir);
-    let gcfg = train::geometry::GeometryConfig::short(E2E_GEOMETRY_ITERS);
-    train::geometry::run(&ds, None, &data, &load, &run, gcfg, &dev, false, |_| {}).unwrap();
-    let teacher = TeacherDir::new(data.join("teacher"));
-    train::teacher::extract(&vlm, &data, &teacher, &Default::default(), |_| {}, |_, _| {}).unwrap();
-    let mut lcfg = train::language::LanguageTrainConfig {
-        iters: E2E_LANGUAGE_ITERS,
-        warmup_iters: E2E_LANGUAGE_ITERS / 10,
-        checkpoint_every: 0,
-        ..Default::default()
-    };
-    lcfg.field.patch = 0;
-    let lang = LanguageRun::new(run.dir.join("language"));
-    train::language::run(&run, &teacher.dir, &lang, lcfg, &dev, false, |_| {}).unwrap();
+    let ds = load_any(&scene.data, &LoadOptions::default()).unwrap();
+    let run = GeometryRun::new(&scene.run);
     let session = model::chat::ChatSession::open(&run, None, &vlm_dir, &dev).unwrap();
-    let qf = model::vqa::load_questions(&data.join("questions.json")).unwrap();
+    let qf = model::vqa::load_questions(&scene.data.join("questions.json")).unwrap();
     let score = |source| {
         let (t, _) = answer_file(&vlm, &qf, &ds, Some(&session), source, 0.1).unwrap();
         let (right, n): (usize, usize) = t.by_level.values().fold((0, 0), |(r, n), v| (r + v.0, n + v.1));
@@ -406,8 +388,6 @@ fn chatsplat_tokens_answer_a_held_out_scene_nearly_as_well_as_ground_truth_image
     assert!(cs >= gt - E2E_GAP, "ChatSplat {cs:.3} more than {E2E_GAP} below ground-truth images {gt:.3}");
 }
 
-const E2E_GEOMETRY_ITERS: usize = 300;
-const E2E_LANGUAGE_ITERS: usize = 150;
 /// Floors of the end-to-end test: with the language stage's cosine decay and slower encoder
 /// (2026-11-25), 75 questions, ground-truth images 0.933, ChatSplat tokens 0.947 (dev profile,
 /// ndarray; with the paper's constant rates 0.933 and 0.867; with the smaller objects and an

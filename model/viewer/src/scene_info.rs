@@ -1,0 +1,194 @@
+//! What the page learns about the scene once, at load: its cameras (in the page's camera form),
+//! its objects and their names, where to orbit, and its Gaussians as a `.ply` for the browser's
+//! splat renderer.
+
+use crate::camera::ViewCamera;
+use glam::Vec3;
+use model::GaussianCloud;
+use model::chat::{ChatSession, DEFAULT_SCENE_VIEWS};
+use model::data::synth::scene::Scene;
+use model::run::GeometryRun;
+use serde::Serialize;
+use splat_kernels::Camera;
+use std::collections::BTreeMap;
+
+/// Object names by instance id: the synthetic scene's own (`scene.json` beside its dataset:
+/// "red cube", id 1 the table), else "object N".
+#[derive(Clone, Debug, Default)]
+pub struct ObjectNames(BTreeMap<u8, String>);
+
+impl ObjectNames {
+    /// The names the run's dataset knows (none when it has no `scene.json`); a `scene.json`
+    /// that cannot be read is reported in `warnings`.
+    pub fn of_run(run: &GeometryRun, warnings: &mut Vec<String>) -> Self {
+        let Ok(state) = run.read_state() else { return Self::default() };
+        let path = state.data.dir.resolve(&run.dir).join("scene.json");
+        if !path.exists() {
+            return Self::default();
+        }
+        match model::io::read_json::<Scene>(&path) {
+            Ok(scene) => {
+                let mut names: BTreeMap<u8, String> = scene.objects.iter().map(|o| (o.id, o.name())).collect();
+                names.insert(model::data::synth::TABLE_ID, "table".into());
+                Self(names)
+            }
+            Err(e) => {
+                warnings.push(format!("object names unavailable: {e}"));
+                Self::default()
+            }
+        }
+    }
+
+    pub fn name(&self, id: u8) -> String {
+        self.0.get(&id).cloned().unwrap_or_else(|| format!("object {id}"))
+    }
+}
+
+/// One view of the scene.
+#[derive(Clone, Debug, Serialize)]
+pub struct ViewInfo {
+    pub index: usize,
+    pub image: String,
+    /// "train" or "test" (held out).
+    pub split: &'static str,
+    pub camera: ViewCamera,
+}
+
+/// An object the training views show.
+#[derive(Clone, Debug, Serialize)]
+pub struct ObjectInfo {
+    pub id: u8,
+    pub name: String,
+}
+
+/// `GET /api/scene`.
+#[derive(Clone, Debug, Serialize)]
+pub struct SceneInfo {
+    /// The run directory's last two path components (e.g. `demo/run`).
+    pub name: String,
+    pub views: Vec<ViewInfo>,
+    pub objects: Vec<ObjectInfo>,
+    /// The point the cameras look at (where orbiting turns around), their mean distance from
+    /// it, and the world's up direction as the training cameras hold it.
+    pub center: [f32; 3],
+    pub radius: f32,
+    pub up: [f32; 3],
+    pub gaussians: usize,
+    pub background: [f32; 3],
+    /// Whether object picking works (the geometry was trained with instance masks).
+    pub masks: bool,
+    pub model: String,
+    pub backend: String,
+    pub scene_views: usize,
+    pub max_new_tokens: usize,
+    /// The largest image side the server renders or picks at.
+    pub max_side: u32,
+}
+
+/// Identity renders for the object list are made this small (longest side).
+const LIST_SIDE: u32 = 128;
+/// An object is listed when it covers at least this fraction of some training view.
+const LIST_FRACTION: f32 = 0.002;
+
+impl SceneInfo {
+    /// Reads the scene's cameras and lists the objects its training views show.
+    pub fn new(
+        s: &ChatSession,
+        run: &GeometryRun,
+        names: &ObjectNames,
+        model: String,
+        backend: String,
+        max_new_tokens: usize,
+    ) -> model::Result<Self> {
+        let views = s
+            .cameras
+            .iter()
+            .enumerate()
+            .map(|(index, c)| ViewInfo {
+                index,
+                image: s.images[index].clone(),
+                split: if index < s.train_views { "train" } else { "test" },
+                camera: ViewCamera::from_camera(c),
+            })
+            .collect();
+        let train = &s.cameras[..s.train_views];
+        let mut best = [0f32; 256];
+        if s.scene.masks {
+            for c in train {
+                let small = scaled(c, LIST_SIDE);
+                let ids = s.scene.splats.render_ids(&small)?;
+                let mut count = [0usize; 256];
+                for &i in &ids {
+                    count[i as usize] += 1;
+                }
+                for (b, n) in best.iter_mut().zip(count) {
+                    *b = b.max(n as f32 / ids.len() as f32);
+                }
+            }
+        }
+        let objects = (1..=255u8)
+            .filter(|&i| best[i as usize] >= LIST_FRACTION)
+            .map(|id| ObjectInfo { id, name: names.name(id) })
+            .collect();
+        let state = run.read_state()?;
+        let center = Vec3::from_array(state.extent.focus);
+        let eyes: Vec<Vec3> = train.iter().map(|c| c.world_to_cam.inverse().w_axis.truncate()).collect();
+        let radius = eyes.iter().map(|e| e.distance(center)).sum::<f32>() / eyes.len().max(1) as f32;
+        // an OpenCV camera's up is its -y axis: minus the second row of the world-to-camera rotation
+        let up: Vec3 = train.iter().map(|c| -c.world_to_cam.row(1).truncate()).sum();
+        let up = if up.length() > 1e-6 { up.normalize() } else { Vec3::Y };
+        Ok(Self {
+            name: short_name(&run.dir),
+            views,
+            objects,
+            center: center.to_array(),
+            radius,
+            up: up.to_array(),
+            gaussians: s.scene.splats.len(),
+            background: s.scene.background,
+            masks: s.scene.masks,
+            model,
+            backend,
+            scene_views: DEFAULT_SCENE_VIEWS,
+            max_new_tokens,
+            max_side: crate::camera::MAX_SIDE,
+        })
+    }
+}
+
+fn short_name(dir: &std::path::Path) -> String {
+    let parts: Vec<String> =
+        dir.components().rev().take(2).map(|c| c.as_os_str().to_string_lossy().into_owned()).collect();
+    parts.into_iter().rev().collect::<Vec<_>>().join("/")
+}
+
+/// `cam` scaled so that its longest side is at most `side` pixels.
+fn scaled(cam: &Camera, side: u32) -> Camera {
+    let s = (side as f32 / cam.width.max(cam.height) as f32).min(1.0);
+    let mut c = *cam;
+    c.width = ((cam.width as f32 * s).round() as u32).max(1);
+    c.height = ((cam.height as f32 * s).round() as u32).max(1);
+    c.fx *= s;
+    c.fy *= s;
+    c.cx *= s;
+    c.cy *= s;
+    c
+}
+
+/// The scene's Gaussians as an Inria-layout `.ply` for the browser: position, scale, rotation,
+/// opacity and colour (the SH bands only when the run uses them; no identity channels).
+pub fn splats_ply(s: &ChatSession) -> Vec<u8> {
+    let (cloud, _) = s.scene.splats.to_cloud();
+    let GaussianCloud { means, log_scales, quats, opacity_logits, sh_dc, sh_rest, rest_per_gaussian, .. } = cloud;
+    let keep_rest = s.scene.sh_degree > 0;
+    model::ply::encode(&GaussianCloud {
+        means,
+        log_scales,
+        quats,
+        opacity_logits,
+        sh_dc,
+        sh_rest: if keep_rest { sh_rest } else { vec![] },
+        rest_per_gaussian: if keep_rest { rest_per_gaussian } else { 0 },
+        extra: Default::default(),
+    })
+}

@@ -1,0 +1,598 @@
+// chatsplat's viewer page: the scene (Spark over three.js, or frames from chatsplat's own
+// rasterizer), orbit / pan / zoom / WASD fly, a click to pick an object (tinted red), and a chat
+// with three scopes whose answers stream in. Everything it loads comes from the chatsplat binary.
+import * as THREE from "three";
+
+const $ = (id) => document.getElementById(id);
+const params = new URLSearchParams(location.search);
+
+// ---------------------------------------------------------------- the API
+async function failure(r) {
+  let msg = `${r.status} ${r.statusText}`;
+  try {
+    const e = await r.json();
+    msg = e.field ? `${e.field}: ${e.error}` : e.error;
+  } catch (_) { /* not JSON */ }
+  return new Error(msg);
+}
+
+async function post(path, body, signal) {
+  const r = await fetch(path, {
+    method: "POST", headers: { "content-type": "application/json" }, body: JSON.stringify(body), signal,
+  });
+  if (!r.ok) throw await failure(r);
+  return r;
+}
+
+// Reads a text/event-stream response, calling onEvent(name, data) per event.
+async function readEvents(response, onEvent) {
+  const reader = response.body.getReader();
+  const decoder = new TextDecoder();
+  let buffer = "";
+  for (;;) {
+    const { value, done } = await reader.read();
+    if (done) break;
+    buffer += decoder.decode(value, { stream: true });
+    let end;
+    while ((end = buffer.indexOf("\n\n")) >= 0) {
+      const block = buffer.slice(0, end);
+      buffer = buffer.slice(end + 2);
+      let name = "message";
+      const data = [];
+      for (const line of block.split("\n")) {
+        if (line.startsWith("event:")) name = line.slice(6).trim();
+        else if (line.startsWith("data:")) data.push(line.slice(5).replace(/^ /, ""));
+      }
+      if (data.length) onEvent(name, JSON.parse(data.join("\n")));
+    }
+  }
+}
+
+// ---------------------------------------------------------------- state
+const state = {
+  scene: null,
+  mode: "webgl", // or "server"
+  camera: null, // THREE.PerspectiveCamera: the page's camera in the scene's world
+  target: new THREE.Vector3(), // orbit centre
+  up: new THREE.Vector3(0, 1, 0),
+  size: { width: 640, height: 480 }, // the canvas in pixels (what the server renders and picks at)
+  selection: null, // {id, name, mask, bbox} from the last pick / select
+  scope: "view",
+  histories: { view: [], object: [], scene: [] },
+  busy: null, // AbortController of the answer streaming in
+  frames: 0,
+  lastPickMs: null,
+  ready: false,
+};
+
+// ---------------------------------------------------------------- cameras
+// The camera contract (model/viewer/src/camera.rs): three.js position, quaternion, vertical fov
+// and the canvas size.
+function apiCamera() {
+  const c = state.camera;
+  return {
+    position: c.position.toArray(),
+    quaternion: [c.quaternion.x, c.quaternion.y, c.quaternion.z, c.quaternion.w],
+    fov: c.fov, width: state.size.width, height: state.size.height,
+  };
+}
+
+function setCamera(v) {
+  const c = state.camera;
+  c.position.fromArray(v.position);
+  c.quaternion.set(v.quaternion[0], v.quaternion[1], v.quaternion[2], v.quaternion[3]).normalize();
+  c.fov = v.fov;
+  c.updateProjectionMatrix();
+  c.updateMatrixWorld(true);
+  // orbit about the point ahead of the camera at the scene centre's depth
+  const forward = new THREE.Vector3(0, 0, -1).applyQuaternion(c.quaternion);
+  const centre = new THREE.Vector3().fromArray(state.scene.center);
+  const depth = Math.max(centre.clone().sub(c.position).dot(forward), 0.1 * state.scene.radius);
+  state.target.copy(c.position).addScaledVector(forward, depth);
+  cameraMoved(true);
+}
+
+function jump(i) {
+  const v = state.scene.views[i];
+  if (!v) return;
+  $("views").value = String(i);
+  setCamera(v.camera);
+}
+
+// ---------------------------------------------------------------- controls
+const drag = { active: false, button: 0, x: 0, y: 0, startX: 0, startY: 0, moved: false };
+const keys = new Set();
+let settleTimer = null;
+
+function orbit(dx, dy) {
+  const c = state.camera;
+  const offset = c.position.clone().sub(state.target);
+  const yaw = new THREE.Quaternion().setFromAxisAngle(state.up, -dx * 0.005);
+  offset.applyQuaternion(yaw);
+  const right = new THREE.Vector3().crossVectors(offset, state.up).normalize();
+  const pitched = offset.clone().applyQuaternion(new THREE.Quaternion().setFromAxisAngle(right, dy * 0.005));
+  // stop short of the poles
+  if (Math.abs(pitched.clone().normalize().dot(state.up)) < 0.985) offset.copy(pitched);
+  c.position.copy(state.target).add(offset);
+  c.up.copy(state.up);
+  c.lookAt(state.target);
+}
+
+function pan(dx, dy) {
+  const c = state.camera;
+  const dist = c.position.distanceTo(state.target);
+  const scale = (2 * dist * Math.tan((c.fov * Math.PI) / 360)) / state.size.height;
+  const right = new THREE.Vector3(1, 0, 0).applyQuaternion(c.quaternion);
+  const up = new THREE.Vector3(0, 1, 0).applyQuaternion(c.quaternion);
+  const move = right.multiplyScalar(-dx * scale).add(up.multiplyScalar(dy * scale));
+  c.position.add(move);
+  state.target.add(move);
+}
+
+function zoom(delta) {
+  const c = state.camera;
+  const offset = c.position.clone().sub(state.target);
+  const r = state.scene.radius;
+  const len = Math.min(Math.max(offset.length() * Math.exp(delta * 0.001), 0.05 * r), 20 * r);
+  c.position.copy(state.target).add(offset.setLength(len));
+}
+
+function fly(dt) {
+  const c = state.camera;
+  const speed = 0.5 * state.scene.radius * dt;
+  const move = new THREE.Vector3();
+  const forward = new THREE.Vector3(0, 0, -1).applyQuaternion(c.quaternion);
+  const right = new THREE.Vector3(1, 0, 0).applyQuaternion(c.quaternion);
+  if (keys.has("w")) move.add(forward);
+  if (keys.has("s")) move.sub(forward);
+  if (keys.has("d")) move.add(right);
+  if (keys.has("a")) move.sub(right);
+  if (keys.has("e")) move.add(state.up);
+  if (keys.has("q")) move.sub(state.up);
+  if (move.lengthSq() === 0) return false;
+  move.setLength(speed);
+  c.position.add(move);
+  state.target.add(move);
+  return true;
+}
+
+// Called on every camera change; `settled` when the motion is over (a selection then follows
+// the camera and the server draws a full frame).
+function cameraMoved(settled) {
+  state.camera.updateMatrixWorld(true);
+  requestFrame(!settled);
+  clearOverlay();
+  clearTimeout(settleTimer);
+  if (settled) settle();
+  else settleTimer = setTimeout(settle, 250);
+}
+
+function settle() {
+  requestFrame(false);
+  if (state.selection) follow();
+}
+
+function installControls() {
+  const el = $("gl");
+  el.addEventListener("contextmenu", (e) => e.preventDefault());
+  el.addEventListener("pointerdown", (e) => {
+    el.setPointerCapture(e.pointerId);
+    Object.assign(drag, { active: true, button: e.button, x: e.clientX, y: e.clientY, startX: e.clientX, startY: e.clientY, moved: false });
+    el.style.cursor = "grabbing";
+  });
+  el.addEventListener("pointermove", (e) => {
+    if (!drag.active) return;
+    const dx = e.clientX - drag.x, dy = e.clientY - drag.y;
+    drag.x = e.clientX; drag.y = e.clientY;
+    if (Math.hypot(e.clientX - drag.startX, e.clientY - drag.startY) > 4) drag.moved = true;
+    if (!drag.moved) return;
+    if (drag.button === 2 || e.shiftKey) pan(dx, dy);
+    else orbit(dx, dy);
+    cameraMoved(false);
+  });
+  el.addEventListener("pointerup", (e) => {
+    if (!drag.active) return;
+    drag.active = false;
+    el.style.cursor = "grab";
+    if (drag.moved) { cameraMoved(true); return; }
+    if (drag.button === 0) {
+      const r = el.getBoundingClientRect();
+      pick(((e.clientX - r.left) * state.size.width) / r.width, ((e.clientY - r.top) * state.size.height) / r.height);
+    }
+  });
+  el.addEventListener("wheel", (e) => { e.preventDefault(); zoom(e.deltaY); cameraMoved(false); }, { passive: false });
+  window.addEventListener("keydown", (e) => {
+    if (e.target.closest && e.target.closest("textarea, input, select")) return;
+    const k = e.key.toLowerCase();
+    if (k === "escape") { clearSelection(); return; }
+    if ("wasdqe".includes(k) && k.length === 1) { keys.add(k); e.preventDefault(); }
+  });
+  window.addEventListener("keyup", (e) => {
+    const k = e.key.toLowerCase();
+    if (keys.delete(k) && keys.size === 0) cameraMoved(true);
+  });
+  window.addEventListener("blur", () => keys.clear());
+  let last = performance.now();
+  const tick = (now) => {
+    if (fly(Math.min((now - last) / 1000, 0.1))) cameraMoved(false);
+    last = now;
+    requestAnimationFrame(tick);
+  };
+  requestAnimationFrame(tick);
+}
+
+// ---------------------------------------------------------------- drawing
+const draw = { renderer: null, scene: null, until: 0, minFrames: 0, serverBusy: false, serverWanted: null, fpsFrames: [] };
+
+function requestFrame(moving) {
+  if (state.mode === "webgl") {
+    // Spark sorts splats in a worker: keep drawing a moment (and a few frames) after the last change
+    draw.until = performance.now() + 1500;
+    draw.minFrames = state.frames + 3;
+  } else {
+    draw.serverWanted = moving ? "preview" : "full";
+    serverFrame();
+  }
+}
+
+async function startWebgl() {
+  const { SparkRenderer, SplatMesh } = await import("/vendor/spark.module.min.js");
+  const canvas = $("gl");
+  const renderer = new THREE.WebGLRenderer({ canvas, antialias: false, preserveDrawingBuffer: true });
+  renderer.setPixelRatio(1);
+  renderer.setSize(state.size.width, state.size.height, false);
+  renderer.setClearColor(new THREE.Color().fromArray(state.scene.background), 1);
+  const scene = new THREE.Scene();
+  scene.add(new SparkRenderer({ renderer }));
+  const mesh = new SplatMesh({ url: "/api/splats.ply", fileName: "splats.ply" });
+  scene.add(mesh);
+  await mesh.initialized;
+  Object.assign(draw, { renderer, scene });
+  renderer.setAnimationLoop((now) => {
+    if (now > draw.until && state.frames >= draw.minFrames) return;
+    renderer.render(scene, state.camera);
+    countFrame(now);
+  });
+}
+
+function countFrame(now) {
+  state.frames += 1;
+  draw.fpsFrames.push(now);
+  while (draw.fpsFrames.length && now - draw.fpsFrames[0] > 2000) draw.fpsFrames.shift();
+  if (draw.fpsFrames.length > 1) {
+    const span = (draw.fpsFrames[draw.fpsFrames.length - 1] - draw.fpsFrames[0]) / 1000;
+    $("fps").textContent = `· ${((draw.fpsFrames.length - 1) / span).toFixed(1)} fps`;
+  }
+}
+
+// Server frames: low resolution while moving, full when the camera rests; one request at a time,
+// the latest camera wins.
+async function serverFrame() {
+  if (draw.serverBusy || !draw.serverWanted || !state.camera) return;
+  const kind = draw.serverWanted;
+  draw.serverWanted = null;
+  draw.serverBusy = true;
+  try {
+    const cam = apiCamera();
+    if (kind === "preview") {
+      const s = Math.min(1, 160 / Math.max(cam.width, cam.height));
+      cam.width = Math.max(8, Math.round(cam.width * s));
+      cam.height = Math.max(8, Math.round(cam.height * s));
+    }
+    const r = await post("/api/render", { camera: cam });
+    const url = URL.createObjectURL(await r.blob());
+    const img = $("server-frame");
+    await new Promise((ok) => { img.onload = ok; img.onerror = ok; img.src = url; });
+    if (img.dataset.url) URL.revokeObjectURL(img.dataset.url);
+    img.dataset.url = url;
+    img.dataset.kind = kind;
+    countFrame(performance.now());
+  } catch (e) {
+    status(`render failed: ${e.message}`);
+  } finally {
+    draw.serverBusy = false;
+    if (draw.serverWanted) serverFrame();
+  }
+}
+
+function status(text) { $("status").textContent = text; }
+
+// ---------------------------------------------------------------- picking
+// Picks render the identity at the page's camera with at most PICK_SIDE pixels on the longest
+// side (the same view, fewer pixels: a pick stays near 100 ms on two CPU cores); the mask is drawn
+// scaled to the canvas.
+const PICK_SIDE = 320;
+
+function pickCamera() {
+  const cam = apiCamera();
+  const s = Math.min(1, PICK_SIDE / Math.max(cam.width, cam.height));
+  cam.width = Math.max(8, Math.round(cam.width * s));
+  cam.height = Math.max(8, Math.round(cam.height * s));
+  return cam;
+}
+
+async function pick(x, y) {
+  if (!state.scene.masks) { status("this scene was trained without object masks: nothing to pick"); return; }
+  try {
+    const camera = pickCamera();
+    const [sx, sy] = [camera.width / state.size.width, camera.height / state.size.height];
+    const r = await (await post("/api/pick", { camera, x: x * sx, y: y * sy })).json();
+    state.lastPickMs = r.ms;
+    if (!r.object) { clearSelection(); status(`background (${r.ms.toFixed(0)} ms)`); return; }
+    select({ ...r.object, camera });
+    status(`picked ${r.object.name} in ${r.ms.toFixed(0)} ms`);
+  } catch (e) {
+    status(`pick failed: ${e.message}`);
+  }
+}
+
+// A selection follows the camera: its mask is asked for again once the camera rests.
+async function follow() {
+  const id = state.selection.id;
+  try {
+    const camera = pickCamera();
+    const r = await (await post("/api/select", { camera, id })).json();
+    if (!state.selection || state.selection.id !== id) return;
+    if (r.object) select({ ...r.object, camera });
+    else status(`${state.selection.name} is not visible from here`);
+  } catch (e) {
+    status(`selection lost: ${e.message}`);
+  }
+}
+
+function select(object) {
+  const changed = !state.selection || state.selection.id !== object.id;
+  state.selection = object;
+  drawSelection();
+  const b = document.querySelector('[data-scope="object"]');
+  b.disabled = false;
+  b.textContent = `Object: ${object.name}`;
+  b.title = `ask about the ${object.name}`;
+  if (changed) {
+    note("object", `picked: ${object.name}`);
+    setScope("object");
+  }
+}
+
+function clearOverlay() {
+  const o = $("overlay");
+  o.getContext("2d").clearRect(0, 0, o.width, o.height);
+  $("label").hidden = true;
+}
+
+function clearSelection() {
+  state.selection = null;
+  clearOverlay();
+  const b = document.querySelector('[data-scope="object"]');
+  b.disabled = true;
+  b.textContent = "Object";
+  if (state.scope === "object") setScope("view");
+}
+
+// The paper's display of a picked object: tinted red and outlined, the rest of the view dimmed
+// (so that a red object stands out too), its name beside it.
+function drawSelection() {
+  const s = state.selection;
+  const overlay = $("overlay");
+  const { width, height, runs } = s.mask;
+  overlay.width = width;
+  overlay.height = height;
+  const ctx = overlay.getContext("2d");
+  const img = ctx.createImageData(width, height);
+  const inside = new Uint8Array(width * height);
+  for (let i = 0; i < runs.length; i += 2) inside.fill(1, runs[i], runs[i] + runs[i + 1]);
+  const veil = [10, 12, 16, 150], tint = [255, 0, 0, 90], line = [255, 60, 60, 255];
+  for (let p = 0; p < inside.length; p++) {
+    let c = veil;
+    if (inside[p]) {
+      const x = p % width, y = (p / width) | 0;
+      const edge = x === 0 || y === 0 || x === width - 1 || y === height - 1
+        || !inside[p - 1] || !inside[p + 1] || !inside[p - width] || !inside[p + width];
+      c = edge ? line : tint;
+    }
+    img.data.set(c, 4 * p);
+  }
+  ctx.putImageData(img, 0, 0);
+  const label = $("label");
+  const r = overlay.getBoundingClientRect();
+  label.textContent = s.name;
+  label.style.left = `${(s.bbox[0] * r.width) / width}px`;
+  label.style.top = `${(s.bbox[1] * r.height) / height}px`;
+  label.hidden = false;
+}
+
+// ---------------------------------------------------------------- chat
+function setScope(scope) {
+  state.scope = scope;
+  for (const b of document.querySelectorAll("#scopes button")) b.classList.toggle("active", b.dataset.scope === scope);
+  const what = { view: "this view", object: state.selection ? `the ${state.selection.name}` : "the object", scene: "the whole scene" };
+  $("question").placeholder = `Ask about ${what[scope]}…`;
+  renderHistory();
+}
+
+function note(scope, text) {
+  state.histories[scope].push({ note: text });
+  if (state.scope === scope) renderHistory();
+}
+
+function renderHistory() {
+  const h = $("history");
+  h.replaceChildren();
+  for (const turn of state.histories[state.scope]) h.append(turnElement(turn));
+  h.scrollTop = h.scrollHeight;
+}
+
+function turnElement(turn) {
+  if (turn.note) {
+    const n = document.createElement("div");
+    n.className = "note";
+    n.textContent = turn.note;
+    return n;
+  }
+  if (!turn.el) {
+    const el = document.createElement("div");
+    el.className = "turn";
+    el.innerHTML = '<div class="q"></div><div class="a"></div><div class="t"></div>';
+    el.querySelector(".q").textContent = turn.question;
+    turn.el = el;
+  }
+  updateTurn(turn);
+  return turn.el;
+}
+
+function updateTurn(turn) {
+  const a = turn.el.querySelector(".a");
+  a.textContent = turn.error || turn.answer || turn.waiting || "";
+  a.classList.toggle("error", Boolean(turn.error));
+  turn.el.querySelector(".t").textContent = turn.timing || "";
+  turn.el.dataset.state = turn.state;
+  $("history").scrollTop = $("history").scrollHeight;
+}
+
+async function ask(question) {
+  const scope = state.scope;
+  const body = { scope, question };
+  if (scope === "view") body.camera = apiCamera();
+  if (scope === "object") {
+    if (!state.selection) return;
+    // the camera it was picked (or last followed) in: the server keeps that pick and its tokens
+    body.camera = state.selection.camera;
+    body.id = state.selection.id;
+  }
+  if (scope === "scene") body.views = state.scene.scene_views;
+  const turn = { question, answer: "", waiting: "…", state: "asking", scope };
+  state.histories[scope].push(turn);
+  if (state.scope === scope) renderHistory();
+  const abort = new AbortController();
+  state.busy = abort;
+  $("send").disabled = true;
+  $("stop").disabled = false;
+  try {
+    const r = await post("/api/ask", body, abort.signal);
+    await readEvents(r, (name, ev) => {
+      if (name === "queued") turn.waiting = ev.ahead > 0 ? `waiting: ${ev.ahead} question(s) ahead` : "next…";
+      else if (name === "start") { turn.waiting = "thinking…"; turn.tokensMs = ev.tokens_ms; }
+      else if (name === "token") turn.answer += ev.text;
+      else if (name === "done") {
+        const parts = [];
+        if (scope === "object" && state.lastPickMs != null) parts.push(`pick ${state.lastPickMs.toFixed(0)} ms`);
+        parts.push(`tokens ${turn.tokensMs.toFixed(0)} ms`, `first token ${ev.first_token_ms.toFixed(0)} ms`,
+          `${ev.tokens_per_s.toFixed(1)} tokens/s`, `${ev.tokens} tokens`);
+        turn.timing = parts.join(" · ");
+        turn.state = "done";
+      } else if (name === "error") { turn.error = ev.error; turn.state = "error"; }
+      updateTurn(turn);
+    });
+    if (turn.state === "asking") { turn.state = "done"; }
+  } catch (e) {
+    if (e.name === "AbortError") { turn.timing = "stopped"; turn.state = "stopped"; }
+    else { turn.error = e.message; turn.state = "error"; }
+  } finally {
+    updateTurn(turn);
+    state.busy = null;
+    $("send").disabled = false;
+    $("stop").disabled = true;
+  }
+}
+
+function installChat() {
+  for (const b of document.querySelectorAll("#scopes button")) b.addEventListener("click", () => setScope(b.dataset.scope));
+  $("ask").addEventListener("submit", (e) => {
+    e.preventDefault();
+    const q = $("question").value.trim();
+    if (!q || state.busy) return;
+    $("question").value = "";
+    ask(q);
+  });
+  $("question").addEventListener("keydown", (e) => {
+    if (e.key === "Enter" && !e.shiftKey) { e.preventDefault(); $("ask").requestSubmit(); }
+  });
+  $("stop").addEventListener("click", () => state.busy && state.busy.abort());
+}
+
+// ---------------------------------------------------------------- layout
+// The canvas keeps the capture's aspect ratio (what the model was taught on), as large as fits.
+function layout() {
+  const v0 = state.scene.views[0].camera;
+  const frame = $("frame").getBoundingClientRect();
+  const aspect = v0.width / v0.height;
+  let w = frame.width - 16, h = w / aspect;
+  if (h > frame.height - 16) { h = frame.height - 16; w = h * aspect; }
+  w = Math.max(64, Math.floor(w));
+  h = Math.max(64, Math.floor(h));
+  const vp = $("viewport");
+  vp.style.width = `${w}px`;
+  vp.style.height = `${h}px`;
+  state.size = { width: w, height: h };
+  $("gl").width = w; $("gl").height = h;
+  state.camera.aspect = w / h;
+  state.camera.updateProjectionMatrix();
+  if (draw.renderer) draw.renderer.setSize(w, h, false);
+}
+
+// ---------------------------------------------------------------- start
+function webgl2() {
+  try { return Boolean(document.createElement("canvas").getContext("webgl2")); } catch (_) { return false; }
+}
+
+async function main() {
+  const r = await fetch("/api/scene");
+  if (!r.ok) throw await failure(r);
+  state.scene = await r.json();
+  const s = state.scene;
+  document.title = `chatsplat · ${s.name}`;
+  $("scene-name").textContent = s.name;
+  state.up.fromArray(s.up);
+  state.camera = new THREE.PerspectiveCamera(50, 1, 0.01 * s.radius, 100 * s.radius);
+  state.camera.up.copy(state.up);
+  for (const v of s.views) {
+    const o = document.createElement("option");
+    o.value = String(v.index);
+    o.textContent = `${v.index}: ${v.image}${v.split === "test" ? " (held out)" : ""}`;
+    $("views").append(o);
+  }
+  $("views").addEventListener("change", (e) => jump(Number(e.target.value)));
+  $("reset").addEventListener("click", () => jump(0));
+  layout();
+  window.addEventListener("resize", () => { layout(); cameraMoved(true); });
+  installControls();
+  installChat();
+  setScope("view");
+  state.mode = params.get("render") === "server" || !webgl2() ? "server" : "webgl";
+  if (state.mode === "webgl") {
+    status(`loading ${s.gaussians.toLocaleString()} Gaussians…`);
+    try {
+      await startWebgl();
+    } catch (e) {
+      state.mode = "server";
+      status(`WebGL renderer failed (${e.message}); frames come from the server`);
+    }
+  }
+  $("gl").style.opacity = state.mode === "server" ? "0" : "1";
+  $("server-frame").hidden = state.mode !== "server";
+  $("mode").textContent = state.mode === "webgl" ? "Spark (WebGL2)" : "server frames";
+  jump(Math.min(Number(params.get("view") || 0), s.views.length - 1));
+  if (!$("status").textContent.startsWith("WebGL")) status(`${s.gaussians.toLocaleString()} Gaussians · ${s.objects.length} objects · model ${s.model}`);
+  state.ready = true;
+}
+
+// Hooks for scripts and tests: the page's state, read-only, and the camera.
+window.chatsplat = {
+  get ready() { return state.ready; },
+  get mode() { return state.mode; },
+  get frames() { return state.frames; },
+  get selection() { return state.selection && { id: state.selection.id, name: state.selection.name, pixels: state.selection.pixels }; },
+  get scope() { return state.scope; },
+  // nothing left to draw: the splat sort has settled, or the last server frame has come
+  get idle() {
+    return state.ready && performance.now() > draw.until && state.frames >= draw.minFrames && !draw.serverBusy && !draw.serverWanted;
+  },
+  camera: () => apiCamera(),
+  canvasRect: () => { const r = $("gl").getBoundingClientRect(); return [r.left, r.top, r.width, r.height]; },
+  setCamera: (v) => setCamera(v),
+  jump: (i) => jump(i),
+  turns: () => state.histories[state.scope].filter((t) => !t.note).map((t) => ({ question: t.question, answer: t.answer, error: t.error || null, state: t.state, timing: t.timing || null })),
+  serverFrameKind: () => $("server-frame").dataset.kind || null,
+};
+
+main().catch((e) => { status(`cannot load the scene: ${e.message}`); });

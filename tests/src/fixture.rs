@@ -1,0 +1,109 @@
+//! A trained ChatSplat scene with the built-in model, shared by the tests that need one (the
+//! end-to-end accuracy test, the viewer's HTTP and browser tests): a held-out synthetic tabletop
+//! -> geometry -> teacher tokens -> language field. Built once per machine and source tree into
+//! `TMP/tabletop-<hash>` (`TMP` the tests' `CARGO_TARGET_TMPDIR`), where `<hash>` covers every
+//! source file of the crates that train it, `Cargo.lock` and the built-in model's files: any change
+//! to them trains it anew, and a clean clone (CI) always does.
+
+use burn::tensor::Device;
+use model::data::{LoadOptions, load_any};
+use model::run::{GeometryRun, LanguageRun, TeacherDir};
+use std::path::{Path, PathBuf};
+
+/// The scene's seed: none of the built-in model's training or evaluation seeds.
+pub const SEED: u64 = 30_100;
+pub const VIEWS: usize = 16;
+pub const SIZE: u32 = 96;
+pub const GEOMETRY_ITERS: usize = 300;
+pub const LANGUAGE_ITERS: usize = 150;
+
+/// A trained scene on disk.
+#[derive(Clone, Debug)]
+pub struct Tabletop {
+    /// The dataset (`chatsplat synth` layout: scene.json, questions.json, masks).
+    pub data: PathBuf,
+    /// The geometry run, with its language run in `run/language`.
+    pub run: PathBuf,
+}
+
+/// The built-in LLaVA-OneVision.
+pub fn builtin_model() -> PathBuf {
+    Path::new(env!("CARGO_MANIFEST_DIR")).join("../checkpoints/tabletop-llava-ov")
+}
+
+/// The shared scene under `tmp`, trained on first use (a few minutes on 2 cores).
+pub fn tabletop(tmp: &Path) -> Tabletop {
+    static LOCK: std::sync::Mutex<()> = std::sync::Mutex::new(());
+    let _one_at_a_time = LOCK.lock().unwrap_or_else(|e| e.into_inner());
+    let root = tmp.join(format!("tabletop-{:016x}", source_hash()));
+    let done = Tabletop { data: root.join("data"), run: root.join("run") };
+    if root.join("complete").exists() {
+        return done;
+    }
+    // trained beside the final place, then renamed: another process never sees half a scene
+    let building = tmp.join(format!("tabletop-building-{}", std::process::id()));
+    let _ = std::fs::remove_dir_all(&building);
+    train_into(&building);
+    std::fs::write(building.join("complete"), b"").unwrap();
+    if std::fs::rename(&building, &root).is_err() {
+        // another process finished first
+        let _ = std::fs::remove_dir_all(&building);
+    }
+    done
+}
+
+fn train_into(root: &Path) {
+    let dev = Device::ndarray();
+    let vlm = model::vlm::LlavaOnevision::load(&builtin_model(), &dev).unwrap();
+    let data = root.join("data");
+    let opts =
+        model::data::synth::SynthOptions { seed: SEED, views: VIEWS, width: SIZE, height: SIZE, ..Default::default() };
+    model::data::synth::write_dataset(&data, &opts, |_, _| {}).unwrap();
+    let load = LoadOptions::default();
+    let ds = load_any(&data, &load).unwrap();
+    let run = GeometryRun::new(root.join("run"));
+    let gcfg = train::geometry::GeometryConfig::short(GEOMETRY_ITERS);
+    train::geometry::run(&ds, None, &data, &load, &run, gcfg, &dev, false, |_| {}).unwrap();
+    let teacher = TeacherDir::new(data.join("teacher"));
+    train::teacher::extract(&vlm, &data, &teacher, &Default::default(), |_| {}, |_, _| {}).unwrap();
+    let mut lcfg = train::language::LanguageTrainConfig {
+        iters: LANGUAGE_ITERS,
+        warmup_iters: LANGUAGE_ITERS / 10,
+        checkpoint_every: 0,
+        ..Default::default()
+    };
+    lcfg.field.patch = 0;
+    let lang = LanguageRun::new(run.dir.join("language"));
+    train::language::run(&run, &teacher.dir, &lang, lcfg, &dev, false, |_| {}).unwrap();
+}
+
+/// FNV-1a over the sources that train the scene and the built-in model's files.
+fn source_hash() -> u64 {
+    let top = Path::new(env!("CARGO_MANIFEST_DIR")).join("..");
+    let mut files = Vec::new();
+    for dir in ["splat_kernels/src", "model/src", "train/src", "checkpoints/tabletop-llava-ov"] {
+        collect(&top.join(dir), &mut files);
+    }
+    files.push(top.join("Cargo.lock"));
+    files.sort();
+    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    for f in files {
+        let name = f.strip_prefix(&top).unwrap_or(&f).to_string_lossy().into_owned();
+        for b in name.bytes().chain(std::fs::read(&f).unwrap_or_default()) {
+            h = (h ^ b as u64).wrapping_mul(0x0100_0000_01b3);
+        }
+    }
+    h
+}
+
+fn collect(dir: &Path, out: &mut Vec<PathBuf>) {
+    let Ok(entries) = std::fs::read_dir(dir) else { return };
+    for e in entries.flatten() {
+        let p = e.path();
+        if p.is_dir() {
+            collect(&p, out);
+        } else {
+            out.push(p);
+        }
+    }
+}

@@ -348,11 +348,19 @@ fn broken_datasets_configs_and_arguments_are_refused() {
         (vec!["ask", "--image", "x.png", "--run", &o, "What?"], "--image"),
         (vec!["ask", "--image", "x.png", "--half", "What?"], "--backend flex"),
         (vec!["export-ply", "--run", &o, "--out", &o], "run"),
+        (vec!["serve", "--run", "/no/such/run", "--addr", "127.0.0.1:0"], "/no/such/run"),
+        (vec!["serve", "--run", &o, "--addr", "nowhere"], "--addr"),
+        (vec!["serve", "--run", &o, "--queue", "0"], "--queue"),
     ];
     for (args, want) in lines {
         let out = run(&args, &[]);
         s.fails(Case { name: format!("cli {}", args.join(" ")), out, expect: vec![want.into()] });
     }
+    // a port another program holds
+    let held = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+    let addr = held.local_addr().unwrap().to_string();
+    let out = run(&["serve", "--addr", &addr, "--run", &b], &[]);
+    s.fails(Case { name: "serve on a port in use".into(), out, expect: vec!["cannot listen".into(), addr] });
     // a 100 KB question is longer than the model's context
     let photo = base.join("images/frame_0000.png");
     let long = "what is on the table ".repeat(5000);

@@ -590,6 +590,7 @@ window.chatsplat = {
   camera: () => apiCamera(),
   canvasRect: () => { const r = $("gl").getBoundingClientRect(); return [r.left, r.top, r.width, r.height]; },
   setCamera: (v) => setCamera(v),
+  orbit: (dx, dy) => { orbit(dx, dy); cameraMoved(false); },
   jump: (i) => jump(i),
   turns: () => state.histories[state.scope].filter((t) => !t.note).map((t) => ({ question: t.question, answer: t.answer, error: t.error || null, state: t.state, timing: t.timing || null })),
   serverFrameKind: () => $("server-frame").dataset.kind || null,

@@ -361,9 +361,18 @@ fn serve_answers_like_the_library_and_refuses_bad_requests_by_name() {
 fn twenty_clients_at_once_are_answered_in_order_or_refused_and_a_gone_client_frees_the_model() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let t = scene();
-    let server = Server::start(&t.run, &["--queue", "8"]);
+    let server = Server::start(&t.run, &["--queue", "8", "--allow-origin", "http://localhost:3000"]);
     let info = http::get(&server.addr, "/api/scene").json();
     let cam0 = info["views"][0]["camera"].clone();
+    // an origin let in: its preflight and its request are answered, with the header browsers need
+    let origin = [("Origin", "http://localhost:3000")];
+    let pre = http::send(&server.addr, "OPTIONS", "/api/pick", &origin, None).unwrap();
+    assert_eq!((pre.status, pre.header("access-control-allow-origin")), (204, Some("http://localhost:3000")));
+    let body = json!({"camera": cam0, "x": 1, "y": 1}).to_string();
+    let r = http::send(&server.addr, "POST", "/api/pick", &origin, Some(body.as_bytes())).unwrap();
+    assert_eq!((r.status, r.header("access-control-allow-origin")), (200, Some("http://localhost:3000")));
+    let other = [("Origin", "http://localhost:3001")];
+    assert_eq!(http::send(&server.addr, "POST", "/api/pick", &other, Some(body.as_bytes())).unwrap().status, 403);
     let questions = ["What objects are there?", "How many objects are there?", "What colors are there?"];
     let t0 = Instant::now();
     let barrier = std::sync::Arc::new(std::sync::Barrier::new(20));

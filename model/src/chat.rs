@@ -60,6 +60,16 @@ pub enum Target {
     Scene(Vec<Camera>),
 }
 
+impl Target {
+    /// How many token grids (images) the target's prompt holds.
+    pub fn images(&self) -> usize {
+        match self {
+            Target::Scene(cs) => cs.len(),
+            _ => 1,
+        }
+    }
+}
+
 impl std::fmt::Display for Target {
     fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
         match self {
@@ -177,13 +187,8 @@ impl ChatSession {
     /// view. `None` for the background; a pixel outside the view is an error, and so is a scene
     /// trained without instance masks.
     pub fn click(&self, camera: &Camera, x: usize, y: usize) -> Result<Option<Picked>> {
-        let (w, h) = (camera.width as usize, camera.height as usize);
-        if x >= w || y >= h {
-            return Err(Error::input(format!("pixel ({x}, {y}) lies outside the {w}x{h} view")));
-        }
-        self.scene.check_masks()?;
-        let ids = self.scene.splats.render_ids(camera)?;
-        Ok(self.picked(camera, ids[y * w + x], ids))
+        let (ids, id) = self.scene.identity_at(camera, x, y)?;
+        Ok(self.picked(camera, id, ids))
     }
 
     /// Object `id` in the view from `camera` (a selection followed to a new camera): `None` when
@@ -195,11 +200,7 @@ impl ChatSession {
     }
 
     fn picked(&self, camera: &Camera, id: u8, ids: Vec<u8>) -> Option<Picked> {
-        if id == 0 {
-            return None;
-        }
-        let (w, h) = (camera.width as usize, camera.height as usize);
-        let bbox = crate::language::object_box(&ids, w, h, id, self.scene.margin)?;
+        let bbox = self.scene.object_box(camera, &ids, id)?;
         Some(Picked { camera: *camera, id, bbox, ids, tokens: Arc::default() })
     }
 

@@ -121,9 +121,9 @@ impl LanguageScene {
         ))
     }
 
-    /// The object under pixel `(x, y)` of `cam` and its crop box (from the rendered identity);
-    /// `None` for the background (id 0). A pixel outside the image is an error.
-    pub fn pick(&self, cam: &Camera, x: usize, y: usize) -> Result<Option<(u8, [usize; 4])>> {
+    /// The rendered identity of the view from `cam` (`[H * W]`) and the id under pixel `(x, y)`
+    /// (0: the background). A pixel outside the image, or a scene without masks, is an error.
+    pub fn identity_at(&self, cam: &Camera, x: usize, y: usize) -> Result<(Vec<u8>, u8)> {
         let (w, h) = (cam.width as usize, cam.height as usize);
         if x >= w || y >= h {
             return Err(Error::input(format!("pixel ({x}, {y}) lies outside the {w}x{h} view")));
@@ -131,10 +131,23 @@ impl LanguageScene {
         self.check_masks()?;
         let ids = self.splats.render_ids(cam)?;
         let id = ids[y * w + x];
+        Ok((ids, id))
+    }
+
+    /// The object under pixel `(x, y)` of `cam` and its crop box (from the rendered identity);
+    /// `None` for the background (id 0). A pixel outside the image is an error.
+    pub fn pick(&self, cam: &Camera, x: usize, y: usize) -> Result<Option<(u8, [usize; 4])>> {
+        let (ids, id) = self.identity_at(cam, x, y)?;
+        Ok(self.object_box(cam, &ids, id).map(|b| (id, b)))
+    }
+
+    /// The crop box of object `id` in the identity `ids` of the view from `cam` (mask box + the
+    /// teacher's margin); `None` for the background or an absent object.
+    pub fn object_box(&self, cam: &Camera, ids: &[u8], id: u8) -> Option<[usize; 4]> {
         if id == 0 {
-            return Ok(None);
+            return None;
         }
-        Ok(crate::language::object_box(&ids, w, h, id, self.margin).map(|b| (id, b)))
+        crate::language::object_box(ids, cam.width as usize, cam.height as usize, id, self.margin)
     }
 
     /// The masked object map `[r, r, Co]` of object `id` with crop box `bbox` in the view from

@@ -87,8 +87,8 @@ pub enum Quick {
 pub enum QuickReply {
     Object(Option<ObjectReply>),
     Frame(Vec<u8>),
-    /// The prompt's length in tokens.
-    Checked(usize),
+    /// The question can be asked.
+    Checked,
 }
 
 /// An event of a streamed answer (one server-sent event each; the name is the variant's).
@@ -292,10 +292,10 @@ impl Engine {
         let Engine { session, quick } = self;
         let t0 = Instant::now();
         let target = quick.target(session, &job.scope)?;
-        let images = session.tokens(&target).map_err(|e| ApiError::from_model(e, None))?;
         let prompt_tokens = session
-            .check_question(&job.question, images.len())
+            .check_question(&job.question, target.images())
             .map_err(|e| ApiError::from_model(e, Some("question")))?;
+        let images = session.tokens(&target).map_err(|e| ApiError::from_model(e, None))?;
         let t1 = Instant::now();
         let start = AskEvent::Start { ticket, queue_ms: ms(job.arrived, t0), tokens_ms: ms(t0, t1), prompt_tokens };
         if job.events.blocking_send(start).is_err() {
@@ -358,11 +358,9 @@ impl QuickState {
                 Ok(QuickReply::Frame(rgb.iter().map(|v| (v * 255.0 + 0.5) as u8).collect()))
             }
             Quick::Check { scope, question } => {
-                let images = match self.target(session, &scope)? {
-                    Target::Scene(cs) => cs.len(),
-                    _ => 1,
-                };
-                Ok(QuickReply::Checked(session.check_question(&question, images).map_err(err("question"))?))
+                let images = self.target(session, &scope)?.images();
+                session.check_question(&question, images).map_err(err("question"))?;
+                Ok(QuickReply::Checked)
             }
         }
     }

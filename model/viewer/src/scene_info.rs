@@ -4,7 +4,6 @@
 
 use crate::camera::ViewCamera;
 use glam::Vec3;
-use model::GaussianCloud;
 use model::chat::{ChatSession, DEFAULT_SCENE_VIEWS};
 use model::data::synth::scene::Scene;
 use model::run::GeometryRun;
@@ -178,17 +177,11 @@ fn scaled(cam: &Camera, side: u32) -> Camera {
 /// The scene's Gaussians as an Inria-layout `.ply` for the browser: position, scale, rotation,
 /// opacity and colour (the SH bands only when the run uses them; no identity channels).
 pub fn splats_ply(s: &ChatSession) -> Vec<u8> {
-    let (cloud, _) = s.scene.splats.to_cloud();
-    let GaussianCloud { means, log_scales, quats, opacity_logits, sh_dc, sh_rest, rest_per_gaussian, .. } = cloud;
-    let keep_rest = s.scene.sh_degree > 0;
-    model::ply::encode(&GaussianCloud {
-        means,
-        log_scales,
-        quats,
-        opacity_logits,
-        sh_dc,
-        sh_rest: if keep_rest { sh_rest } else { vec![] },
-        rest_per_gaussian: if keep_rest { rest_per_gaussian } else { 0 },
-        extra: Default::default(),
-    })
+    let (mut cloud, _) = s.scene.splats.to_cloud();
+    cloud.extra.clear();
+    if s.scene.sh_degree == 0 {
+        cloud.sh_rest.clear();
+        cloud.rest_per_gaussian = 0;
+    }
+    model::ply::encode(&cloud)
 }

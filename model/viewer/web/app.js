@@ -476,8 +476,9 @@ async function ask(question) {
       else if (name === "done") {
         const parts = [];
         if (scope === "object" && state.lastPickMs != null) parts.push(`pick ${state.lastPickMs.toFixed(0)} ms`);
-        parts.push(`tokens ${turn.tokensMs.toFixed(0)} ms`, `first token ${ev.first_token_ms.toFixed(0)} ms`,
-          `${ev.tokens_per_s.toFixed(1)} tokens/s`, `${ev.tokens} tokens`);
+        parts.push(`tokens ${turn.tokensMs.toFixed(0)} ms`, `first token ${ev.first_token_ms.toFixed(0)} ms`);
+        if (ev.tokens > 1) parts.push(`${ev.tokens_per_s.toFixed(1)} tokens/s`);
+        parts.push(`${ev.tokens} token${ev.tokens === 1 ? "" : "s"}`);
         turn.timing = parts.join(" · ");
         turn.state = "done";
       } else if (name === "error") { turn.error = ev.error; turn.state = "error"; }

@@ -3,6 +3,7 @@
 #![allow(deprecated)] // burn-ndarray is deprecated in burn 0.22 in favour of burn-flex.
 
 mod cmd;
+mod ranks;
 
 use clap::Parser;
 use std::process::ExitCode;
@@ -10,11 +11,13 @@ use std::process::ExitCode;
 fn main() -> ExitCode {
     model::alloc::keep_freed_memory();
     let cli = cmd::Cli::parse();
-    match cmd::run(cli) {
+    let (name, data_parallel) = cli.name();
+    let ranks = match ranks::Ranks::join(name, data_parallel) {
+        Ok(r) => r,
+        Err(e) => return ranks::Ranks::Solo.fail(&e),
+    };
+    match cmd::run(cli, &ranks) {
         Ok(()) => ExitCode::SUCCESS,
-        Err(e) => {
-            eprintln!("error: {e:#}");
-            ExitCode::FAILURE
-        }
+        Err(e) => ranks.fail(&e),
     }
 }

@@ -361,6 +361,19 @@ fn broken_datasets_configs_and_arguments_are_refused() {
     let addr = held.local_addr().unwrap().to_string();
     let out = run(&["serve", "--addr", &addr, "--run", &b], &[]);
     s.fails(Case { name: "serve on a port in use".into(), out, expect: vec!["cannot listen".into(), addr] });
+    // under an MPI launcher with several ranks: a command that runs on one process, and (in a
+    // build without the `mpi` feature) train-vlm, whose ranks would each train alone
+    let ranks = |args: &[&str]| chatsplat().args(args).env("OMPI_COMM_WORLD_SIZE", "2").output().unwrap();
+    let out = ranks(&["render", "--out", &o]);
+    s.fails(Case {
+        name: "render on 2 ranks".into(),
+        out,
+        expect: vec!["`chatsplat render`".into(), "2 ranks".into()],
+    });
+    if !cfg!(feature = "mpi") {
+        let out = ranks(&["train-vlm", "--steps", "1", "--out", &o]);
+        s.fails(Case { name: "train-vlm on 2 ranks without MPI".into(), out, expect: vec!["--features mpi".into()] });
+    }
     // a 100 KB question is longer than the model's context
     let photo = base.join("images/frame_0000.png");
     let long = "what is on the table ".repeat(5000);

@@ -79,16 +79,19 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     language.field.patch = 0; // render maps at the views' own resolution
     let language_cfg = a.out.join("language_config.json");
     model::io::write_json(&language_cfg, &language)?;
-    super::train_language::run(super::train_language::Args {
-        run: run.dir.clone(),
-        teacher: data.join("teacher"),
-        out: None,
-        iters: Some(a.language_iters),
-        channels: None,
-        backend: a.backend,
-        resume: false,
-        config: Some(language_cfg),
-    })?;
+    super::train_language::run(
+        super::train_language::Args {
+            run: run.dir.clone(),
+            teacher: data.join("teacher"),
+            out: None,
+            iters: Some(a.language_iters),
+            channels: None,
+            backend: a.backend,
+            resume: false,
+            config: Some(language_cfg),
+        },
+        &crate::ranks::Ranks::Solo,
+    )?;
 
     step(5, "chat: view, object (click) and scene level");
     let ask = |view: usize, object: Option<Vec<usize>>, scene: bool, q: &str| super::ask::Args {

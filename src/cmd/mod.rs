@@ -87,8 +87,29 @@ pub fn check_config(path: Option<&std::path::Path>, r: model::error::Result<()>)
     }
 }
 
-/// Runs one command.
-pub fn run(cli: Cli) -> anyhow::Result<()> {
+impl Cli {
+    /// The subcommand's name, and whether it runs data-parallel on several ranks.
+    pub fn name(&self) -> (&'static str, bool) {
+        match self.command {
+            Command::Demo(_) => ("demo", false),
+            Command::Synth(_) => ("synth", false),
+            Command::Render(_) => ("render", false),
+            Command::Train(_) => ("train", false),
+            Command::ExportPly(_) => ("export-ply", false),
+            Command::Extract(_) => ("extract", false),
+            Command::TrainLanguage(_) => ("train-language", true),
+            Command::ExportEncoder(_) => ("export-encoder", false),
+            Command::TrainVlm(_) => ("train-vlm", true),
+            Command::Ask(_) => ("ask", false),
+            Command::Chat(_) => ("chat", false),
+            Command::Serve(_) => ("serve", false),
+            Command::Vqa(_) => ("vqa", false),
+        }
+    }
+}
+
+/// Runs one command (`ranks`: this process's place in a data-parallel job, if any).
+pub fn run(cli: Cli, ranks: &crate::ranks::Ranks) -> anyhow::Result<()> {
     match cli.command {
         Command::Demo(a) => demo::run(a),
         Command::Synth(a) => synth::run(a),
@@ -96,9 +117,9 @@ pub fn run(cli: Cli) -> anyhow::Result<()> {
         Command::Train(a) => train::run(a),
         Command::ExportPly(a) => export_ply::run(a),
         Command::Extract(a) => extract::run(a),
-        Command::TrainLanguage(a) => train_language::run(a),
+        Command::TrainLanguage(a) => train_language::run(a, ranks),
         Command::ExportEncoder(a) => export_encoder::run(a),
-        Command::TrainVlm(a) => train_vlm::run(a),
+        Command::TrainVlm(a) => train_vlm::run(a, ranks),
         Command::Ask(a) => ask::run(a),
         Command::Chat(a) => chat::run(a),
         Command::Serve(a) => serve::run(a),

@@ -33,7 +33,7 @@ pub struct Args {
     pub config: Option<PathBuf>,
 }
 
-pub fn run(a: Args) -> anyhow::Result<()> {
+pub fn run(a: Args, ranks: &crate::ranks::Ranks) -> anyhow::Result<()> {
     let mut cfg = match &a.config {
         Some(p) => model::io::read_config::<LanguageTrainConfig>(p)?,
         None => LanguageTrainConfig::default(),
@@ -56,9 +56,18 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         cfg.iters = model::io::read_json::<LanguageTrainConfig>(&out.config())?.iters;
     }
     let device = a.backend.device();
+    let c = ranks.collective();
+    if c.size() > 1 && c.is_root() {
+        eprintln!(
+            "train-language: data-parallel on {} ranks ({} views per step, split between them)",
+            c.size(),
+            cfg.views_per_step
+        );
+    }
     let bar = Progress::new("language", "it");
+    let t0 = std::time::Instant::now();
     let s = model::catch_backend("language training", || {
-        train_field(&geometry, &a.teacher, &out, cfg, &device, a.resume, |p| {
+        train_field(&geometry, &a.teacher, &out, cfg, &device, a.resume, c, |p| {
             if p.iter % 5 == 0 || p.iter == p.iters {
                 let s = p.step;
                 let msg = format!("loss {:.4} view {:.4} obj {:.4} ({})", s.loss, s.view_l1, s.object_l1, s.objects);
@@ -66,6 +75,10 @@ pub fn run(a: Args) -> anyhow::Result<()> {
             }
         })
     })??;
+    ranks.report(t0.elapsed().as_secs_f64());
+    if !c.is_root() {
+        return Ok(());
+    }
     if let Some(at) = s.resumed_from {
         eprintln!("resumed from iteration {at}");
     }

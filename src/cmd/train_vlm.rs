@@ -68,8 +68,11 @@ fn stages(cfg: &VlmTrainConfig, base_model: Option<&std::path::Path>) -> (usize,
     (chain.len(), done + 1)
 }
 
-pub fn run(a: Args) -> anyhow::Result<()> {
+pub fn run(a: Args, ranks: &crate::ranks::Ranks) -> anyhow::Result<()> {
     if let Some(dir) = &a.evaluate {
+        if ranks.collective().size() > 1 {
+            anyhow::bail!("train-vlm --evaluate runs on one process (run it without mpirun)");
+        }
         return evaluate(dir, &a);
     }
     let mut cfg = match &a.config {
@@ -90,13 +93,19 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         |i: usize| if stages > 1 { format!("train-vlm (stage {i} of {stages})") } else { "train-vlm".into() };
     let (mut bar, mut stage_started) = (Progress::new(stage_label(stage), "steps"), false);
     let t0 = std::time::Instant::now();
+    let c = ranks.collective();
+    let mut drawing = None;
+    if c.size() > 1 && c.is_root() {
+        eprintln!("train-vlm: data-parallel on {} ranks (each takes its share of every step's samples)", c.size());
+    }
     let acc = model::catch_backend("VLM training", || {
-        train_from(&cfg, &a.out, a.base_model.as_deref(), &device, |p| {
+        train_from(&cfg, &a.out, a.base_model.as_deref(), &device, c, |p| {
             if p.step == 1 && stage_started {
                 stage += 1;
                 bar.restart(stage_label(stage));
             }
             stage_started = true;
+            drawing = Some(p.drawing_seconds);
             if let Some(e) = &p.eval {
                 let labels = p.eval_labels.as_ref().map(|l| format!(" (reading label tokens: {})", l.summary()));
                 eprintln!("\nstep {}: held-out exact match {}{}", p.step, e.summary(), labels.unwrap_or_default());
@@ -112,6 +121,13 @@ pub fn run(a: Args) -> anyhow::Result<()> {
             bar.update_with(p.step, p.steps, &msg);
         })
     })??;
+    ranks.report(t0.elapsed().as_secs_f64());
+    if !c.is_root() {
+        return Ok(());
+    }
+    if let Some(d) = drawing {
+        eprintln!("drawing samples took {d:.1} s of the last stage (every rank draws every step's samples)");
+    }
     println!(
         "trained {} stage(s) in {:.1} min; held-out exact match {} -> {}",
         stages + 1 - first,

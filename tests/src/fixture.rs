@@ -74,7 +74,7 @@ fn train_into(root: &Path) {
     };
     lcfg.field.patch = 0;
     let lang = LanguageRun::new(run.dir.join("language"));
-    train::language::run(&run, &teacher.dir, &lang, lcfg, &dev, false, |_| {}).unwrap();
+    train::language::run(&run, &teacher.dir, &lang, lcfg, &dev, false, &train::dist::Solo, |_| {}).unwrap();
 }
 
 /// FNV-1a over the sources that train the scene and the built-in model's files.

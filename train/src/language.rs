@@ -10,6 +10,7 @@
 //! `Adam`, one state per named tensor (paper: lr 0.05 for features and encoder).
 
 use crate::ckpt::AdamStates;
+use crate::dist::{self, Collective, Solo};
 use crate::geometry::view_at;
 use crate::schedule::warmup_cosine;
 use crate::teacher::{TeacherObject, TeacherSet};
@@ -65,6 +66,9 @@ pub struct LanguageTrainConfig {
     pub checkpoint_every: usize,
     /// Also save one when this many seconds passed since the last (0: never by time).
     pub checkpoint_seconds: u64,
+    /// Training views per step (their mean loss; 1 as in the paper). A data-parallel run splits
+    /// each step's views across its ranks, so it needs at least one per rank.
+    pub views_per_step: usize,
 }
 
 impl Default for LanguageTrainConfig {
@@ -82,6 +86,7 @@ impl Default for LanguageTrainConfig {
             init_scale_shift_from_teacher: true,
             checkpoint_every: 500,
             checkpoint_seconds: 300,
+            views_per_step: 1,
         }
     }
 }
@@ -100,6 +105,9 @@ impl LanguageTrainConfig {
         }
         if !(self.lr_final.is_finite() && (0.0..=1.0).contains(&self.lr_final)) {
             return bad("lr_final", "must be a number in [0, 1]");
+        }
+        if self.views_per_step == 0 {
+            return bad("views_per_step", "must be at least 1");
         }
         Ok(())
     }
@@ -226,51 +234,53 @@ impl LanguageTrainer {
 
     /// One optimisation step on training view `v`.
     pub fn step(&mut self, v: usize) -> Result<LangStep> {
+        self.step_views(&[v], &Solo)
+    }
+
+    /// One optimisation step on the training views `views` (their mean loss). On a rank of a
+    /// data-parallel run (`c`) every rank gets the same `views`, renders its share of them, and
+    /// the gradients are averaged over the ranks ([`crate::dist`]): the step is the one a single
+    /// process makes on all of them.
+    pub fn step_views(&mut self, views: &[usize], c: &dyn Collective) -> Result<LangStep> {
+        let mine = dist::share(views.len(), c.rank(), c.size());
+        if mine.is_empty() {
+            return Err(Error::input(format!(
+                "language stage: {} views per step for {} ranks: every rank needs at least one (raise \
+                 views_per_step to at least the ranks)",
+                views.len(),
+                c.size()
+            )));
+        }
         let ad = self.device.clone().autodiff();
         let named = self.scene.field.named();
         let params: Vec<(String, Tensor<2>)> =
             named.into_iter().map(|(n, t)| (n, t.autodiff().require_grad())).collect();
         let field = LanguageField::from_named(params.clone())?;
-        let d = self.cfg.field.dim;
-        let t = self.cfg.field.tokens();
-        let target = |x: Vec<f32>| Tensor::<2>::from_data(TensorData::new(x, [t, d]), &ad);
-        let cam = self.views[v].camera;
-        let tokens = self.scene.view_tokens(&field, &cam)?;
-        let lv = (tokens - target(self.teacher.tokens(v, None)?)).abs().mean();
-        let mut loss = lv.clone();
-        let mut objects = self.teacher.views[v].objects.clone();
-        let k = self.cfg.max_objects_per_step;
-        if k > 0 && objects.len() > k {
-            let mut rng = model::rng::Rng::new(self.cfg.seed ^ (self.iter as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15));
-            for i in 0..k {
-                let j = i + (rng.next_u64() % (objects.len() - i) as u64) as usize;
-                objects.swap(i, j);
-            }
-            objects.truncate(k);
-        }
-        let mut lo_sum: Option<Tensor<1>> = None;
-        for obj in &objects {
-            let (oc, mask) = self.mask(v, obj)?;
-            let tok = self.scene.object_tokens_with(&field, &oc, &mask)?;
-            let l = (tok - target(self.teacher.tokens(v, Some(obj.id))?)).abs().mean();
-            lo_sum = Some(match lo_sum {
+        let alone = views.len() == 1 && c.size() == 1;
+        // each view's loss enters as `size / views` of it: averaged over the ranks, the mean
+        let part = c.size() as f32 / views.len() as f32;
+        let (mut loss, mut stats) = (None::<Tensor<1>>, [0f64; 4]);
+        for j in mine {
+            let (l, lv, lo, n) = self.view_loss(&field, views[j], self.iter * views.len() + j, &ad)?;
+            stats[0] += host(l.clone())[0] as f64;
+            stats[1] += lv as f64;
+            stats[2] += lo as f64;
+            stats[3] += n as f64;
+            let l = if alone { l } else { l * part };
+            loss = Some(match loss {
                 Some(s) => s + l,
                 None => l,
             });
         }
-        let mut lo_v = 0.0;
-        if let Some(s) = lo_sum {
-            let lo = s / objects.len() as f32;
-            lo_v = host(lo.clone())[0];
-            loss = loss + lo * self.cfg.object_weight;
-        }
-        let lv_v = host(lv)[0];
-        let loss_v = host(loss.clone())[0];
+        let loss = loss.expect("at least one view");
+        c.sum_f64("the step's losses", &mut stats)?;
         let grads = loss.backward();
+        let grads: Vec<Option<Tensor<2>>> = params.iter().map(|(_, p)| p.grad(&grads)).collect();
+        let grads = dist::reduce_tensors(c, grads, &params.iter().map(|(_, p)| p.dims()).collect::<Vec<_>>())?;
         let warm = warmup_cosine(self.iter, self.cfg.iters, self.cfg.warmup_iters, 1.0, self.cfg.lr_final);
         let mut new = Vec::with_capacity(params.len());
-        for ((name, value), (_, p)) in self.scene.field.named().into_iter().zip(&params) {
-            let Some(g) = p.grad(&grads) else {
+        for ((name, value), g) in self.scene.field.named().into_iter().zip(grads) {
+            let Some(g) = g else {
                 new.push((name, value));
                 continue;
             };
@@ -291,7 +301,68 @@ impl LanguageTrainer {
         }
         self.scene.field = LanguageField::from_named(new)?;
         self.iter += 1;
-        Ok(LangStep { loss: loss_v, view_l1: lv_v, object_l1: lo_v, objects: objects.len() })
+        let n = views.len() as f64;
+        let mean = |x: f64| (x / n) as f32;
+        Ok(LangStep {
+            loss: mean(stats[0]),
+            view_l1: mean(stats[1]),
+            object_l1: mean(stats[2]),
+            objects: stats[3] as usize,
+        })
+    }
+
+    /// The loss of training view `v` with `field` (view L1 plus the weighted mean object L1 over a
+    /// subset drawn by `draw`), its view and object L1 and the objects it used.
+    fn view_loss(
+        &mut self,
+        field: &LanguageField,
+        v: usize,
+        draw: usize,
+        ad: &Device,
+    ) -> Result<(Tensor<1>, f32, f32, usize)> {
+        let d = self.cfg.field.dim;
+        let t = self.cfg.field.tokens();
+        let target = |x: Vec<f32>| Tensor::<2>::from_data(TensorData::new(x, [t, d]), ad);
+        let cam = self.views[v].camera;
+        let tokens = self.scene.view_tokens(field, &cam)?;
+        let lv = (tokens - target(self.teacher.tokens(v, None)?)).abs().mean();
+        let mut loss = lv.clone();
+        let mut objects = self.teacher.views[v].objects.clone();
+        let k = self.cfg.max_objects_per_step;
+        if k > 0 && objects.len() > k {
+            let mut rng = model::rng::Rng::new(self.cfg.seed ^ (draw as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15));
+            for i in 0..k {
+                let j = i + (rng.next_u64() % (objects.len() - i) as u64) as usize;
+                objects.swap(i, j);
+            }
+            objects.truncate(k);
+        }
+        let mut lo_sum: Option<Tensor<1>> = None;
+        for obj in &objects {
+            let (oc, mask) = self.mask(v, obj)?;
+            let tok = self.scene.object_tokens_with(field, &oc, &mask)?;
+            let l = (tok - target(self.teacher.tokens(v, Some(obj.id))?)).abs().mean();
+            lo_sum = Some(match lo_sum {
+                Some(s) => s + l,
+                None => l,
+            });
+        }
+        let mut lo_v = 0.0;
+        if let Some(s) = lo_sum {
+            let lo = s / objects.len() as f32;
+            lo_v = host(lo.clone())[0];
+            loss = loss + lo * self.cfg.object_weight;
+        }
+        Ok((loss, host(lv)[0], lo_v, objects.len()))
+    }
+
+    /// Fails when the ranks' fields differ (see [`dist::check_hash`]).
+    fn check_in_step(&self, c: &dyn Collective) -> Result<()> {
+        if c.size() == 1 {
+            return Ok(());
+        }
+        let hash = self.scene.field.named().into_iter().fold(dist::HASH_START, |h, (_, t)| dist::hash_f32(h, &host(t)));
+        dist::check_hash(c, hash, self.iter)
     }
 
     /// Mean token L1 over the training views `(view, object)` with the current field.
@@ -436,6 +507,11 @@ pub struct LanguageMetrics {
 
 /// Trains (or resumes) the language stage of geometry run `run` into `out`: a first checkpoint
 /// within seconds, then every `cfg.checkpoint_every` iterations and `cfg.checkpoint_seconds`.
+///
+/// On the ranks of a data-parallel run (`c`) every rank runs this with the same arguments: each
+/// renders its share of every step's views, rank 0 alone writes checkpoints and metrics and
+/// reports progress, and a resume reads the checkpoint rank 0 wrote (a folder every rank sees).
+/// The token L1 before and after is rank 0's (zeros on the others).
 pub fn run(
     run: &GeometryRun,
     teacher_dir: &std::path::Path,
@@ -443,6 +519,7 @@ pub fn run(
     cfg: LanguageTrainConfig,
     device: &Device,
     resume: bool,
+    c: &dyn Collective,
     mut progress: impl FnMut(LangProgress),
 ) -> Result<LangSummary> {
     let (mut t, resumed_from) = if resume {
@@ -456,19 +533,28 @@ pub fn run(
     } else {
         (LanguageTrainer::new(run, TeacherSet::open(teacher_dir)?, cfg, device)?, None)
     };
-    if resumed_from.is_none() {
+    let root = c.is_root();
+    if resumed_from.is_none() && root {
         t.save(out)?;
     }
+    t.check_in_step(c)?;
     let all: Vec<usize> = (0..t.views.len()).collect();
-    let before = t.token_l1(&all)?;
+    let before = if root { t.token_l1(&all)? } else { (0.0, 0.0) };
     let start = std::time::Instant::now();
     let mut saved_at = std::time::Instant::now();
     let first = t.iter;
+    let b = t.cfg.views_per_step;
     while t.iter < t.cfg.iters {
-        let v = view_at(t.iter, t.views.len(), t.cfg.seed);
-        let s = t.step(v)?;
+        let views: Vec<usize> = (0..b).map(|j| view_at(t.iter * b + j, t.views.len(), t.cfg.seed)).collect();
+        let s = t.step_views(&views, c)?;
         if !s.loss.is_finite() {
             return Err(Error::Diverged { iter: t.iter, loss: s.loss });
+        }
+        if t.iter.is_multiple_of(crate::vlm::CHECK_EVERY) {
+            t.check_in_step(c)?;
+        }
+        if !root {
+            continue;
         }
         progress(LangProgress { iter: t.iter, iters: t.cfg.iters, step: s });
         let by_iter = t.cfg.checkpoint_every > 0 && t.iter.is_multiple_of(t.cfg.checkpoint_every);
@@ -478,10 +564,22 @@ pub fn run(
             saved_at = std::time::Instant::now();
         }
     }
+    t.check_in_step(c)?;
     let seconds_per_iter = start.elapsed().as_secs_f64() / (t.iter - first).max(1) as f64;
+    let used = t.contribution.iter().filter(|&&c| c > 0.0).count();
+    if !root {
+        let gaussians = t.contribution.len();
+        return Ok(LangSummary {
+            before,
+            after: before,
+            seconds_per_iter,
+            resumed_from,
+            gaussians_used: used,
+            gaussians,
+        });
+    }
     t.save(out)?;
     let after = t.token_l1(&all)?;
-    let used = t.contribution.iter().filter(|&&c| c > 0.0).count();
     let metrics = LanguageMetrics {
         iters: t.iter,
         train_view_token_l1_before: before.0,

@@ -513,7 +513,7 @@ fn bench(a: &Args) -> Result<()> {
             let dir = LanguageRun::new(out.join(name.replace([' ', '/', '(', ')', '='], "_")));
             let bar = eval::progress::Progress::new(name.clone(), "it");
             let resume = dir.checkpoint().is_file();
-            let summary = run(&geometry, &teacher_dir, &dir, cfg, &device, resume, |p| {
+            let summary = run(&geometry, &teacher_dir, &dir, cfg, &device, resume, &train::dist::Solo, |p| {
                 bar.update_with(p.iter, p.iters, &format!("loss {:.4}", p.step.loss))
             })?;
             let sc = LanguageScene::load(&geometry, &dir, &device)?;

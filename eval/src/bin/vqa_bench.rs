@@ -145,7 +145,7 @@ fn bench(a: &Args) -> Result<()> {
         let lang = LanguageRun::new(run.dir.join("language"));
         let lcfg = language_config.clone();
         let bar = Progress::new(format!("seed {seed} language"), "it");
-        let l = train::language::run(&run, &teacher.dir, &lang, lcfg, &device, false, |p| {
+        let l = train::language::run(&run, &teacher.dir, &lang, lcfg, &device, false, &train::dist::Solo, |p| {
             if p.iter % 10 == 0 || p.iter == p.iters {
                 bar.update_with(p.iter, p.iters, &format!("loss {:.4}", p.step.loss))
             }

@@ -238,7 +238,17 @@ fn end_to_end_language_field_chat_and_export() {
 
     // --- training: the token L1 on training views must fall
     let lang_dir = run_dir.join("language");
-    let s = run(&geometry, &teacher_dir, &LanguageRun::new(&lang_dir), lang_cfg(100), &dev, false, |_| {}).unwrap();
+    let s = run(
+        &geometry,
+        &teacher_dir,
+        &LanguageRun::new(&lang_dir),
+        lang_cfg(100),
+        &dev,
+        false,
+        &train::dist::Solo,
+        |_| {},
+    )
+    .unwrap();
     eprintln!(
         "token L1 view {:.4} -> {:.4}, object {:.4} -> {:.4}, {:.3} s/iter, {} of {} Gaussians used",
         s.before.0, s.after.0, s.before.1, s.after.1, s.seconds_per_iter, s.gaussians_used, s.gaussians

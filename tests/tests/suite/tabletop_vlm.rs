@@ -10,6 +10,7 @@ use burn::module::Module;
 use burn::tensor::{Device, Tensor, TensorData, activation};
 use chatsplat_tests::{host, max_abs_diff, temp_dir};
 use model::vlm::LlavaOnevision;
+use train::dist::Solo;
 use train::vlm::batch::{forward, pack};
 use train::vlm::data::SampleKind;
 use train::vlm::hops::{HopKind, SINK};
@@ -47,7 +48,7 @@ fn training_lowers_the_loss_equally_on_ndarray_and_wgpu() {
     let cfg = tiny_config();
     let run = |dev: &Device| {
         let mut t = Trainer::new(&cfg, dev).unwrap();
-        (0..5).map(|_| t.step().unwrap().answer).collect::<Vec<f32>>()
+        (0..5).map(|_| t.step(&Solo).unwrap().answer).collect::<Vec<f32>>()
     };
     let cpu = run(&Device::ndarray());
     eprintln!("ndarray answer losses {cpu:?}");
@@ -93,11 +94,11 @@ fn after_its_phase_the_tower_learns_at_tower_lr_scale_times_the_rate() {
     let run = |scale: f64| {
         let cfg = VlmTrainConfig { steps: 4, tower_steps: 1, tower_images: 2, tower_lr_scale: scale, ..tiny_config() };
         let mut t = Trainer::new(&cfg, &dev).unwrap();
-        t.step().unwrap();
+        t.step(&Solo).unwrap();
         let vision = |t: &Trainer| host(t.model.vlm.vision.patch.weight.val());
         let llm = |t: &Trainer| host(t.model.vlm.llm.layers[0].q.weight.val());
         let (v0, l0) = (vision(&t), llm(&t));
-        t.step().unwrap();
+        t.step(&Solo).unwrap();
         (max_abs_diff(&v0, &vision(&t)), max_abs_diff(&l0, &llm(&t)))
     };
     let (frozen_vision, frozen_llm) = run(0.0);
@@ -119,19 +120,19 @@ fn a_stage_chain_trains_its_base_first_or_reads_it_from_a_model_trained_with_it(
     // one command: the base stage trains into out/base, then the stage starts from its weights
     let whole = temp_dir("vlm-stages-whole");
     let mut seen = Vec::new();
-    train_from(&stage, &whole, None, &dev, |l| seen.push((l.step, l.steps))).unwrap();
+    train_from(&stage, &whole, None, &dev, &Solo, |l| seen.push((l.step, l.steps))).unwrap();
     assert_eq!(seen, [(1, 2), (2, 2), (1, 2), (2, 2)], "progress sees both stages' steps");
     assert!(whole.join("base/model.safetensors").is_file(), "the base stage's model is kept");
     // the same stage from the base's model read back: the same weights, bit for bit
     let again = temp_dir("vlm-stages-again");
-    train_from(&stage, &again, Some(&whole.join("base")), &dev, |_| {}).unwrap();
+    train_from(&stage, &again, Some(&whole.join("base")), &dev, &Solo, |_| {}).unwrap();
     assert!(!again.join("base").exists(), "the base stage is read, not trained again");
     let weights = |d: &std::path::Path| std::fs::read(d.join("model.safetensors")).unwrap();
     assert!(weights(&whole) == weights(&again), "reading the base gives the chain's own result");
     assert!(weights(&whole) != weights(&whole.join("base")), "the stage trained on from its base");
     // a model trained with none of the stages is refused before anything is trained
     let refused = temp_dir("vlm-stages-refused");
-    let e = train_from(&stage, &refused, Some(&whole), &dev, |_| {}).unwrap_err().to_string();
+    let e = train_from(&stage, &refused, Some(&whole), &dev, &Solo, |_| {}).unwrap_err().to_string();
     assert!(e.contains("train_config.json") && e.contains("none of this configuration's stages"), "{e}");
     assert!(!refused.join("base").exists(), "nothing trained: {e}");
     // and a base of another shape is refused by validation
@@ -213,7 +214,7 @@ fn packed_batches_score_answers_as_single_turn_inference_does() {
             .collect();
         assert!(batch.len() == 2 && batch.iter().all(|b| !b.1.is_empty()), "{kind:?} samples");
         let p = pack(&m.vlm, &batch).unwrap();
-        let packed = host(forward(&m, &p, None, None, false, &dev).log_probs);
+        let packed = host(forward(&m, &p, None, None, false, None, &dev).unwrap().log_probs);
         let vocab = m.vlm.cfg.text.vocab_size;
         let mut q = 0;
         for (sample, qas) in &batch {

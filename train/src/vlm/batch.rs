@@ -8,6 +8,7 @@
 
 use super::data::{Sample, SampleKind};
 use super::hops::{Hop, HopKind, Ident, SLOT_LAYER, Tokens, Word, question_hops};
+use crate::dist::{self, Collective};
 use burn::module::Module;
 use burn::nn::Linear;
 use burn::tensor::{Device, Int, Tensor, TensorData, activation};
@@ -321,27 +322,32 @@ pub struct Forward {
     pub log_probs: Tensor<2>,
 }
 
-/// Runs the packed batch through the model. `noise` (with its generator): the std of Gaussian
-/// noise added to the vision tokens before the projector, relative to their RMS (training the LLM
-/// to read tokens that are close to, not equal to, the tower's: what ChatSplat's encoder gives);
-/// `None` at evaluation. `supervise`: compute the hop and slot losses.
+/// Runs the packed batch through the model. `noise`: the std of Gaussian noise added to the
+/// vision tokens before the projector, relative to their RMS (training the LLM to read tokens that
+/// are close to, not equal to, the tower's: what ChatSplat's encoder gives), and the standard
+/// normal draws `[b * images * tokens * D]`; `None` at evaluation. `supervise`: compute the hop
+/// and slot losses. `dp`: on a rank of a data-parallel run, its [`Parts`] of the whole batch's
+/// means and the collective (the noise's RMS is the whole batch's); `None` on one process.
 pub fn forward(
     m: &Trainable,
     p: &Packed,
     label_tokens: Option<&LabelTokens>,
-    noise: Option<(f32, &mut Rng)>,
+    noise: Option<(f32, &[f32])>,
     supervise: bool,
+    dp: Option<(&Parts, &dyn Collective)>,
     device: &Device,
-) -> Forward {
+) -> Result<Forward> {
     let vlm = &m.vlm;
     let n_img = p.b * p.images;
+    let share = dp.map(|d| d.0);
     let (vis, aux_logits, aux_loss) = tower(m, &p.pixels, &p.labels, n_img, device);
+    let aux_loss = weighted(aux_loss, share.map(|w| w.tokens));
     let aux_logits_out = aux_logits.detach();
     let [_, g2, dv] = vis.dims();
     let (vis, label_loss) = match label_tokens {
         Some(lt) => {
             let e = Tensor::<3>::from_data(TensorData::new(lt.tokens(p), [n_img, g2, dv]), device);
-            let loss = (vis.clone() - e.clone()).powf_scalar(2.0).mean();
+            let loss = weighted((vis.clone() - e.clone()).powf_scalar(2.0).mean(), share.map(|w| w.tokens));
             let flags: Vec<f32> = p.label_tokens.iter().map(|&f| if f { 1.0 } else { 0.0 }).collect();
             let m = Tensor::<3>::from_data(TensorData::new(flags, [n_img, 1, 1]), device);
             (vis * (m.clone().neg() + 1.0) + e * m, loss)
@@ -349,10 +355,20 @@ pub fn forward(
         None => (vis, Tensor::zeros([1], device)),
     };
     let vis = match noise {
-        Some((std, rng)) if std > 0.0 => {
-            let rms = vis.clone().powf_scalar(2.0).mean().sqrt().detach();
-            let eps: Vec<f32> = (0..n_img * g2 * dv).map(|_| rng.normal()).collect();
-            let eps = Tensor::<3>::from_data(TensorData::new(eps, [n_img, g2, dv]), device);
+        Some((std, eps)) if std > 0.0 => {
+            let rms = match dp {
+                None => vis.clone().powf_scalar(2.0).mean().sqrt().detach(),
+                Some((_, c)) => {
+                    let sum = model::splats::host(vis.clone().powf_scalar(2.0).sum().detach())[0];
+                    let mut s = [sum as f64, (n_img * g2 * dv) as f64];
+                    c.sum_f64("the vision tokens' RMS", &mut s)?;
+                    Tensor::<1>::from_data(TensorData::new(vec![(s[0] / s[1].max(1.0)).sqrt() as f32], [1]), device)
+                }
+            };
+            if eps.len() != n_img * g2 * dv {
+                return Err(Error::input(format!("{} noise draws for {} vision values", eps.len(), n_img * g2 * dv)));
+            }
+            let eps = Tensor::<3>::from_data(TensorData::new(eps.to_vec(), [n_img, g2, dv]), device);
             vis + eps * rms.unsqueeze_dim::<2>(0).unsqueeze_dim::<3>(0) * std
         }
         _ => vis,
@@ -387,18 +403,20 @@ pub fn forward(
         for (i, kind) in HopKind::ALL.into_iter().enumerate() {
             let probs = probe.probs.iter().find(|(l, _)| *l == kind.layer()).map(|(_, t)| t.clone());
             if let Some(probs) = probs {
-                hop_loss[i] = hop_cross_entropy(probs, p, kind, heads, device);
+                hop_loss[i] = weighted(hop_cross_entropy(probs, p, kind, heads, device), share.map(|w| w.hops[i]));
             }
         }
         let residual = |layer: usize| probe.residual(layer).filter(|_| !p.slots.is_empty());
         if let Some(r) = residual(SLOT_LAYER + 1) {
             let classes = SLOT_CLASSES.map(|c| (c, true)).to_vec();
-            slot_loss = slot_cross_entropy(&m.slots, r.reshape([p.b * p.t, dt]), &p.slots, 0, &classes, device);
+            let w = share.map(|w| &w.slots[..]);
+            slot_loss = slot_cross_entropy(&m.slots, r.reshape([p.b * p.t, dt]), &p.slots, 0, &classes, w, device);
         }
         if let Some(r) = residual(HopKind::Find.layer() + 1) {
             // an object the image does not show, or one the question does not single out, has no place
             let classes = vec![(place_classes(vlm), false); 2];
-            place_loss = slot_cross_entropy(&m.places, r.reshape([p.b * p.t, dt]), &p.slots, 4, &classes, device);
+            let (w, r) = (share.map(|w| &w.places[..]), r.reshape([p.b * p.t, dt]));
+            place_loss = slot_cross_entropy(&m.places, r, &p.slots, 4, &classes, w, device);
         }
     }
     let idx: Vec<i64> = p.targets.iter().map(|&(i, _)| i as i64).collect();
@@ -408,8 +426,8 @@ pub fn forward(
     let log_probs = activation::log_softmax(vlm.llm.logits(h), 1);
     let tgt: Vec<i64> = p.targets.iter().map(|&(_, t)| t).collect();
     let tgt = Tensor::<1, Int>::from_data(TensorData::new(tgt, [n]), device).reshape([n, 1]);
-    let answer_loss = log_probs.clone().gather(1, tgt).mean().neg();
-    Forward {
+    let answer_loss = weighted(log_probs.clone().gather(1, tgt).mean().neg(), share.map(|w| w.answer));
+    Ok(Forward {
         answer_loss,
         aux_loss,
         aux_logits: aux_logits_out,
@@ -418,6 +436,54 @@ pub fn forward(
         slot_loss,
         place_loss,
         log_probs,
+    })
+}
+
+/// `loss` times this rank's part `w` of the whole batch's mean (untouched on one process).
+fn weighted(loss: Tensor<1>, w: Option<f32>) -> Tensor<1> {
+    match w {
+        Some(w) if w != 1.0 => loss * w,
+        _ => loss,
+    }
+}
+
+/// The item counts behind each mean of [`forward`]'s losses in a packed batch: answer targets,
+/// vision tokens, the rows of each supervised hop kind, the slot head's rows, and the rows of each
+/// place task. Summed over ranks they give the whole batch's ([`Parts`]).
+pub fn counts(p: &Packed, heads: usize) -> [usize; 8] {
+    let hop_rows = |kind: HopKind| p.hops.iter().flatten().filter(|h| h.kind == kind && h.head < heads).count();
+    let places = |k: usize| p.slots.iter().filter(|s| s.1[4 + k] > 0).count();
+    let [h0, h1, h2] = HopKind::ALL.map(hop_rows);
+    [p.targets.len(), p.labels[0].len(), h0, h1, h2, p.slots.len(), places(0), places(1)]
+}
+
+/// A data-parallel rank's part of each mean in the whole batch's loss (see [`crate::dist`]):
+/// `size` times its share of the mean's items, divided among the tasks that have items anywhere;
+/// summed over ranks and averaged, the gradients are those of one process on the whole batch.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Parts {
+    pub answer: f32,
+    /// The auxiliary and label losses (per vision token).
+    pub tokens: f32,
+    pub hops: [f32; 3],
+    /// Per slot task, and per place task.
+    pub slots: [f32; 4],
+    pub places: [f32; 2],
+}
+
+impl Parts {
+    /// From this rank's [`counts`] and their sums over the `size` ranks.
+    pub fn new(local: &[usize; 8], global: &[usize; 8], size: usize) -> Self {
+        let w = |i: usize| size as f32 * dist::part(local[i], global[i]);
+        let slot_tasks = if global[5] > 0 { SLOT_CLASSES.len() } else { 0 };
+        let place_tasks = (6..8).filter(|&i| global[i] > 0).count();
+        Self {
+            answer: w(0),
+            tokens: w(1),
+            hops: [w(2), w(3), w(4)],
+            slots: [w(5) / slot_tasks.max(1) as f32; 4],
+            places: [w(6) / place_tasks.max(1) as f32, w(7) / place_tasks.max(1) as f32],
+        }
     }
 }
 
@@ -448,11 +514,22 @@ fn tower(
 
 /// The tower's pre-training step (no LLM): the auxiliary loss on every image of `samples` and
 /// how often the head names each object token's colour, shape and size.
-pub fn tower_loss(m: &Trainable, samples: &[(Sample, Vec<Qa>)], device: &Device) -> (Tensor<1>, [f32; 3]) {
+/// `part`: a data-parallel rank's part of the whole batch's mean (`None` on one process).
+pub fn tower_loss(
+    m: &Trainable,
+    samples: &[(Sample, Vec<Qa>)],
+    part: Option<f32>,
+    device: &Device,
+) -> (Tensor<1>, [(usize, usize); 3]) {
     let (pixels, labels, _) = tower_inputs(samples);
     let n_img = samples.iter().map(|(s, _)| s.images.len()).sum();
     let (_, logits, loss) = tower(m, &pixels, &labels, n_img, device);
-    (loss, label_accuracy(&labels, logits.detach()))
+    (weighted(loss, part), label_accuracy(&labels, logits.detach()))
+}
+
+/// The vision tokens of `samples` (what the tower's loss is a mean over).
+pub fn tower_tokens(vlm: &LlavaOnevision, samples: &[(Sample, Vec<Qa>)]) -> usize {
+    samples.iter().map(|(s, _)| s.images.len()).sum::<usize>() * vlm.cfg.vision.tokens()
 }
 
 /// Mean cross-entropy of `logits` `[n, c]` against the classes `labels` `[n]`.
@@ -497,13 +574,15 @@ fn hop_cross_entropy(probs: Tensor<2>, p: &Packed, kind: HopKind, heads: usize, 
 /// A slot-style head's cross-entropy at the first answer positions (`residual` `[B * T, D]`, the
 /// stream the head reads): `classes[k]` is the class count of task `k`, whose labels are
 /// `slots[..].1[first + k]`, and whether its class 0 ("none") is trained too (else those rows
-/// are left out of that task). The mean over the tasks that have rows.
+/// are left out of that task). The mean over the tasks that have rows; with `weights` (a
+/// data-parallel rank's, per task) their weighted sum instead.
 fn slot_cross_entropy(
     head: &Linear,
     residual: Tensor<2>,
     slots: &[(usize, [i64; 6])],
     first: usize,
     classes: &[(usize, bool)],
+    weights: Option<&[f32]>,
     device: &Device,
 ) -> Tensor<1> {
     let n = slots.len();
@@ -521,11 +600,13 @@ fn slot_cross_entropy(
             let lab = Tensor::<1, Int>::from_data(TensorData::new(lab, [rows.len()]), device);
             let idx: Vec<i64> = rows.iter().map(|&i| i as i64).collect();
             let idx = Tensor::<1, Int>::from_data(TensorData::new(idx, [rows.len()]), device);
-            loss = loss + cross_entropy(logits.clone().narrow(1, off, c).select(0, idx), lab);
+            let ce = cross_entropy(logits.clone().narrow(1, off, c).select(0, idx), lab);
+            loss = loss + weights.map_or(ce.clone(), |w| ce * w[k]);
         }
         off += c;
     }
-    loss / tasks.max(1) as f32
+    // a data-parallel rank's weights already divide by the tasks that have rows on any rank
+    if weights.is_some() { loss } else { loss / tasks.max(1) as f32 }
 }
 
 /// Class counts of the slot head: colour (none + 8) and shape (none + 6) of two objects.
@@ -537,21 +618,22 @@ pub fn place_classes(vlm: &LlavaOnevision) -> usize {
 }
 
 /// How often the auxiliary head names the colour, shape and size of the tokens that show an
-/// object (`aux_logits` from [`Forward`]): what the tower has learned to see.
-pub fn tower_accuracy(p: &Packed, aux_logits: Tensor<2>) -> [f32; 3] {
+/// object (`aux_logits` from [`Forward`]): what the tower has learned to see, as (right, object
+/// tokens) per task.
+pub fn tower_accuracy(p: &Packed, aux_logits: Tensor<2>) -> [(usize, usize); 3] {
     label_accuracy(&p.labels, aux_logits)
 }
 
-fn label_accuracy(labels: &[Vec<i64>; 3], aux_logits: Tensor<2>) -> [f32; 3] {
+fn label_accuracy(labels: &[Vec<i64>; 3], aux_logits: Tensor<2>) -> [(usize, usize); 3] {
     let [n, _] = aux_logits.dims();
-    let mut out = [0f32; 3];
+    let mut out = [(0, 0); 3];
     let objects: Vec<usize> = (0..n).filter(|&i| labels[0][i] > 0).collect();
     let mut off = 0;
     for (k, c) in AUX_CLASSES.into_iter().enumerate() {
         let best = aux_logits.clone().narrow(1, off, c).argmax(1).into_data().convert::<i64>().to_vec::<i64>();
         let best = best.expect("i64 argmax");
         let right = objects.iter().filter(|&&i| best[i] == labels[k][i]).count();
-        out[k] = right as f32 / objects.len().max(1) as f32;
+        out[k] = (right, objects.len());
         off += c;
     }
     out

@@ -15,6 +15,7 @@ pub mod batch;
 pub mod data;
 pub mod hops;
 
+use crate::dist::{self, Collective, Solo};
 use crate::schedule::warmup_cosine;
 use batch::{AUX_CLASSES, LabelTokens, Packed, Trainable, exact, forward, pack};
 use burn::module::Module;
@@ -495,7 +496,7 @@ pub fn evaluate_with(
         for chunk in of.chunks(8) {
             let mut p = pack(&m.vlm, chunk)?;
             p.label_tokens.iter_mut().for_each(|f| *f = labels.is_some());
-            let f = forward(m, &p, labels, None, false, device);
+            let f = forward(m, &p, labels, None, false, None, device)?;
             for (k, right) in exact(&p, f.log_probs) {
                 acc.add(k, right);
             }
@@ -548,6 +549,9 @@ pub struct LogLine {
     pub eval: Option<Accuracy>,
     /// Held-out accuracy reading label tokens, when this step evaluated.
     pub eval_labels: Option<Accuracy>,
+    /// Seconds of `seconds` spent drawing samples (every rank draws the whole step).
+    #[serde(default)]
+    pub drawing_seconds: f64,
 }
 
 /// Recent training accuracy per question kind (exponential moving average of exact match over
@@ -634,6 +638,9 @@ pub struct Trainer {
     device: Device,
     pub labels: LabelTokens,
     pub running: RunningAccuracy,
+    /// Time spent drawing samples (rendering the scenes, picking questions, the noise): every rank
+    /// of a data-parallel run draws the whole step.
+    pub drawing: std::time::Duration,
 }
 
 impl Trainer {
@@ -671,6 +678,7 @@ impl Trainer {
             labels: LabelTokens::new(vlm_dim, cfg.seed),
             device: ad,
             running: RunningAccuracy::default(),
+            drawing: std::time::Duration::ZERO,
         })
     }
 
@@ -679,22 +687,46 @@ impl Trainer {
         &self.spec
     }
 
-    /// One optimisation step on fresh samples; the losses before the update.
-    pub fn step(&mut self) -> Result<StepLosses> {
+    /// One optimisation step on fresh samples; the losses before the update. On a rank of a
+    /// data-parallel run (`c`) every rank draws the whole step (samples, label-token flags, noise)
+    /// from the same generator and runs its share ([`crate::dist`]); the losses, the exact-match
+    /// results and the gradients are the whole batch's on every rank.
+    pub fn step(&mut self, c: &dyn Collective) -> Result<StepLosses> {
         if self.step < self.cfg.tower_steps {
-            return self.tower_step();
+            return self.tower_step(c);
         }
+        let t0 = std::time::Instant::now();
         let samples = step_samples(&self.cfg, &self.spec, &self.running, &mut self.rng);
-        let mut p: Packed = pack(&self.model.vlm, &samples)?;
-        let prob = self.cfg.label_probability(self.step);
-        for f in p.label_tokens.iter_mut() {
-            *f = self.rng.f() < prob;
+        let mine = dist::share(samples.len(), c.rank(), c.size());
+        if mine.is_empty() {
+            return Err(too_few_samples(samples.len(), c.size()));
         }
+        let mut p: Packed = pack(&self.model.vlm, &samples[mine.clone()])?;
+        let prob = self.cfg.label_probability(self.step);
+        let per = p.images;
+        let flags: Vec<bool> = (0..samples.len() * per).map(|_| self.rng.f() < prob).collect();
+        p.label_tokens.copy_from_slice(&flags[mine.start * per..mine.end * per]);
         let labels = (self.cfg.label_weight > 0.0 || prob > 0.0).then_some(&self.labels);
         let cfg = &self.cfg;
         let supervise = cfg.supervised();
-        let noise = Some((cfg.feature_noise, &mut self.rng));
-        let f = forward(&self.model, &p, labels, noise, supervise, &self.device);
+        let vision = &self.model.vlm.cfg.vision;
+        let values = per * vision.tokens() * vision.hidden_size;
+        let eps: Vec<f32> = if cfg.feature_noise > 0.0 {
+            (0..samples.len() * values).map(|_| self.rng.normal()).collect()
+        } else {
+            vec![]
+        };
+        let noise = Some((cfg.feature_noise, eps.get(mine.start * values..mine.end * values).unwrap_or(&[])));
+        self.drawing += t0.elapsed();
+        let parts = match c.size() {
+            1 => None,
+            size => {
+                let local = batch::counts(&p, self.model.vlm.cfg.text.num_heads);
+                let global = dist::global_counts(c, "the step's item counts", &local)?;
+                Some(batch::Parts::new(&local, &global.try_into().expect("8 counts"), size))
+            }
+        };
+        let f = forward(&self.model, &p, labels, noise, supervise, parts.as_ref().map(|w| (w, c)), &self.device)?;
         let mut loss = f.answer_loss.clone()
             + f.aux_loss.clone() * cfg.aux_weight
             + f.label_loss * cfg.label_weight
@@ -704,28 +736,81 @@ impl Trainer {
             loss = loss + h.clone() * w;
         }
         let one = |t: &burn::tensor::Tensor<1>| model::splats::host(t.clone())[0];
-        let losses = StepLosses {
-            answer: one(&f.answer_loss),
-            aux: one(&f.aux_loss),
-            hops: [one(&f.hop_loss[0]), one(&f.hop_loss[1]), one(&f.hop_loss[2])],
-            slots: one(&f.slot_loss),
-            places: one(&f.place_loss),
-            tower: batch::tower_accuracy(&p, f.aux_logits.clone()),
+        let mut values = [
+            one(&f.answer_loss),
+            one(&f.aux_loss),
+            one(&f.hop_loss[0]),
+            one(&f.hop_loss[1]),
+            one(&f.hop_loss[2]),
+            one(&f.slot_loss),
+            one(&f.place_loss),
+        ];
+        let tower = batch::tower_accuracy(&p, f.aux_logits.clone());
+        let results = exact(&p, f.log_probs.clone());
+        let (values, tower, results) = if c.size() == 1 {
+            (values, tower.map(|(r, n)| r as f32 / n.max(1) as f32), results)
+        } else {
+            let first: usize = samples[..mine.start].iter().map(|s| s.1.len()).sum();
+            let total: usize = samples.iter().map(|s| s.1.len()).sum();
+            (sum_losses(c, &mut values)?, sum_accuracy(c, tower)?, gather_results(c, &samples, first, total, &results)?)
         };
+        let [answer, aux, h0, h1, h2, slots, places] = values;
+        let losses = StepLosses { answer, aux, hops: [h0, h1, h2], slots, places, tower };
         if !(losses.answer.is_finite() && losses.aux.is_finite() && losses.hops.iter().all(|h| h.is_finite())) {
             return Err(Error::Diverged { iter: self.step, loss: losses.answer + losses.aux });
         }
-        for (kind, right) in exact(&p, f.log_probs.clone()) {
+        for (kind, right) in results {
             self.running.add(kind, right);
         }
-        self.update(loss);
+        self.update(loss, c)?;
         Ok(losses)
     }
 }
 
+/// A step's samples are fewer than the ranks.
+fn too_few_samples(samples: usize, ranks: usize) -> Error {
+    Error::input(format!(
+        "a step drew {samples} samples for {ranks} ranks: every rank needs at least one (raise images_per_step \
+         to at least 4 x the ranks, and tower_images to at least the ranks, or run fewer ranks)"
+    ))
+}
+
+/// The losses of every rank's part summed, divided by the ranks: the whole batch's.
+fn sum_losses(c: &dyn Collective, values: &mut [f32; 7]) -> Result<[f32; 7]> {
+    let mut v: Vec<f64> = values.iter().map(|&x| x as f64).collect();
+    c.sum_f64("the step's losses", &mut v)?;
+    Ok(std::array::from_fn(|i| (v[i] / c.size() as f64) as f32))
+}
+
+/// The tower's accuracy per task over every rank's object tokens.
+fn sum_accuracy(c: &dyn Collective, tower: [(usize, usize); 3]) -> Result<[f32; 3]> {
+    let counts: Vec<usize> = tower.iter().flat_map(|&(r, n)| [r, n]).collect();
+    let g = dist::global_counts(c, "the tower's accuracy", &counts)?;
+    Ok(std::array::from_fn(|k| g[2 * k] as f32 / g[2 * k + 1].max(1) as f32))
+}
+
+/// Every rank's exact-match results in the whole step's question order (this rank's start at
+/// question `first` of `total`).
+fn gather_results(
+    c: &dyn Collective,
+    samples: &[(Sample, Vec<Qa>)],
+    first: usize,
+    total: usize,
+    mine: &[(Kind, bool)],
+) -> Result<Vec<(Kind, bool)>> {
+    let mut right = vec![0f64; total];
+    for (i, (_, r)) in mine.iter().enumerate() {
+        right[first + i] = *r as u8 as f64;
+    }
+    c.sum_f64("the step's exact-match results", &mut right)?;
+    let kinds = samples.iter().flat_map(|s| s.1.iter().map(|q| q.kind));
+    Ok(kinds.zip(right).map(|(k, r)| (k, r > 0.5)).collect())
+}
+
 impl Trainer {
     /// A pre-training step of the tower alone (object crops and views, half each on average).
-    fn tower_step(&mut self) -> Result<StepLosses> {
+    fn tower_step(&mut self, c: &dyn Collective) -> Result<StepLosses> {
+        let t0 = std::time::Instant::now();
         let (mut samples, mut images) = (Vec::new(), 0);
         while images < self.cfg.tower_images {
             let kind = if self.rng.f() < 0.5 { SampleKind::Object } else { SampleKind::View };
@@ -735,50 +820,92 @@ impl Trainer {
                 samples.push((s, Vec::new()));
             }
         }
-        let (loss, tower) = batch::tower_loss(&self.model, &samples, &self.device);
-        let aux = model::splats::host(loss.clone())[0];
+        self.drawing += t0.elapsed();
+        let mine = dist::share(samples.len(), c.rank(), c.size());
+        if mine.is_empty() {
+            return Err(too_few_samples(samples.len(), c.size()));
+        }
+        let part = match c.size() {
+            1 => None,
+            size => {
+                let all = batch::tower_tokens(&self.model.vlm, &samples);
+                let local = batch::tower_tokens(&self.model.vlm, &samples[mine.clone()]);
+                Some(size as f32 * dist::part(local, all))
+            }
+        };
+        let (loss, tower) = batch::tower_loss(&self.model, &samples[mine], part, &self.device);
+        let mut aux = model::splats::host(loss.clone())[0];
+        let tower = if c.size() == 1 {
+            tower.map(|(r, n)| r as f32 / n.max(1) as f32)
+        } else {
+            let mut v = [aux as f64];
+            c.sum_f64("the step's losses", &mut v)?;
+            aux = (v[0] / c.size() as f64) as f32;
+            sum_accuracy(c, tower)?
+        };
         if !aux.is_finite() {
             return Err(Error::Diverged { iter: self.step, loss: aux });
         }
-        self.update(loss);
+        self.update(loss, c)?;
         Ok(StepLosses { aux, tower, ..Default::default() })
     }
 
-    /// Backward pass of `loss`, one AdamW update at this step's learning rate (the vision tower's
-    /// scaled by `tower_lr_scale` after its own phase), next step.
-    fn update(&mut self, loss: burn::tensor::Tensor<1>) {
+    /// Backward pass of `loss`, the gradients averaged over the ranks, one AdamW update at this
+    /// step's learning rate (the vision tower's scaled by `tower_lr_scale` after its own phase),
+    /// next step.
+    fn update(&mut self, loss: burn::tensor::Tensor<1>, c: &dyn Collective) -> Result<()> {
         let mut grads = loss.backward();
         let lr = self.cfg.lr_at(self.step);
         let scale = self.cfg.tower_lr_scale;
-        if self.step >= self.cfg.tower_steps && scale != 1.0 {
-            // AdamW normalises the gradient away, so the tower gets its own update at its own rate
-            let tower = GradientsParams::from_module(&mut grads, &self.model.vlm.vision);
-            self.model = self.optim.step(lr * scale, self.model.clone(), tower);
+        let split = self.step >= self.cfg.tower_steps && scale != 1.0;
+        if c.size() == 1 {
+            if split {
+                // AdamW normalises the gradient away, so the tower gets its own update at its own rate
+                let tower = GradientsParams::from_module(&mut grads, &self.model.vlm.vision);
+                self.model = self.optim.step(lr * scale, self.model.clone(), tower);
+            }
+            let rest = GradientsParams::from_grads(grads, &self.model);
+            self.model = self.optim.step(lr, self.model.clone(), rest);
+        } else {
+            let mut all = dist::reduce_grads(c, &self.model, GradientsParams::from_grads(grads, &self.model))?;
+            if split {
+                let tower = dist::take_grads(&mut all, &self.model.vlm.vision);
+                self.model = self.optim.step(lr * scale, self.model.clone(), tower);
+            }
+            self.model = self.optim.step(lr, self.model.clone(), all);
         }
-        let rest = GradientsParams::from_grads(grads, &self.model);
-        self.model = self.optim.step(lr, self.model.clone(), rest);
         self.step += 1;
+        Ok(())
     }
 }
 
 /// Trains a tabletop VLM from `cfg` on `device` (autodiff is added here) and writes it to `out`
 /// (with `train_config.json` and `training_log.json`); `progress` sees every step.
 pub fn train(cfg: &VlmTrainConfig, out: &Path, device: &Device, progress: impl FnMut(&LogLine)) -> Result<Accuracy> {
-    train_from(cfg, out, None, device, progress)
+    train_from(cfg, out, None, device, &Solo, progress)
 }
+
+/// Ranks compare their weights' checksums every this many steps (and at the end of each stage).
+pub const CHECK_EVERY: usize = 100;
 
 /// [`train`]; a configuration with a `base` stage trains it first into `out/base` (`progress`
 /// sees its steps too), and so on down the chain, except that the stage whose configuration is
 /// exactly `base_model`'s `train_config.json` is read from that model directory instead (it and
 /// the stages before it are not trained again).
+///
+/// On the ranks of a data-parallel run (`c`), every rank runs this with the same arguments: each
+/// takes its share of every step, rank 0 alone evaluates, writes and reports progress, and the
+/// others read a base stage from the `out` rank 0 wrote (a folder every rank sees). The held-out
+/// accuracy it returns is rank 0's (the default on the others).
 pub fn train_from(
     cfg: &VlmTrainConfig,
     out: &Path,
     base_model: Option<&Path>,
     device: &Device,
+    c: &dyn Collective,
     mut progress: impl FnMut(&LogLine),
 ) -> Result<Accuracy> {
-    train_stages(cfg, out, base_model, device, &mut progress)
+    train_stages(cfg, out, base_model, device, c, &mut progress)
 }
 
 fn train_stages(
@@ -786,6 +913,7 @@ fn train_stages(
     out: &Path,
     base_model: Option<&Path>,
     device: &Device,
+    c: &dyn Collective,
     progress: &mut dyn FnMut(&LogLine),
 ) -> Result<Accuracy> {
     cfg.validate()?;
@@ -806,7 +934,7 @@ fn train_stages(
                 }
                 _ => {
                     let dir = out.join("base");
-                    train_stages(base, &dir, base_model, command_device, progress)?;
+                    train_stages(base, &dir, base_model, command_device, c, progress)?;
                     dir
                 }
             };
@@ -815,16 +943,28 @@ fn train_stages(
             Trainer::starting_from(cfg, vlm, &ad)?
         }
     };
-    io::create_dir(out)?;
-    io::write_json(&out.join("train_config.json"), cfg)?;
-    let held = eval_samples(t.spec(), EVAL_SEEDS..EVAL_SEEDS + cfg.eval_seeds, 2, 2);
+    if c.size() > 1 {
+        t.model = dist::broadcast_params(c, t.model)?;
+    }
+    let root = c.is_root();
+    if root {
+        io::create_dir(out)?;
+        io::write_json(&out.join("train_config.json"), cfg)?;
+    }
+    let held = if root { eval_samples(t.spec(), EVAL_SEEDS..EVAL_SEEDS + cfg.eval_seeds, 2, 2) } else { Vec::new() };
     let mut log = Vec::new();
     let start = std::time::Instant::now();
     let mut last = Accuracy::default();
     while t.step < cfg.steps {
         let lr = cfg.lr_at(t.step);
-        let losses = t.step()?;
+        let losses = t.step(c)?;
         let step = t.step;
+        if step.is_multiple_of(CHECK_EVERY) {
+            dist::check_in_step(c, &t.model, step)?;
+        }
+        if !root {
+            continue;
+        }
         let (eval, eval_labels) = if cfg.eval_every > 0 && step.is_multiple_of(cfg.eval_every) || step == cfg.steps {
             let valid = t.model.valid();
             let a = evaluate(&valid, &held, device)?;
@@ -848,6 +988,7 @@ fn train_stages(
             tower_accuracy: losses.tower,
             eval,
             eval_labels,
+            drawing_seconds: t.drawing.as_secs_f64(),
         };
         progress(&line);
         log.push(line);
@@ -855,7 +996,11 @@ fn train_stages(
             io::write_json(&out.join("training_log.json"), &log)?;
         }
     }
-    save_model(&t.model.valid().vlm, out)?;
-    io::write_json(&out.join("training_log.json"), &log)?;
+    if root {
+        save_model(&t.model.valid().vlm, out)?;
+        io::write_json(&out.join("training_log.json"), &log)?;
+    }
+    // every rank waits here for rank 0's files (the next stage reads them) and checks the weights
+    dist::check_in_step(c, &t.model, t.step)?;
     Ok(last)
 }

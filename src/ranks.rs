@@ -106,6 +106,7 @@ fn peak_rss_gib() -> Option<f64> {
 mod mpi_ranks {
     use model::error::{Error, Result};
     use mpi::collective::SystemOperation;
+    use mpi::datatype::Equivalence;
     use mpi::request::{Request, Scope};
     use mpi::traits::*;
     use std::cell::RefCell;
@@ -164,8 +165,19 @@ mod mpi_ranks {
             self.world.abort(1)
         }
 
-        /// Completes `req`, polling (a spin for the first milliseconds, then short sleeps so a
-        /// waiting rank leaves its core to the others); past the timeout the job is stopped.
+        /// `buf` reduced element-wise over the ranks by `op`, in place.
+        fn all_reduce<T: Equivalence + Clone>(&self, what: &str, buf: &mut [T], op: SystemOperation) {
+            let send = buf.to_vec();
+            mpi::request::scope(|scope| {
+                let req = self.world.immediate_all_reduce_into(scope, &send[..], buf, op);
+                self.finish(what, req)
+            });
+        }
+
+        /// Completes `req`, polling: OpenMPI progresses a non-blocking collective only inside
+        /// `MPI_Test`, so the first second spins on it (a step's all-reduce, waits included,
+        /// finishes within it), then short sleeps leave the core to others (rank 0 evaluating or
+        /// writing); past the timeout the job is stopped.
         fn finish<'a, D: ?Sized, S: Scope<'a>>(&self, what: &str, mut req: Request<'a, D, S>) {
             let t0 = Instant::now();
             loop {
@@ -181,7 +193,7 @@ mod mpi_ranks {
                         waited.as_secs_f64()
                     ));
                 }
-                if waited < Duration::from_millis(1000) {
+                if waited < Duration::from_secs(1) {
                     std::hint::spin_loop();
                 } else {
                     std::thread::sleep(Duration::from_micros(200));
@@ -213,19 +225,11 @@ mod mpi_ranks {
             self.size
         }
         fn sum_f32(&self, what: &str, buf: &mut [f32]) -> Result<()> {
-            let send = buf.to_vec();
-            mpi::request::scope(|scope| {
-                let req = self.world.immediate_all_reduce_into(scope, &send[..], buf, SystemOperation::sum());
-                self.finish(what, req)
-            });
+            self.all_reduce(what, buf, SystemOperation::sum());
             Ok(())
         }
         fn sum_f64(&self, what: &str, buf: &mut [f64]) -> Result<()> {
-            let send = buf.to_vec();
-            mpi::request::scope(|scope| {
-                let req = self.world.immediate_all_reduce_into(scope, &send[..], buf, SystemOperation::sum());
-                self.finish(what, req)
-            });
+            self.all_reduce(what, buf, SystemOperation::sum());
             Ok(())
         }
         fn broadcast_f32(&self, what: &str, buf: &mut [f32]) -> Result<()> {
@@ -250,12 +254,8 @@ mod mpi_ranks {
             Ok(())
         }
         fn min_max(&self, what: &str, value: u64) -> Result<(u64, u64)> {
-            let send = [value, u64::MAX - value];
-            let mut got = [0u64; 2];
-            mpi::request::scope(|scope| {
-                let req = self.world.immediate_all_reduce_into(scope, &send[..], &mut got[..], SystemOperation::max());
-                self.finish(what, req)
-            });
+            let mut got = [value, u64::MAX - value];
+            self.all_reduce(what, &mut got, SystemOperation::max());
             Ok((u64::MAX - got[1], got[0]))
         }
     }

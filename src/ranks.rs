@@ -5,13 +5,15 @@
 
 use train::dist::{Collective, Solo};
 
-/// The rank count the launcher gave this process, from the variables OpenMPI, MPICH/Hydra and
-/// PMIx set (`None` when not launched by one).
+/// The rank count the launcher gave this process, from the variables OpenMPI, MPICH/Hydra, PMIx
+/// and Slurm set (`None` when not launched by one).
 fn launched_ranks() -> Option<usize> {
-    ["OMPI_COMM_WORLD_SIZE", "PMI_SIZE", "PMIX_SIZE"]
-        .iter()
-        .find_map(|v| std::env::var(v).ok())
-        .and_then(|s| s.trim().parse().ok())
+    let var = |v: &str| std::env::var(v).ok().and_then(|s| s.trim().parse::<usize>().ok());
+    let under_pmi = std::env::var_os("PMIX_RANK").is_some() || std::env::var_os("PMI_RANK").is_some();
+    ["OMPI_COMM_WORLD_SIZE", "PMI_SIZE", "PMIX_SIZE"].iter().find_map(|v| var(v)).or_else(|| {
+        // Slurm's srun --mpi=pmix sets the rank, and the task count in its own variables
+        under_pmi.then(|| var("SLURM_STEP_NUM_TASKS").or_else(|| var("SLURM_NTASKS"))).flatten()
+    })
 }
 
 /// The ranks this process belongs to.

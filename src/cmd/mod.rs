@@ -1,6 +1,7 @@
 //! The subcommands, one file each, in the order of the pipeline, and the arguments they share.
 
 mod ask;
+mod batch;
 mod chat;
 mod demo;
 mod export_encoder;
@@ -77,6 +78,10 @@ enum Command {
     /// exact-match/keyword scorer; plus an OpenAI-compatible grader when CHATSPLAT_GRADER_URL is set).
     #[command(allow_negative_numbers = true)]
     Vqa(vqa::Args),
+    /// Many scenes as cluster jobs: the pipeline (geometry, teacher, language, VQA) for each scene
+    /// of a manifest in this worker's shard, resuming what an earlier attempt left; a summary per
+    /// scene and a merged report.
+    Batch(batch::Args),
 }
 
 /// A config's range check, naming the config file when the settings came from one.
@@ -104,6 +109,7 @@ impl Cli {
             Command::Chat(_) => ("chat", false),
             Command::Serve(_) => ("serve", false),
             Command::Vqa(_) => ("vqa", false),
+            Command::Batch(_) => ("batch", false),
         }
     }
 }
@@ -124,6 +130,7 @@ pub fn run(cli: Cli, ranks: &crate::ranks::Ranks) -> anyhow::Result<()> {
         Command::Chat(a) => chat::run(a),
         Command::Serve(a) => serve::run(a),
         Command::Vqa(a) => vqa::run(a),
+        Command::Batch(a) => batch::run(a),
     }
 }
 

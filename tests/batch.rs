@@ -237,3 +237,51 @@ fn the_deploy_manifests_parse_and_call_commands_the_binary_has() {
         assert!(text.contains("#SBATCH"), "{script}");
     }
 }
+
+#[test]
+fn extract_shards_write_what_one_extract_writes_and_the_last_one_writes_the_index() {
+    let dir = tmp("extract");
+    std::fs::create_dir_all(&*dir).unwrap();
+    scenes(&dir, &[30_205]);
+    let data = dir.join("d30205");
+    let extract = |out: &Path, shard: Option<&str>| {
+        let mut c = Command::new(BIN);
+        c.args(["extract", "--data"]).arg(&data).arg("--out").arg(out);
+        if let Some(s) = shard {
+            c.args(["--shard", s]);
+        }
+        let o = c.output().unwrap();
+        assert!(o.status.success(), "{}", show(&o));
+        String::from_utf8_lossy(&o.stdout).into_owned()
+    };
+    let (sharded, whole) = (dir.join("sharded"), dir.join("whole"));
+    let said = extract(&sharded, Some("1/2"));
+    assert!(said.contains("3 of 6 views done: the index waits for the other shards"), "{said}");
+    assert!(!sharded.join("teacher.json").exists());
+    let said = extract(&sharded, Some("0/2"));
+    assert!(said.contains("teacher.json"), "{said}");
+    extract(&whole, None);
+    let files = |d: &Path| {
+        let mut v: Vec<String> =
+            std::fs::read_dir(d).unwrap().map(|e| e.unwrap().file_name().to_string_lossy().into_owned()).collect();
+        v.sort();
+        v
+    };
+    assert_eq!(files(&sharded), files(&whole));
+    assert_eq!(files(&whole).len(), 7, "{:?}", files(&whole));
+    // the same header (its metadata map's order aside) and the same token bytes
+    let split = |p: &Path| -> (serde_json::Value, Vec<u8>) {
+        let b = std::fs::read(p).unwrap();
+        let n = u64::from_le_bytes(b[..8].try_into().unwrap()) as usize;
+        (serde_json::from_slice(&b[8..8 + n]).unwrap(), b[8 + n..].to_vec())
+    };
+    for f in files(&whole).iter().filter(|f| f.ends_with(".safetensors")) {
+        let ((ha, da), (hb, db)) = (split(&sharded.join(f)), split(&whole.join(f)));
+        assert_eq!(ha, hb, "{f}");
+        assert!(da == db, "{f}: the tokens differ");
+    }
+    let index = |d: &Path| -> serde_json::Value {
+        serde_json::from_slice(&std::fs::read(d.join("teacher.json")).unwrap()).unwrap()
+    };
+    assert_eq!(index(&sharded)["views"], index(&whole)["views"]);
+}

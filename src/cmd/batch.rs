@@ -168,8 +168,7 @@ fn shard(arg: Option<&str>) -> anyhow::Result<(usize, usize)> {
         s.trim().parse().with_context(|| format!("{what}: `{s}` is not a whole number"))
     };
     let (i, n, from) = if let Some(s) = arg {
-        let (i, n) = s.split_once('/').with_context(|| format!("--shard {s}: expected I/N, e.g. 0/4"))?;
-        (num("--shard", i)?, num("--shard", n)?, "--shard")
+        return super::parse_shard(s);
     } else if let Some(i) = env("JOB_COMPLETION_INDEX") {
         let n = env("CHATSPLAT_SHARD_COUNT")
             .context("JOB_COMPLETION_INDEX is set but CHATSPLAT_SHARD_COUNT (the Job's completions) is not")?;
@@ -252,6 +251,7 @@ fn run_scene(plan: &Plan, s: &Scene, d: &SceneDirs, shard: &str) -> anyhow::Resu
             masks: None,
             downscale: 1,
             margin: 0.1, // the teacher crop margin the demo and extract default to
+            shard: None,
             backend: plan.backend,
         })?;
         time("teacher", t0);

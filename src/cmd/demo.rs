@@ -71,6 +71,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         downscale: 1,
         masks: None,
         margin: 0.1,
+        shard: None,
         backend: a.backend,
     })?;
 

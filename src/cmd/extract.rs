@@ -31,6 +31,10 @@ pub struct Args {
     pub margin: f32,
     #[arg(long, default_value_t = Backend::Ndarray)]
     pub backend: Backend,
+    /// Only this worker's views of a large capture, `I/N`: those whose index is I modulo N
+    /// (workers on one shared OUT); the last to finish writes the index.
+    #[arg(long)]
+    pub shard: Option<String>,
 }
 
 pub fn run(a: Args) -> anyhow::Result<()> {
@@ -41,9 +45,11 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     let device = a.backend.device();
     let vlm_dir = super::vlm_dir(a.vlm.as_ref())?;
     let m = model::catch_backend("loading the model", || model::vlm::LlavaOnevision::load(&vlm_dir, &device))??;
+    let shard = a.shard.as_deref().map(super::parse_shard).transpose()?.unwrap_or((0, 1));
     let opts = ExtractOptions {
         margin: a.margin,
         load: LoadOptions { downscale: a.downscale, masks: a.masks.clone(), ..Default::default() },
+        shard,
         ..Default::default()
     };
     let bar = Progress::new("extract", "views");
@@ -70,13 +76,22 @@ pub fn run(a: Args) -> anyhow::Result<()> {
             |done, total| bar.update(done, total),
         )
     })??;
+    let to = if summary.indexed {
+        out.index().display().to_string()
+    } else {
+        format!(
+            "{} ({} of {} views done: the index waits for the other shards)",
+            out.dir.display(),
+            summary.views_done,
+            summary.views
+        )
+    };
     println!(
-        "teacher tokens: {} view files written, {} already complete (skipped), {} images encoded in {:.1} s -> {}",
+        "teacher tokens: {} view files written, {} already complete (skipped), {} images encoded in {:.1} s -> {to}",
         summary.written,
         summary.skipped,
         summary.images,
         t0.elapsed().as_secs_f64(),
-        out.index().display()
     );
     Ok(())
 }

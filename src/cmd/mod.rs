@@ -84,6 +84,16 @@ enum Command {
     Batch(batch::Args),
 }
 
+/// `I/N` of a `--shard` option: worker I (from 0) of N.
+pub fn parse_shard(s: &str) -> anyhow::Result<(usize, usize)> {
+    let num = |x: &str| x.trim().parse::<usize>().ok();
+    match s.split_once('/').and_then(|(i, n)| Some((num(i)?, num(n)?))) {
+        Some((i, n)) if i < n => Ok((i, n)),
+        Some((i, n)) => anyhow::bail!("--shard {i}/{n}: the shard index must be below the shard count (0 <= I < N)"),
+        None => anyhow::bail!("--shard {s}: expected I/N, e.g. 0/4"),
+    }
+}
+
 /// A config's range check, naming the config file when the settings came from one.
 pub fn check_config(path: Option<&std::path::Path>, r: model::error::Result<()>) -> anyhow::Result<()> {
     match (r, path) {

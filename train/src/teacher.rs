@@ -31,11 +31,14 @@ pub struct ExtractOptions {
     pub ignore_ids: Vec<u8>,
     /// Dataset loader options (downscale etc.).
     pub load: LoadOptions,
+    /// This worker's shard `(I, N)` of the views: those whose index is I modulo N (`(0, 1)`:
+    /// every view). The index is written by the worker that finds every view's file complete.
+    pub shard: (usize, usize),
 }
 
 impl Default for ExtractOptions {
     fn default() -> Self {
-        Self { margin: 0.1, min_object_pixels: 64, ignore_ids: vec![0], load: LoadOptions::default() }
+        Self { margin: 0.1, min_object_pixels: 64, ignore_ids: vec![0], load: LoadOptions::default(), shard: (0, 1) }
     }
 }
 
@@ -103,6 +106,12 @@ pub struct ExtractSummary {
     pub written: usize,
     pub skipped: usize,
     pub images: usize,
+    /// Whether the index was written (every view's file is complete); a shard that finishes
+    /// before the others leaves it to them.
+    pub indexed: bool,
+    /// Views whose files are complete, of all.
+    pub views_done: usize,
+    pub views: usize,
 }
 
 /// Runs the vision tower over every training view of the dataset in `data` (any supported format)
@@ -146,7 +155,14 @@ pub fn extract(
     }
     let (mut written, mut skipped, mut images) = (0, 0, 0);
     let total = plan.views.len();
+    let (shard, shards) = opts.shard;
+    if shards == 0 || shard >= shards {
+        return Err(Error::input(format!("extract shard {shard}/{shards}: the index must be below the count")));
+    }
     for (vp, view) in plan.views.iter().zip(&ds.train) {
+        if vp.index % shards != shard {
+            continue;
+        }
         let path = out.view_file(vp.index);
         if !stale && complete(&path, vp, grid, dim, opts.margin) {
             skipped += 1;
@@ -208,8 +224,18 @@ pub fn extract(
             })
             .collect(),
     };
-    io::write_json(&out.index(), &index)?;
-    Ok(ExtractSummary { written, skipped, images })
+    // the index only over a complete set: with shards, the last to finish writes it (through a
+    // temporary file of its own: two may finish at once)
+    let done = plan.views.iter().filter(|vp| complete(&out.view_file(vp.index), vp, grid, dim, opts.margin)).count();
+    let indexed = done == total;
+    if indexed {
+        let text = serde_json::to_string_pretty(&index)
+            .map_err(|e| Error::invalid(out.index(), format!("cannot encode JSON: {e}")))?;
+        let tmp = out.dir.join(format!("teacher.json.{}.tmp", std::process::id()));
+        std::fs::write(&tmp, text).at(&tmp, "cannot write")?;
+        std::fs::rename(&tmp, out.index()).at(out.index(), "cannot rename into place")?;
+    }
+    Ok(ExtractSummary { written, skipped, images, indexed, views_done: done, views: total })
 }
 
 /// Reads one stored token grid back as f32 `[grid*grid*dim]` (for training and tests).

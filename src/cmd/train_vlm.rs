@@ -33,6 +33,11 @@ pub struct Args {
     /// Held-out seeds for --evaluate (seeds `10000..10000 + n`).
     #[arg(long, default_value_t = 50)]
     pub eval_seeds: u64,
+    /// Go on from OUT's checkpoints: stages OUT already holds are not trained again, an
+    /// interrupted one continues from its last checkpoint (the same weights as an uninterrupted
+    /// run).
+    #[arg(long)]
+    pub resume: bool,
 }
 
 /// `--evaluate DIR`: exact match of a saved model on ground-truth images of held-out seeds.
@@ -99,7 +104,7 @@ pub fn run(a: Args, ranks: &crate::ranks::Ranks) -> anyhow::Result<()> {
         eprintln!("train-vlm: data-parallel on {} ranks (each takes its share of every step's samples)", c.size());
     }
     let acc = model::catch_backend("VLM training", || {
-        train_from(&cfg, &a.out, a.base_model.as_deref(), &device, c, |p| {
+        train_from(&cfg, &a.out, a.base_model.as_deref(), &device, c, a.resume, |p| {
             if p.step == 1 && stage_started {
                 stage += 1;
                 bar.restart(stage_label(stage));

@@ -266,15 +266,31 @@ pub fn broadcast_params<M: Module>(c: &dyn Collective, module: M) -> Result<M> {
     if c.size() == 1 {
         return Ok(module);
     }
-    let mut flat = Vec::new();
+    let mut flat = flat_params(&module);
+    c.broadcast_f32("the broadcast of rank 0's weights", &mut flat)?;
+    set_flat_params(module, &flat)
+}
+
+/// Every float parameter's values, in module order, in one buffer.
+pub fn flat_params<M: Module>(module: &M) -> Vec<f32> {
     struct Gather<'a>(&'a mut Vec<f32>);
     impl ModuleVisitor for Gather<'_> {
         fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
             self.0.extend(param.val().into_data().convert::<f32>().to_vec::<f32>().expect("f32 parameter"));
         }
     }
+    let mut flat = Vec::new();
     module.visit(&mut Gather(&mut flat));
-    c.broadcast_f32("the broadcast of rank 0's weights", &mut flat)?;
+    flat
+}
+
+/// `module` with its float parameters set from `flat` (module order, as [`flat_params`] gives);
+/// `flat` must hold exactly their values.
+pub fn set_flat_params<M: Module>(module: M, flat: &[f32]) -> Result<M> {
+    let total: usize = layout(&module).iter().map(|(_, n)| n).sum();
+    if total != flat.len() {
+        return Err(Error::input(format!("{} weights for a model of {total}", flat.len())));
+    }
     struct Scatter<'a> {
         flat: &'a [f32],
         at: usize,
@@ -291,7 +307,34 @@ pub fn broadcast_params<M: Module>(c: &dyn Collective, module: M) -> Result<M> {
             })
         }
     }
-    Ok(module.map(&mut Scatter { flat: &flat, at: 0 }))
+    Ok(module.map(&mut Scatter { flat, at: 0 }))
+}
+
+/// The float parameters' ids in module order (what an optimizer's state is keyed by).
+pub fn param_ids<M: Module>(module: &M) -> Vec<u64> {
+    layout(module).iter().map(|(id, _)| id.val()).collect()
+}
+
+/// `module` with its float parameters' ids set to `ids` (module order), so that an optimizer
+/// state saved with those ids applies to it.
+pub fn set_param_ids<M: Module>(module: M, ids: &[u64]) -> Result<M> {
+    let n = layout(&module).len();
+    if n != ids.len() {
+        return Err(Error::input(format!("{} parameter ids for a model of {n} parameters", ids.len())));
+    }
+    struct Ids<'a> {
+        ids: &'a [u64],
+        at: usize,
+    }
+    impl ModuleMapper for Ids<'_> {
+        fn map_float<const D: usize>(&mut self, param: Param<Tensor<D>>) -> Param<Tensor<D>> {
+            let (_, value, mapper) = param.consume();
+            let id = ParamId::from(self.ids[self.at]);
+            self.at += 1;
+            Param::from_mapped_value(id, value, mapper)
+        }
+    }
+    Ok(module.map(&mut Ids { ids, at: 0 }))
 }
 
 /// A 64-bit FNV-1a hash of every float parameter's bits, in module order: equal on every rank

@@ -120,19 +120,19 @@ fn a_stage_chain_trains_its_base_first_or_reads_it_from_a_model_trained_with_it(
     // one command: the base stage trains into out/base, then the stage starts from its weights
     let whole = temp_dir("vlm-stages-whole");
     let mut seen = Vec::new();
-    train_from(&stage, &whole, None, &dev, &Solo, |l| seen.push((l.step, l.steps))).unwrap();
+    train_from(&stage, &whole, None, &dev, &Solo, false, |l| seen.push((l.step, l.steps))).unwrap();
     assert_eq!(seen, [(1, 2), (2, 2), (1, 2), (2, 2)], "progress sees both stages' steps");
     assert!(whole.join("base/model.safetensors").is_file(), "the base stage's model is kept");
     // the same stage from the base's model read back: the same weights, bit for bit
     let again = temp_dir("vlm-stages-again");
-    train_from(&stage, &again, Some(&whole.join("base")), &dev, &Solo, |_| {}).unwrap();
+    train_from(&stage, &again, Some(&whole.join("base")), &dev, &Solo, false, |_| {}).unwrap();
     assert!(!again.join("base").exists(), "the base stage is read, not trained again");
     let weights = |d: &std::path::Path| std::fs::read(d.join("model.safetensors")).unwrap();
     assert!(weights(&whole) == weights(&again), "reading the base gives the chain's own result");
     assert!(weights(&whole) != weights(&whole.join("base")), "the stage trained on from its base");
     // a model trained with none of the stages is refused before anything is trained
     let refused = temp_dir("vlm-stages-refused");
-    let e = train_from(&stage, &refused, Some(&whole), &dev, &Solo, |_| {}).unwrap_err().to_string();
+    let e = train_from(&stage, &refused, Some(&whole), &dev, &Solo, false, |_| {}).unwrap_err().to_string();
     assert!(e.contains("train_config.json") && e.contains("none of this configuration's stages"), "{e}");
     assert!(!refused.join("base").exists(), "nothing trained: {e}");
     // and a base of another shape is refused by validation
@@ -140,6 +140,52 @@ fn a_stage_chain_trains_its_base_first_or_reads_it_from_a_model_trained_with_it(
     wide.model.text_width = 64;
     let e = VlmTrainConfig { base: Some(Box::new(wide)), ..base }.validate().unwrap_err().to_string();
     assert!(e.contains("base.model"), "{e}");
+}
+
+#[test]
+fn a_run_stopped_midway_resumes_from_its_checkpoint_to_the_same_weights() {
+    let dev = Device::ndarray();
+    let cfg = VlmTrainConfig {
+        steps: 6,
+        tower_steps: 2,
+        tower_images: 4,
+        tower_lr_scale: 0.5,
+        checkpoint_every: 3,
+        eval_every: 0,
+        eval_seeds: 1,
+        ..tiny_config()
+    };
+    let whole = temp_dir("vlm-resume-whole");
+    train_from(&cfg, &whole, None, &dev, &Solo, false, |_| {}).unwrap();
+    assert!(!train::vlm::checkpoint::exists(&whole), "a finished stage keeps no checkpoint");
+    // stopped during step 4 (its last checkpoint is step 3's): a panic where progress is reported
+    let stopped = temp_dir("vlm-resume-stopped");
+    let run = std::panic::AssertUnwindSafe(|| {
+        train_from(&cfg, &stopped, None, &dev, &Solo, false, |l| assert!(l.step < 4, "stopped")).unwrap()
+    });
+    assert!(std::panic::catch_unwind(run).is_err());
+    assert!(train::vlm::checkpoint::exists(&stopped) && !stopped.join("model.safetensors").exists());
+    let mut steps = Vec::new();
+    train_from(&cfg, &stopped, None, &dev, &Solo, true, |l| steps.push(l.step)).unwrap();
+    assert_eq!(steps, [4, 5, 6], "it goes on after the checkpoint");
+    let read = |d: &std::path::Path, f: &str| std::fs::read(d.join(f)).unwrap();
+    assert!(read(&whole, "model.safetensors") == read(&stopped, "model.safetensors"), "the same weights, bit for bit");
+    let losses = |d: &std::path::Path| -> Vec<(u64, f64)> {
+        let v: serde_json::Value = serde_json::from_slice(&read(d, "training_log.json")).unwrap();
+        v.as_array()
+            .unwrap()
+            .iter()
+            .map(|l| (l["step"].as_u64().unwrap(), l["answer_loss"].as_f64().unwrap()))
+            .collect()
+    };
+    assert_eq!(losses(&whole), losses(&stopped), "the log goes on where it stopped");
+    // a finished run resumes to nothing; nothing to resume is an error naming the folder
+    let mut more = 0;
+    train_from(&cfg, &stopped, None, &dev, &Solo, true, |_| more += 1).unwrap();
+    assert_eq!(more, 0);
+    let empty = temp_dir("vlm-resume-empty");
+    let e = train_from(&cfg, &empty, None, &dev, &Solo, true, |_| {}).unwrap_err().to_string();
+    assert!(e.contains("vlm-resume-empty") && e.contains("nothing") || e.contains("no train-vlm run"), "{e}");
 }
 
 #[test]

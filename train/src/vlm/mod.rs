@@ -12,6 +12,7 @@
 //! gives). Evaluation is exact match on held-out seeds ([`evaluate`]).
 
 pub mod batch;
+pub mod checkpoint;
 pub mod data;
 pub mod hops;
 
@@ -138,6 +139,9 @@ pub struct VlmTrainConfig {
     pub eval_every: usize,
     /// Held-out seeds for evaluation during training.
     pub eval_seeds: u64,
+    /// Write a checkpoint (`OUT/checkpoint/`, what `--resume` reads) every this many steps and
+    /// at every evaluation (0: only at evaluations).
+    pub checkpoint_every: usize,
     /// The backend this stage trains on (absent: the command's `--backend`). Backends differ in
     /// the last bits of a float, and a training run amplifies them, so a committed model's
     /// configuration names the backend each of its stages was trained on.
@@ -183,6 +187,7 @@ impl Default for VlmTrainConfig {
             label_weight: 1.0,
             eval_every: 500,
             eval_seeds: 8,
+            checkpoint_every: 250,
             backend: None,
             base: None,
         }
@@ -556,7 +561,7 @@ pub struct LogLine {
 
 /// Recent training accuracy per question kind (exponential moving average of exact match over
 /// training batches), what adaptive sampling draws by.
-#[derive(Clone, Debug, Default)]
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
 pub struct RunningAccuracy {
     acc: BTreeMap<Kind, f32>,
 }
@@ -882,7 +887,7 @@ impl Trainer {
 /// Trains a tabletop VLM from `cfg` on `device` (autodiff is added here) and writes it to `out`
 /// (with `train_config.json` and `training_log.json`); `progress` sees every step.
 pub fn train(cfg: &VlmTrainConfig, out: &Path, device: &Device, progress: impl FnMut(&LogLine)) -> Result<Accuracy> {
-    train_from(cfg, out, None, device, &Solo, progress)
+    train_from(cfg, out, None, device, &Solo, false, progress)
 }
 
 /// Ranks compare their weights' checksums every this many steps (and at the end of each stage).
@@ -897,15 +902,30 @@ pub const CHECK_EVERY: usize = 100;
 /// takes its share of every step, rank 0 alone evaluates, writes and reports progress, and the
 /// others read a base stage from the `out` rank 0 wrote (a folder every rank sees). The held-out
 /// accuracy it returns is rank 0's (the default on the others).
+///
+/// `resume`: a stage whose model `out` already holds (same configuration) is not trained again,
+/// and a stage with a checkpoint goes on from it, exactly as if it had never stopped.
 pub fn train_from(
     cfg: &VlmTrainConfig,
     out: &Path,
     base_model: Option<&Path>,
     device: &Device,
     c: &dyn Collective,
+    resume: bool,
     mut progress: impl FnMut(&LogLine),
 ) -> Result<Accuracy> {
-    train_stages(cfg, out, base_model, device, c, &mut progress)
+    if resume && !out.join("train_config.json").is_file() && !checkpoint::exists(out) && !out.join("base").is_dir() {
+        return Err(Error::invalid(out, "--resume: there is no train-vlm run here to resume"));
+    }
+    train_stages(cfg, out, base_model, device, c, resume, &mut progress)
+}
+
+/// Whether `out` holds the finished model of a stage of `cfg` (its configuration, its model, no
+/// checkpoint of an unfinished run).
+fn finished(cfg: &VlmTrainConfig, out: &Path) -> bool {
+    out.join("model.safetensors").is_file()
+        && !checkpoint::exists(out)
+        && io::read_config::<VlmTrainConfig>(&out.join("train_config.json")).is_ok_and(|c| c == *cfg)
 }
 
 fn train_stages(
@@ -914,9 +934,14 @@ fn train_stages(
     base_model: Option<&Path>,
     device: &Device,
     c: &dyn Collective,
+    resume: bool,
     progress: &mut dyn FnMut(&LogLine),
 ) -> Result<Accuracy> {
     cfg.validate()?;
+    if resume && finished(cfg, out) {
+        let log: Vec<LogLine> = io::read_json(&out.join("training_log.json"))?;
+        return Ok(log.iter().rev().find_map(|l| l.eval.clone()).unwrap_or_default());
+    }
     let command_device = device;
     let device = &cfg.backend.map_or_else(|| device.clone(), |b| b.device());
     let mut t = match &cfg.base {
@@ -934,7 +959,7 @@ fn train_stages(
                 }
                 _ => {
                     let dir = out.join("base");
-                    train_stages(base, &dir, base_model, command_device, c, progress)?;
+                    train_stages(base, &dir, base_model, command_device, c, resume, progress)?;
                     dir
                 }
             };
@@ -952,9 +977,11 @@ fn train_stages(
         io::write_json(&out.join("train_config.json"), cfg)?;
     }
     let held = if root { eval_samples(t.spec(), EVAL_SEEDS..EVAL_SEEDS + cfg.eval_seeds, 2, 2) } else { Vec::new() };
-    let mut log = Vec::new();
+    let mut log = if resume && checkpoint::exists(out) { t.restore(out)? } else { Vec::new() };
+    // a resumed run's clock goes on from its log
+    let before = log.last().map_or(0.0, |l| l.seconds);
     let start = std::time::Instant::now();
-    let mut last = Accuracy::default();
+    let mut last = log.iter().rev().find_map(|l| l.eval.clone()).unwrap_or_default();
     while t.step < cfg.steps {
         let lr = cfg.lr_at(t.step);
         let losses = t.step(c)?;
@@ -978,7 +1005,7 @@ fn train_stages(
         let line = LogLine {
             step,
             steps: cfg.steps,
-            seconds: start.elapsed().as_secs_f64(),
+            seconds: before + start.elapsed().as_secs_f64(),
             lr,
             answer_loss: losses.answer,
             aux_loss: losses.aux,
@@ -995,10 +1022,15 @@ fn train_stages(
         if evaluated {
             io::write_json(&out.join("training_log.json"), &log)?;
         }
+        if (evaluated || cfg.checkpoint_every > 0 && step.is_multiple_of(cfg.checkpoint_every)) && step < cfg.steps {
+            t.save_checkpoint(out, &log)?;
+        }
     }
     if root {
         save_model(&t.model.valid().vlm, out)?;
         io::write_json(&out.join("training_log.json"), &log)?;
+        // finished: the model is the stage's state from now on
+        checkpoint::remove(out);
     }
     // every rank waits here for rank 0's files (the next stage reads them) and checks the weights
     dist::check_in_step(c, &t.model, t.step)?;

@@ -82,7 +82,7 @@ impl Ranks {
             let share = |d: std::time::Duration| 100.0 * d.as_secs_f64() / seconds.max(1e-9);
             let parts: Vec<String> =
                 by.iter().take(3).map(|(what, d)| format!("{what} {:.1} s", d.as_secs_f64())).collect();
-            let peak = peak_rss_gib().map_or(String::new(), |g| format!("; peak memory {g:.2} GiB"));
+            let peak = eval::progress::peak_rss_gib().map_or(String::new(), |g| format!("; peak memory {g:.2} GiB"));
             eprintln!(
                 "rank {} of {}: {:.1} s in collectives ({:.1} % of {seconds:.1} s: {}){peak}",
                 m.rank(),
@@ -94,14 +94,6 @@ impl Ranks {
         }
         let _ = seconds;
     }
-}
-
-/// This process's peak resident memory in GiB (Linux `VmHWM`).
-#[cfg(feature = "mpi")]
-fn peak_rss_gib() -> Option<f64> {
-    let status = std::fs::read_to_string("/proc/self/status").ok()?;
-    let kb: f64 = status.lines().find(|l| l.starts_with("VmHWM:"))?.split_whitespace().nth(1)?.parse().ok()?;
-    Some(kb / (1024.0 * 1024.0))
 }
 
 #[cfg(feature = "mpi")]

@@ -90,7 +90,12 @@ fn two_shards_cover_the_manifest_once_and_a_rerun_skips_what_is_done() {
     assert!(o.status.success(), "{}", show(&o));
     assert!(String::from_utf8_lossy(&o.stderr).contains("done earlier"), "{}", show(&o));
     assert_eq!(std::fs::read(out.join("two/summary.json")).unwrap(), before);
-    assert!(!out.join("report.json.tmp").exists());
+    let left: Vec<_> = std::fs::read_dir(&out)
+        .unwrap()
+        .map(|e| e.unwrap().file_name().to_string_lossy().into_owned())
+        .filter(|n| n.ends_with(".tmp"))
+        .collect();
+    assert!(left.is_empty(), "temporary files left behind: {left:?}");
 }
 
 #[test]

@@ -1,6 +1,7 @@
 //! A progress bar on stderr (indicatif): `label [#####     ] done/total unit, rate, eta, extra`.
 //! When stderr is not a terminal (a log file, CI), a plain line every 30 seconds and at the end
-//! instead, so that long runs under `nohup` still show where they are.
+//! instead, so that long runs under `nohup` still show where they are. Also the peak memory a run
+//! reports ([`peak_rss_gib`]).
 
 use std::io::IsTerminal;
 use std::sync::Mutex;
@@ -66,6 +67,15 @@ impl Progress {
             }
         }
     }
+}
+
+/// This process's peak resident memory so far in GiB (Linux `VmHWM`; `None` elsewhere): what the
+/// app and the benchmarks report beside their timings.
+pub fn peak_rss_gib() -> Option<f64> {
+    let status = std::fs::read_to_string("/proc/self/status").ok()?;
+    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
+    let kb: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
+    Some(kb / (1u64 << 20) as f64)
 }
 
 /// `label: done/total unit (rate unit/s, eta) extra`.

@@ -102,18 +102,18 @@ fn layout<M: Module>(m: &M) -> Vec<(ParamId, usize)> {
     l.params
 }
 
-/// Copies each parameter's gradient (where it has one) into a flat buffer: per parameter a
-/// presence flag, then its values (zeros when absent).
-struct Flatten<'a> {
-    grads: &'a mut GradientsParams,
+/// Gradients in one flat buffer, in the order they are pushed: per parameter a presence flag,
+/// then its values (zeros where this rank has no gradient for it).
+#[derive(Default)]
+struct Packed {
     flat: Vec<f32>,
     device: Option<Device>,
 }
 
-impl ModuleVisitor for Flatten<'_> {
-    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
-        let n: usize = param.val().dims().iter().product();
-        match self.grads.remove::<D>(param.id) {
+impl Packed {
+    /// Appends one parameter's gradient (`n` values).
+    fn push<const D: usize>(&mut self, grad: Option<Tensor<D>>, n: usize) {
+        match grad {
             Some(g) => {
                 self.device.get_or_insert_with(|| g.device());
                 self.flat.push(1.0);
@@ -125,30 +125,36 @@ impl ModuleVisitor for Flatten<'_> {
             }
         }
     }
+
+    /// Sums the buffer over the ranks (one all-reduce); what comes back is read in push order,
+    /// averaged over the ranks.
+    fn all_reduce(mut self, c: &dyn Collective) -> Result<Unpack> {
+        c.sum_f32("the gradient all-reduce", &mut self.flat)?;
+        let device =
+            self.device.ok_or_else(|| Error::input("data-parallel step: this rank's loss reached no parameter"))?;
+        Ok(Unpack { flat: self.flat, at: 0, scale: 1.0 / c.size() as f32, device })
+    }
 }
 
-/// Registers the summed gradients back, scaled by `scale`, for every parameter some rank had one
-/// for.
-struct Unflatten<'a> {
-    grads: GradientsParams,
-    flat: &'a [f32],
+/// The summed buffer of [`Packed`], read back parameter by parameter.
+struct Unpack {
+    flat: Vec<f32>,
     at: usize,
     scale: f32,
-    device: &'a Device,
+    device: Device,
 }
 
-impl ModuleVisitor for Unflatten<'_> {
-    fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
-        let shape = param.val().dims();
+impl Unpack {
+    /// The next parameter's averaged gradient, `None` when no rank had one.
+    fn take<const D: usize>(&mut self, shape: [usize; D]) -> Option<Tensor<D>> {
         let n: usize = shape.iter().product();
         let present = self.flat[self.at] > 0.0;
         let values = &self.flat[self.at + 1..self.at + 1 + n];
         self.at += 1 + n;
-        if present {
-            let v: Vec<f32> =
-                if self.scale == 1.0 { values.to_vec() } else { values.iter().map(|x| x * self.scale).collect() };
-            self.grads.register::<D>(param.id, Tensor::from_data(TensorData::new(v, shape), self.device));
-        }
+        present.then(|| {
+            let v: Vec<f32> = values.iter().map(|x| x * self.scale).collect();
+            Tensor::from_data(TensorData::new(v, shape), &self.device)
+        })
     }
 }
 
@@ -160,16 +166,32 @@ pub fn reduce_grads<M: Module>(c: &dyn Collective, module: &M, mut grads: Gradie
     if c.size() == 1 {
         return Ok(grads);
     }
-    let total: usize = layout(module).iter().map(|(_, n)| n + 1).sum();
-    let mut f = Flatten { grads: &mut grads, flat: Vec::with_capacity(total), device: None };
-    module.visit(&mut f);
-    let (mut flat, device) = (f.flat, f.device);
-    c.sum_f32("the gradient all-reduce", &mut flat)?;
-    let device = device.ok_or_else(|| Error::input("data-parallel step: this rank's loss reached no parameter"))?;
-    let mut u =
-        Unflatten { grads: GradientsParams::new(), flat: &flat, at: 0, scale: 1.0 / c.size() as f32, device: &device };
-    module.visit(&mut u);
-    Ok(u.grads)
+    struct Pack<'a> {
+        grads: &'a mut GradientsParams,
+        packed: Packed,
+    }
+    impl ModuleVisitor for Pack<'_> {
+        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+            let n = param.val().dims().iter().product();
+            self.packed.push(self.grads.remove::<D>(param.id), n);
+        }
+    }
+    struct Register {
+        sums: Unpack,
+        grads: GradientsParams,
+    }
+    impl ModuleVisitor for Register {
+        fn visit_float<const D: usize>(&mut self, param: &Param<Tensor<D>>) {
+            if let Some(g) = self.sums.take(param.val().dims()) {
+                self.grads.register::<D>(param.id, g);
+            }
+        }
+    }
+    let mut pack = Pack { grads: &mut grads, packed: Packed::default() };
+    module.visit(&mut pack);
+    let mut register = Register { sums: pack.packed.all_reduce(c)?, grads: GradientsParams::new() };
+    module.visit(&mut register);
+    Ok(register.grads)
 }
 
 /// [`reduce_grads`] for parameters kept as a list of named tensors (the language field): the
@@ -183,35 +205,12 @@ pub fn reduce_tensors(
     if c.size() == 1 {
         return Ok(grads);
     }
-    let total: usize = shapes.iter().map(|s| s[0] * s[1] + 1).sum();
-    let mut flat = Vec::with_capacity(total);
-    let mut device = None;
+    let mut packed = Packed::default();
     for (g, s) in grads.into_iter().zip(shapes) {
-        match g {
-            Some(g) => {
-                device.get_or_insert_with(|| g.device());
-                flat.push(1.0);
-                flat.extend(g.into_data().convert::<f32>().to_vec::<f32>().expect("f32 gradient"));
-            }
-            None => {
-                flat.push(0.0);
-                flat.resize(flat.len() + s[0] * s[1], 0.0);
-            }
-        }
+        packed.push(g, s[0] * s[1]);
     }
-    c.sum_f32("the gradient all-reduce", &mut flat)?;
-    let device = device.ok_or_else(|| Error::input("data-parallel step: this rank's loss reached no parameter"))?;
-    let scale = 1.0 / c.size() as f32;
-    let mut at = 0;
-    let mut out = Vec::with_capacity(shapes.len());
-    for s in shapes {
-        let n = s[0] * s[1];
-        let present = flat[at] > 0.0;
-        let v: Vec<f32> = flat[at + 1..at + 1 + n].iter().map(|x| x * scale).collect();
-        at += 1 + n;
-        out.push(present.then(|| Tensor::from_data(TensorData::new(v, *s), &device)));
-    }
-    Ok(out)
+    let mut sums = packed.all_reduce(c)?;
+    Ok(shapes.iter().map(|s| sums.take(*s)).collect())
 }
 
 /// A 64-bit FNV-1a hash of the bits of `values` (chained from `seed`).

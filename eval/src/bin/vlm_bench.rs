@@ -56,14 +56,6 @@ struct Args {
     cold: bool,
 }
 
-/// This process's peak resident memory so far in GiB (Linux `VmHWM`; `None` elsewhere).
-fn peak_rss_gib() -> Option<f64> {
-    let status = std::fs::read_to_string("/proc/self/status").ok()?;
-    let line = status.lines().find(|l| l.starts_with("VmHWM:"))?;
-    let kb: f64 = line.split_whitespace().nth(1)?.parse().ok()?;
-    Some(kb / (1u64 << 20) as f64)
-}
-
 /// One backend's figures.
 struct Timing {
     /// Seconds: vision tower on one view, whole anyres image, prefill.
@@ -247,7 +239,7 @@ fn main() -> std::process::ExitCode {
                 Some(size) => random_model(size, &device, a.half)?,
                 None => LlavaOnevision::load_with(&dir, &device, a.half)?,
             };
-            if let Some(gib) = peak_rss_gib() {
+            if let Some(gib) = eval::progress::peak_rss_gib() {
                 eprintln!("{backend}: model ready, peak resident memory so far {gib:.2} GiB");
             }
             let img = RgbImage::read_png(&dir.join("image_wide.png")).unwrap_or_else(|_| {
@@ -321,7 +313,7 @@ fn main() -> std::process::ExitCode {
     if let Some(r) = &reference {
         print_reference(r, &timings);
     }
-    if let Some(gib) = peak_rss_gib() {
+    if let Some(gib) = eval::progress::peak_rss_gib() {
         println!();
         println!("Peak resident memory of this run: {gib:.2} GiB");
     }

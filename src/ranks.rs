@@ -65,11 +65,11 @@ impl Ranks {
     pub fn fail(&self, e: &anyhow::Error) -> std::process::ExitCode {
         match self {
             Ranks::Solo => {
-                eprintln!("error: {e:#}");
+                eprintln!("error: {}", message(e));
                 std::process::ExitCode::FAILURE
             }
             #[cfg(feature = "mpi")]
-            Ranks::Mpi(m) => m.abort(&format!("{e:#}")),
+            Ranks::Mpi(m) => m.abort(&message(e)),
         }
     }
 
@@ -253,4 +253,18 @@ mod mpi_ranks {
             Ok((u64::MAX - got[1], got[0]))
         }
     }
+}
+
+/// An error and its causes on one line, each cause once: the library errors already print their
+/// source (`path: cannot read: No such file`), which `{:#}` would repeat.
+fn message(e: &anyhow::Error) -> String {
+    let mut text = e.to_string();
+    for cause in e.chain().skip(1) {
+        let c = cause.to_string();
+        if !text.contains(&c) {
+            text.push_str(": ");
+            text.push_str(&c);
+        }
+    }
+    text
 }

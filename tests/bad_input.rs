@@ -108,12 +108,8 @@ fn name_of(p: &Path) -> String {
 
 /// A valid binary .ply in the Inria 3DGS layout with `n` Gaussians.
 fn inria_ply(n: usize) -> Vec<u8> {
-    let props = [
-        "x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1",
-        "rot_2", "rot_3",
-    ];
     let mut out = format!("ply\nformat binary_little_endian 1.0\nelement vertex {n}\n").into_bytes();
-    for p in props {
+    for p in PLY_PROPS {
         out.extend(format!("property float {p}\n").bytes());
     }
     out.extend(b"end_header\n");
@@ -127,9 +123,15 @@ fn inria_ply(n: usize) -> Vec<u8> {
 }
 
 fn ply_header(count: &str) -> Vec<u8> {
-    let props = "property float x\nproperty float y\nproperty float z\n";
+    let props: String = PLY_PROPS.iter().map(|p| format!("property float {p}\n")).collect();
     format!("ply\nformat binary_little_endian 1.0\nelement vertex {count}\n{props}end_header\n").into_bytes()
 }
+
+/// The Inria layout's properties (all required).
+const PLY_PROPS: [&str; 14] = [
+    "x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2",
+    "rot_3",
+];
 
 /// Broken .ply files through `chatsplat render --ply`; the existing output image is never
 /// overwritten by a failed render.
@@ -165,12 +167,17 @@ fn broken_ply_files_are_refused_with_the_file_and_the_problem() {
     let mut long = good.clone();
     long.extend_from_slice(&good[header_len..]);
     files.push(("body-longer".into(), long, "disagrees with the body"));
-    let ascii = b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\n";
-    files.push((
-        "ascii-longer".into(),
-        [&ascii[..], b"end_header\n0 0 0\n1 1 1\n"].concat(),
-        "disagrees with the body",
-    ));
+    let ascii = String::from_utf8_lossy(&ply_header("1")).replace("binary_little_endian", "ascii");
+    let row = "0 0 0 0 0 0 1 -3 -3 -3 1 0 0 0\n";
+    files.push(("ascii-longer".into(), format!("{ascii}{row}{row}").into_bytes(), "disagrees with the body"));
+    // a point cloud (no Gaussian properties), and a 3DGS file without opacity: no defaults assumed
+    let cloud = "ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\nproperty float z\n\
+        end_header\n0 0 0\n";
+    files.push(("point-cloud".into(), cloud.as_bytes().to_vec(), "point cloud"));
+    let no_opacity = String::from_utf8_lossy(&good[..header_len]).replace("property float opacity\n", "");
+    let mut no_opacity = no_opacity.into_bytes();
+    no_opacity.extend(&good[header_len..good.len() - 4 * 4]);
+    files.push(("no-opacity".into(), no_opacity, "lacks the `opacity` property"));
     // a NaN position
     let mut nan = good.clone();
     nan[header_len..header_len + 4].copy_from_slice(&f32::NAN.to_le_bytes());
@@ -196,7 +203,7 @@ fn broken_ply_files_are_refused_with_the_file_and_the_problem() {
         "ply good",
         run(&["render", "--width", "16", "--height", "16", "--out"], &[&dir.join("g.png"), Path::new("--ply"), &p]),
     );
-    s.finish(35);
+    s.finish(39);
     std::fs::remove_dir_all(&dir).ok();
 }
 
@@ -211,6 +218,22 @@ fn copy_dir(from: &Path, to: &Path) {
             std::fs::copy(e.path(), t).unwrap();
         }
     }
+}
+
+/// A 16-bit instance-mask PNG (24x24) holding id `id` in one pixel, 0 elsewhere.
+fn mask16(path: &Path, id: u16) {
+    let mut enc = png::Encoder::new(std::fs::File::create(path).unwrap(), 24, 24);
+    enc.set_color(png::ColorType::Grayscale);
+    enc.set_depth(png::BitDepth::Sixteen);
+    let mut data = vec![0u8; 24 * 24 * 2];
+    data[2 * 30..2 * 30 + 2].copy_from_slice(&id.to_be_bytes());
+    enc.write_header().unwrap().write_image_data(&data).unwrap();
+}
+
+/// A colour-coded RGB mask (24x24): red in one half, green in the other.
+fn mask_rgb(path: &Path) {
+    let data: Vec<u8> = (0..24 * 24).flat_map(|i| if i % 24 < 12 { [200, 0, 0] } else { [0, 200, 0] }).collect();
+    model::images::write_rgb8(path, 24, 24, &data).unwrap();
 }
 
 fn synth(dir: &Path, seed: &str) {
@@ -278,6 +301,33 @@ fn broken_datasets_configs_and_arguments_are_refused() {
         ("mask-cut", cut("masks/frame_0000.png", 50), "frame_0000.png"),
         ("mask-junk", write("masks/frame_0001.png", b"\x89PNG junk"), "frame_0001.png"),
         ("depth-junk", write("depth/frame_0002.png", b"junk"), "frame_0002.png"),
+        // silent wrong results before: now refused, naming the file and the problem
+        ("mask-16bit-id", Box::new(|d: &Path| mask16(&d.join("masks/frame_0001.png"), 300)), "instance id 300"),
+        ("mask-colour", Box::new(|d: &Path| mask_rgb(&d.join("masks/frame_0002.png"))), "colour-coded mask"),
+        (
+            "mask-partial",
+            tj(|v| drop(v["frames"][2].as_object_mut().unwrap().remove("instance_mask_path"))),
+            "every frame needs a mask",
+        ),
+        ("depth-scale-negative", tj(|v| v["depth_unit_scale_factor"] = serde_json::json!(-0.001)), "depth_unit_scale"),
+        ("focal-in-mm", tj(|v| v["fl_x"] = serde_json::json!(0.035)), "field of view"),
+        ("principal-point-far", tj(|v| v["cx"] = serde_json::json!(1000.0)), "far outside"),
+        (
+            "frames-listed-twice",
+            tj(|v| {
+                let f = v["frames"].as_array().unwrap().clone();
+                v["frames"].as_array_mut().unwrap().extend(f);
+            }),
+            "both a training view and a held-out view",
+        ),
+        (
+            "frames-identical",
+            tj(|v| {
+                let f = v["frames"][0].clone();
+                v["frames"] = serde_json::json!([f.clone(), f.clone(), f.clone(), f]);
+            }),
+            "the same camera pose",
+        ),
     ];
     for (tag, edit, want) in &datasets {
         let d = dir.join(tag);
@@ -309,6 +359,12 @@ fn broken_datasets_configs_and_arguments_are_refused() {
         ("nan-ish", r#"{"lambda_dssim": 7.0}"#, "lambda_dssim"),
         ("array", "[1, 2, 3]", "json object"),
         ("empty", "", "invalid json"),
+        (
+            "nothing-learns",
+            r#"{"lr_means": 0, "lr_log_scales": 0, "lr_quats": 0, "lr_opacity": 0, "lr_sh_dc": 0, "lr_sh_rest": 0,
+                "lr_identity": 0, "lr_classifier": 0}"#,
+            "nothing would learn",
+        ),
     ];
     for (tag, text, want) in configs {
         let c = dir.join(format!("{tag}.json"));
@@ -337,6 +393,7 @@ fn broken_datasets_configs_and_arguments_are_refused() {
         (vec!["render", "--eye", "0,0,0", "--target", "0,0,0", "--out", &o], "eye"),
         (vec!["render", "--background", "2,0,0", "--out", &o], "background"),
         (vec!["train", "--data", &b, "--out", &o, "--downscale", "0"], "downscale"),
+        (vec!["train", "--data", &b, "--out", &o, "--iters", "0"], "iters must be at least 1"),
         (vec!["train", "--data", &b, "--out", &o, "--iters", "-1"], "iters"),
         (vec!["train", "--data", &b, "--out", &o, "--backend", "cuda"], "backend"),
         (vec!["train", "--data", &b, "--out", &o, "--background", "grey"], "background"),
@@ -404,6 +461,40 @@ fn broken_datasets_configs_and_arguments_are_refused() {
     let moved = dir.join("moved");
     copy_dir(&base, &moved);
     s.succeeds("resume on a moved copy", train(&moved, &r, &["--resume", "--iters", "4"]));
+    // resuming with other masks (one mask edited, or --masks from elsewhere) is another run
+    let remasked = dir.join("remasked");
+    copy_dir(&base, &remasked);
+    mask16(&remasked.join("masks/frame_0000.png"), 9);
+    s.fails(Case {
+        name: "resume with other masks".into(),
+        out: train(&remasked, &r, &["--resume", "--iters", "5"]),
+        expect: vec!["fingerprint".into(), "masks".into()],
+    });
+    // a state.json edited to an absurd iteration: refused, not "resumed" into training nothing
+    let state = r.join("state.json");
+    let kept_state = std::fs::read(&state).unwrap();
+    edit_json(&state, |v| v["iter"] = serde_json::json!(1_000_000_000u64));
+    s.fails(Case {
+        name: "resume an absurd iteration count".into(),
+        out: train(&base, &r, &["--resume", "--iters", "5"]),
+        expect: vec!["state.json".into(), "iteration 1000000000".into()],
+    });
+    std::fs::write(&state, kept_state).unwrap();
+    // --out naming a folder: refused before any work, nothing left beside it
+    let folder_out = dir.join("a-folder.png");
+    std::fs::create_dir_all(&folder_out).unwrap();
+    s.fails(Case {
+        name: "render --out a folder".into(),
+        out: run(&["render", "--width", "8", "--height", "8", "--out"], &[&folder_out]),
+        expect: vec!["a-folder.png".into(), "is a directory".into()],
+    });
+    s.check("render --out a folder: no temporary left", !dir.join("a-folder.png.tmp").exists(), "a .tmp was left");
+    // train-vlm --evaluate on 0 seeds would report 0 %
+    s.fails(Case {
+        name: "train-vlm --eval-seeds 0".into(),
+        out: run(&["train-vlm", "--eval-seeds", "0", "--evaluate"], &[&dir]),
+        expect: vec!["--eval-seeds".into()],
+    });
     // teacher tokens: from another scene, or from a dataset that changed since, are refused
     let (teacher_other, teacher_base) = (dir.join("teacher-other"), dir.join("teacher-base"));
     s.succeeds("extract other", run(&["extract", "--data"], &[&other, Path::new("--out"), &teacher_other]));
@@ -444,6 +535,12 @@ fn broken_datasets_configs_and_arguments_are_refused() {
     let (bare_run, bare_teacher) = (dir.join("run-no-masks"), dir.join("teacher-no-masks"));
     s.succeeds("train without masks", train(&bare, &bare_run, &[]));
     s.succeeds("extract without masks", run(&["extract", "--data"], &[&bare, Path::new("--out"), &bare_teacher]));
+    let zero = run(&["train-language", "--iters", "0", "--run"], &[&bare_run, Path::new("--teacher"), &bare_teacher]);
+    s.fails(Case {
+        name: "train-language --iters 0".into(),
+        out: zero,
+        expect: vec!["iters must be at least 1".into()],
+    });
     let lang = run(&["train-language", "--iters", "1", "--run"], &[&bare_run, Path::new("--teacher"), &bare_teacher]);
     s.succeeds("train-language without masks", lang);
     let ask = |extra: &[&str]| {
@@ -453,6 +550,11 @@ fn broken_datasets_configs_and_arguments_are_refused() {
         run(&args, &[Path::new("--run"), &bare_run])
     };
     s.succeeds("view level without masks", ask(&[]));
+    s.fails(Case {
+        name: "an empty question".into(),
+        out: run(&["ask", "--view", "0", "--run"], &[&bare_run, Path::new("  ")]),
+        expect: vec!["the question is empty".into()],
+    });
     s.fails(Case {
         name: "object level without masks".into(),
         out: ask(&["--object", "5", "5"]),
@@ -470,8 +572,11 @@ fn broken_datasets_configs_and_arguments_are_refused() {
         .unwrap();
     {
         use std::io::Write;
-        let lines = ":frobnicate\n:scene 0\n:view x\n:view 99999\n:click 1\n:click 99999 5\n:click 5 5\n:quit\n";
-        child.stdin.take().unwrap().write_all(lines.as_bytes()).unwrap();
+        let lines = ":frobnicate\n:scene 0\n:view x\n:view 99999\n:click 1\n:click 99999 5\n:click 5 5\n:scene 99\n";
+        let mut stdin = child.stdin.take().unwrap();
+        stdin.write_all(lines.as_bytes()).unwrap();
+        // a line in Latin-1 (not UTF-8) is refused and the session goes on to the next command
+        stdin.write_all(b"what colour is the caf\xe9 table?\n:view 99998\n:quit\n").unwrap();
     }
     let out = child.wait_with_output().unwrap();
     s.succeeds("chat REPL with bad commands", out.clone());
@@ -484,6 +589,9 @@ fn broken_datasets_configs_and_arguments_are_refused() {
         (":click 1", "usage: :click x y"),
         (":click 99999 5", "outside"),
         (":click without masks", "needs instance masks"),
+        (":scene 99", "scene level takes 1 to"),
+        ("a line that is not UTF-8", "not utf-8"),
+        ("the session goes on after it", "view 99998"),
     ] {
         s.check(&format!("chat REPL {what}"), err.contains(want), &format!("no \"{want}\" in: {err}"));
     }
@@ -578,6 +686,6 @@ fn broken_datasets_configs_and_arguments_are_refused() {
     c.args(["train-language", "--resume", "--iters", "2"]);
     lang_args(&mut c);
     s.succeeds("language kill -9 then resume", c.output().unwrap());
-    s.finish(50);
+    s.finish(66);
     std::fs::remove_dir_all(&dir).ok();
 }

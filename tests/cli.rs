@@ -45,12 +45,13 @@ fn bad_input_gives_a_clear_error_and_a_non_zero_exit() {
     assert!(!err.contains("panicked"), "{err}");
 
     let bad = tmp("bad.ply");
-    std::fs::write(
-        &bad,
-        b"ply\nformat binary_little_endian 1.0\nelement vertex 10\nproperty float x\n\
-        property float y\nproperty float z\nend_header\n\0\0\0\0",
-    )
-    .unwrap();
+    let props: String = ["x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2"]
+        .iter()
+        .chain(&["rot_0", "rot_1", "rot_2", "rot_3"])
+        .map(|p| format!("property float {p}\n"))
+        .collect();
+    let header = format!("ply\nformat binary_little_endian 1.0\nelement vertex 10\n{props}end_header\n");
+    std::fs::write(&bad, [header.as_bytes(), b"\0\0\0\0"].concat()).unwrap();
     let st = chatsplat().args(["render", "--ply"]).arg(&bad).output().unwrap();
     assert!(!st.status.success());
     let err = String::from_utf8_lossy(&st.stderr);

@@ -656,12 +656,20 @@ fn the_page_draws_the_scene_picks_in_red_and_answers_at_every_level() {
     assert!(b.page_errors.is_empty(), "{:?}", b.page_errors);
 
     // --- the server-rendered fallback picks the same object at the same pixel
-    b.goto(
+    if let Err(e) = b.goto(
         &server.url("/?render=server"),
         "window.chatsplat && window.chatsplat.ready && window.chatsplat.serverFrameKind() === 'full'",
         Duration::from_secs(60),
-    )
-    .unwrap();
+    ) {
+        let page = b
+            .eval(concat!(
+                "location.href + ' ' + document.readyState + ' ready=' + (window.chatsplat && window.chatsplat.ready)",
+                " + ' frame=' + (window.chatsplat && window.chatsplat.serverFrameKind())",
+                " + ' status=' + document.getElementById('status').textContent"
+            ))
+            .unwrap_or_default();
+        panic!("{e}; the page: {page}");
+    }
     assert_eq!(b.eval("window.chatsplat.mode").unwrap(), "server");
     let rect = canvas_rect(&mut b);
     let (_, shot) = b.screenshot().unwrap();

@@ -166,8 +166,11 @@ impl ChatSession {
 
     /// The default scene-level views: `k` (at least 1) spread around the training views.
     pub fn scene_views(&self, k: usize) -> Result<Vec<usize>> {
-        if k == 0 {
-            return Err(Error::input("scene level needs at least one view"));
+        if k == 0 || k > self.train_views {
+            return Err(Error::input(format!(
+                "scene level takes 1 to {} views (the scene's training views), not {k}",
+                self.train_views
+            )));
         }
         Ok(spread_views(&self.cameras[..self.train_views], k))
     }
@@ -261,6 +264,9 @@ impl ChatSession {
         opts: &GenerateOptions,
         on_step: impl FnMut(&str) -> ControlFlow<()>,
     ) -> Result<Generation> {
+        if question.trim().is_empty() {
+            return Err(Error::input("the question is empty"));
+        }
         let images = self.tokens(target)?;
         answer_until(&self.vlm, &images, question, opts, on_step)
     }

@@ -37,6 +37,20 @@ pub enum Error {
     Diverged { iter: usize, loss: f32 },
 }
 
+/// Says on standard error that an input is legal but suspicious and what was assumed
+/// (`warning: <msg>`); counted for [`warnings`].
+pub fn warn(msg: impl std::fmt::Display) {
+    WARNINGS.fetch_add(1, std::sync::atomic::Ordering::Relaxed);
+    eprintln!("warning: {msg}");
+}
+
+/// How many [`warn`]ings this process has given.
+pub fn warnings() -> usize {
+    WARNINGS.load(std::sync::atomic::Ordering::Relaxed)
+}
+
+static WARNINGS: std::sync::atomic::AtomicUsize = std::sync::atomic::AtomicUsize::new(0);
+
 /// `Result` with [`Error`].
 pub type Result<T, E = Error> = std::result::Result<T, E>;
 

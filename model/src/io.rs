@@ -28,12 +28,17 @@ pub fn write_atomic(path: &Path, bytes: &[u8]) -> Result<()> {
 
 /// Writes `path` atomically through `write`, which receives the temporary path to fill.
 pub fn write_atomic_with(path: &Path, write: impl FnOnce(&Path) -> Result<()>) -> Result<()> {
+    if path.is_dir() {
+        return Err(Error::invalid(path, "is a directory: give the path of a file to write"));
+    }
     let tmp = tmp_of(path);
     if let Err(e) = write(&tmp) {
         let _ = std::fs::remove_file(&tmp);
         return Err(e);
     }
-    std::fs::rename(&tmp, path).at(path, "cannot rename into place")
+    std::fs::rename(&tmp, path).at(path, "cannot rename into place").inspect_err(|_| {
+        let _ = std::fs::remove_file(&tmp);
+    })
 }
 
 /// Creates `dir` and its parents.

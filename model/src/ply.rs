@@ -1,6 +1,6 @@
 //! Inria-layout 3DGS `.ply` files (as written by Inria 3DGS, gsplat, Brush): one `vertex` element
-//! with `x y z`, optional normals, `f_dc_0..2`, `f_rest_*`, `opacity` (logit), `scale_0..2`
-//! (log), `rot_0..3` (w, x, y, z), plus any extra float properties (kept by name, grouped by the
+//! with `x y z`, `f_dc_0..2`, `opacity` (logit), `scale_0..2` (log), `rot_0..3` (w, x, y, z), all
+//! required, and optional normals, `f_rest_*`, plus any extra float properties (kept by name, grouped by the
 //! prefix before the last `_`, e.g. `identity_0..15`).
 //!
 //! Reads `binary_little_endian`, `binary_big_endian` and `ascii`; writes `binary_little_endian`.
@@ -72,6 +72,12 @@ enum Format {
     BinaryBe,
 }
 
+/// The properties every Gaussian must have (no default is silently assumed for any of them).
+const REQUIRED: [&str; 14] = [
+    "x", "y", "z", "f_dc_0", "f_dc_1", "f_dc_2", "opacity", "scale_0", "scale_1", "scale_2", "rot_0", "rot_1", "rot_2",
+    "rot_3",
+];
+
 /// Reads an Inria-layout `.ply` file.
 pub fn read(path: &Path) -> Result<GaussianCloud> {
     let bytes = std::fs::read(path).at(path, "cannot read")?;
@@ -135,9 +141,18 @@ pub fn parse(bytes: &[u8], src: impl AsRef<Path>) -> Result<GaussianCloud> {
         return Err(err("elements before `vertex` are not supported".to_string()));
     }
     let index: BTreeMap<&str, usize> = props.iter().enumerate().map(|(i, (p, _))| (p.as_str(), i)).collect();
-    for req in ["x", "y", "z"] {
+    for req in REQUIRED {
         if !index.contains_key(req) {
-            return Err(err(format!("vertex element lacks the `{req}` property")));
+            let what = if ["x", "y", "z"].iter().all(|p| index.contains_key(p)) {
+                " (a point cloud, not 3D Gaussians? no default is assumed for a Gaussian's opacity, scale, \
+                 rotation or colour)"
+            } else {
+                ""
+            };
+            return Err(err(format!(
+                "vertex element lacks the `{req}` property{what}: a 3DGS .ply has {}",
+                REQUIRED.join(" ")
+            )));
         }
     }
     let width = props.len();

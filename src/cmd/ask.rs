@@ -50,6 +50,9 @@ pub struct Args {
 }
 
 pub fn run(a: Args) -> anyhow::Result<()> {
+    if a.question.trim().is_empty() {
+        bail!("the question is empty: ask something, e.g. chatsplat ask --view 0 --run RUN \"What is on the table?\"");
+    }
     if a.half && a.run.is_some() {
         bail!("--half applies to --image (plain LLaVA-OneVision); a scene's model loads in f32");
     }

@@ -38,7 +38,7 @@ fn parse(line: &str) -> Result<Line, String> {
         Some(":help") => Line::Help,
         Some(":view") => Line::View(num(1, ":view N")?),
         Some(":click") => Line::Click(num(1, ":click X Y")?, num(2, ":click X Y")?),
-        Some(":scene") if words.len() == 1 => Line::Scene(DEFAULT_SCENE_VIEWS),
+        Some(":scene") if words.len() == 1 => Line::Scene(0), // the default, resolved against the scene
         Some(":scene") => match num(1, ":scene [K] with K >= 1")? {
             0 => return Err("usage: :scene [K] with K >= 1".into()),
             k => Line::Scene(k),
@@ -63,9 +63,21 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     let opts = model::vlm::GenerateOptions { max_new_tokens: a.max_new_tokens, ..Default::default() };
     let mut state = State { view: 0, target: Target::View(*s.camera(0)?), label: "view 0".into() };
     eprint!("[{}] > ", state.label);
-    for line in std::io::stdin().lock().lines() {
-        let line = line.map_err(|e| anyhow::anyhow!("stdin: {e}"))?;
-        match parse(&line) {
+    let mut input = std::io::stdin().lock();
+    let mut bytes = Vec::new();
+    loop {
+        bytes.clear();
+        if input.read_until(b'\n', &mut bytes).map_err(|e| anyhow::anyhow!("stdin: {e}"))? == 0 {
+            break;
+        }
+        // a line that is not UTF-8 (a paste in another encoding) is refused, not the session
+        let Ok(text) = std::str::from_utf8(&bytes) else {
+            eprintln!("error: that line is not UTF-8 text; nothing was asked");
+            eprint!("[{}] > ", state.label);
+            continue;
+        };
+        let line = text.trim_end_matches(['\n', '\r']);
+        match parse(line) {
             Ok(Line::Quit) => break,
             Ok(cmd) => {
                 if let Err(e) = apply(&s, cmd, &mut state, &opts) {
@@ -100,6 +112,7 @@ fn apply(s: &ChatSession, cmd: Line, state: &mut State, opts: &model::vlm::Gener
             None => eprintln!("pixel ({x}, {y}) shows no object"),
         },
         Line::Scene(k) => {
+            let k = if k == 0 { DEFAULT_SCENE_VIEWS.min(s.train_views) } else { k };
             state.target = s.scene_target(k)?;
             state.label = format!("scene, {k} views");
         }

@@ -45,6 +45,9 @@ fn evaluate(dir: &std::path::Path, a: &Args) -> anyhow::Result<()> {
     let cfg_path = dir.join("train_config.json");
     let cfg =
         if cfg_path.is_file() { model::io::read_config::<VlmTrainConfig>(&cfg_path)? } else { Default::default() };
+    if a.eval_seeds == 0 {
+        anyhow::bail!("--eval-seeds must be at least 1 (the number of held-out scenes to ask about)");
+    }
     let device = a.backend.device();
     let t0 = std::time::Instant::now();
     let seeds = EVAL_SEEDS..EVAL_SEEDS + a.eval_seeds;

@@ -10,6 +10,39 @@ use model::splats::host;
 use std::collections::BTreeMap;
 use std::path::Path;
 
+/// Checks a stored run's progress against itself before it is resumed: its iteration cannot be
+/// past the total its own `config.json` asked for, and no parameter can have taken more Adam
+/// steps than there were iterations. Either means `state` was edited or comes from another run
+/// (resuming it would train nothing, or the wrong amount, and exit as if all was well).
+pub fn check_progress(state: &Path, iter: usize, total: usize, times: &BTreeMap<String, usize>) -> Result<()> {
+    if iter > total {
+        return Err(Error::invalid(
+            state,
+            format!(
+                "iteration {iter} is past the {total} iterations the run's config.json asks for: the state does \
+                 not belong to this run (start it again without --resume)"
+            ),
+        ));
+    }
+    if let Some((name, t)) = times.iter().find(|(_, t)| **t > iter) {
+        return Err(Error::invalid(
+            state,
+            format!("{name} has taken {t} optimizer steps by iteration {iter}: the state does not belong to this run"),
+        ));
+    }
+    Ok(())
+}
+
+/// Says so when a resumed run is already at or past the total asked for now (nothing is trained).
+pub fn warn_if_done(dir: &Path, at: usize, asked: usize) {
+    if at >= asked {
+        model::error::warn(format!(
+            "{}: the run is already at iteration {at} and {asked} are asked for: nothing more is trained",
+            dir.display()
+        ));
+    }
+}
+
 /// Adam states by parameter name.
 #[derive(Clone, Default)]
 pub struct AdamStates {

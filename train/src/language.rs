@@ -95,10 +95,16 @@ impl LanguageTrainConfig {
     /// Refuses values out of range, naming the key.
     pub fn validate(&self) -> Result<()> {
         let bad = |key: &str, why: &str| Err(Error::input(format!("language config: {key} {why}")));
+        if self.iters == 0 {
+            return bad("iters", "must be at least 1 (0 would save an untrained field as a run)");
+        }
         for (k, v) in [("lr_features", self.lr_features), ("lr_encoder", self.lr_encoder)] {
             if !(v.is_finite() && v >= 0.0) {
                 return bad(k, "must be a finite number >= 0");
             }
+        }
+        if self.lr_features == 0.0 && self.lr_encoder == 0.0 {
+            return bad("lr_features", "and lr_encoder are both 0: nothing would learn");
         }
         if !(self.object_weight.is_finite() && self.object_weight >= 0.0) {
             return bad("object_weight", "must be a finite number >= 0");
@@ -411,6 +417,7 @@ impl LanguageTrainer {
         cfg.validate().map_err(|e| Error::invalid(out.config(), e.to_string()))?;
         let scene = LanguageScene::load(run, out, device)?;
         let state = out.read_state()?;
+        crate::ckpt::check_progress(&out.state(), state.iter, cfg.iters, &state.adam_time)?;
         let teacher = TeacherSet::open(&state.teacher.resolve(&out.dir))?;
         let views = teacher.dataset()?.train;
         let path = out.checkpoint();
@@ -527,8 +534,13 @@ pub fn run(
             return Err(Error::invalid(&out.dir, "--resume: there is no language checkpoint to resume from"));
         }
         let mut t = LanguageTrainer::resume(run, out, device)?;
-        t.cfg.iters = cfg.iters; // train until the requested total (nothing more when already past it)
+        // train until the requested total (nothing more when already past it; the stored total never
+        // drops below the iteration reached, so the saved state stays consistent)
+        t.cfg.iters = cfg.iters.max(t.iter);
         let at = t.iter;
+        if c.is_root() {
+            crate::ckpt::warn_if_done(&out.dir, at, cfg.iters);
+        }
         (t, Some(at))
     } else {
         (LanguageTrainer::new(run, TeacherSet::open(teacher_dir)?, cfg, device)?, None)

@@ -123,6 +123,7 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<(Dataset, SparsePoints)> {
         return Err(err(&images_dir, "image directory is missing"));
     }
     let k = opts.downscale;
+    let mut missing_masks = vec![];
     let mut views = Vec::with_capacity(images.len());
     for im in &images {
         let intr = cameras.get(&im.camera_id).ok_or_else(|| {
@@ -155,11 +156,19 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<(Dataset, SparsePoints)> {
         camera.cx = (intr.cx / s) as f32;
         camera.cy = (intr.cy / s) as f32;
         let mask = super::mask_dir(dir).join(Path::new(&im.name).with_extension("png"));
-        let instance_ids = if mask.is_file() { Some(read_ids8(&mask, w, h, k)?) } else { None };
+        let instance_ids = if opts.masks.is_some() {
+            None // replaced by --masks below
+        } else if mask.is_file() {
+            Some(read_ids8(&mask, w, h, k)?)
+        } else {
+            missing_masks.push(mask);
+            None
+        };
         views.push(View { image_path: path, camera, rgb, instance_ids, depth: None });
     }
+    super::check_own_masks(&super::mask_dir(dir), &missing_masks, views.len())?;
     super::apply_masks(&mut views, opts)?;
-    Ok((split(views, opts.holdout_every), points))
+    Ok((split(views, opts.holdout_every)?, points))
 }
 
 /// `dir/sparse/0` when it exists, else `dir/sparse` when it holds a cameras file.

@@ -266,7 +266,7 @@ pub(crate) fn check_size(path: &Path, got: (u32, u32), image: (u32, u32)) -> Res
     }
 }
 
-/// An 8-bit id mask (first channel of any 8-bit PNG) the size `(w, h)` of its image, downscaled
+/// An instance-id mask ([`read_ids8_any`]) the size `(w, h)` of its image, downscaled
 /// by nearest sample to `[h/k, w/k]`.
 pub(crate) fn read_ids8(path: &Path, w: u32, h: u32, k: u32) -> Result<Vec<u8>> {
     Ok(subsample(&read_ids8_full(path, w, h)?, w, w / k, h / k, k))
@@ -279,13 +279,66 @@ pub(crate) fn read_ids8_full(path: &Path, w: u32, h: u32) -> Result<Vec<u8>> {
     Ok(ids)
 }
 
-/// An 8-bit instance-id PNG of any size: its width, height and `[h, w]` ids (first channel).
+/// An instance-id PNG of any size: its width, height and `[h, w]` 8-bit ids (0 = background).
+///
+/// The id is the pixel's value in a one-channel PNG: grayscale of any bit depth (8 or 16 bits
+/// as tools write them) or a palette PNG's index (DEVA / Gaussian Grouping). An RGB(A) mask is
+/// read only where its three channels agree (a gray mask saved as colour); a colour-coded mask
+/// is refused, and so is an id above 255 (ids are 8-bit), each naming a pixel, so that no id is
+/// silently cut to a byte or read from one channel.
 pub(crate) fn read_ids8_any(path: &Path) -> Result<(u32, u32, Vec<u8>)> {
-    let (mw, mh, mc, bytes) = crate::images::read_png8(path)?;
-    if mc == 0 || bytes.len() != mw as usize * mh as usize * mc {
+    let fail = |e: &dyn std::fmt::Display| err(path, format!("cannot read PNG: {e}"));
+    let file = std::fs::File::open(path).map_err(|e| fail(&e))?;
+    let mut dec = png::Decoder::new(BufReader::new(file));
+    dec.set_transformations(png::Transformations::IDENTITY);
+    let mut reader = dec.read_info().map_err(|e| fail(&e))?;
+    let mut buf = vec![0; reader.output_buffer_size()];
+    let info = reader.next_frame(&mut buf).map_err(|e| fail(&e))?;
+    let (w, h) = (info.width as usize, info.height as usize);
+    let (bits, samples, line) = (info.bit_depth as usize, info.color_type.samples(), info.line_size);
+    if w == 0 || h == 0 || buf.len() < line * h || line * 8 < w * samples * bits {
         return Err(err(path, "mask has an unexpected pixel layout"));
     }
-    Ok((mw, mh, bytes.chunks_exact(mc).map(|c| c[0]).collect()))
+    let mut ids = Vec::with_capacity(w * h);
+    for (y, row) in buf.chunks_exact(line).take(h).enumerate() {
+        // sample `c` of pixel `x` of this row, unpacked from 1-16 bits
+        let sample = |x: usize, c: usize| -> u16 {
+            let i = x * samples + c;
+            match bits {
+                16 => u16::from_be_bytes([row[2 * i], row[2 * i + 1]]),
+                8 => row[i] as u16,
+                b => {
+                    let per = 8 / b;
+                    ((row[i / per] >> (8 - b * (i % per + 1))) & ((1u8 << b) - 1)) as u16
+                }
+            }
+        };
+        for x in 0..w {
+            let v = sample(x, 0);
+            if samples >= 3 && (sample(x, 1) != v || sample(x, 2) != v) {
+                return Err(err(
+                    path,
+                    format!(
+                        "is a colour-coded mask (pixel ({x}, {y}) is ({v}, {}, {})): instance ids must be one \
+                         channel, a grayscale or palette PNG whose value is the id (0 = background)",
+                        sample(x, 1),
+                        sample(x, 2)
+                    ),
+                ));
+            }
+            if v > 255 {
+                return Err(err(
+                    path,
+                    format!(
+                        "holds instance id {v} at pixel ({x}, {y}): ids above 255 are not supported (chatsplat keeps \
+                         8-bit ids; renumber the objects 1..=255)"
+                    ),
+                ));
+            }
+            ids.push(v as u8);
+        }
+    }
+    Ok((info.width, info.height, ids))
 }
 
 /// A 16-bit grayscale PNG the size `(w, h)` of its image, times `scale`, downscaled by nearest

@@ -50,6 +50,7 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
     if files.len() != n {
         return Err(err(&images_dir, format!("holds {} images but {} has {n} poses", files.len(), npy.display())));
     }
+    let mut missing_masks = vec![];
     let mut views = Vec::with_capacity(n);
     for (i, (row, path)) in rows.iter().zip(files).enumerate() {
         let at = |m: String| err(&npy, format!("row {i}: {m}"));
@@ -85,11 +86,19 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
         let mut mask_name = path.file_stem().map(|s| s.to_os_string()).unwrap_or_default();
         mask_name.push(".png");
         let mask = masks.join(mask_name);
-        let instance_ids = if mask.is_file() { Some(read_ids8(&mask, iw, ih, box_k)?) } else { None };
+        let instance_ids = if opts.masks.is_some() {
+            None // replaced by --masks below
+        } else if mask.is_file() {
+            Some(read_ids8(&mask, iw, ih, box_k)?)
+        } else {
+            missing_masks.push(mask);
+            None
+        };
         views.push(View { image_path: path, camera, rgb, instance_ids, depth: None });
     }
+    super::check_own_masks(&masks, &missing_masks, views.len())?;
     super::apply_masks(&mut views, opts)?;
-    Ok(split(views, opts.holdout_every))
+    split(views, opts.holdout_every)
 }
 
 /// Reads a `(N, 17)` little-endian float array from a NumPy `.npy` file (format versions 1-3).

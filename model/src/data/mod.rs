@@ -87,9 +87,10 @@ pub struct Dataset {
 
 impl Dataset {
     /// A fingerprint of what was loaded (16 hex digits): per view, in split order, its file name
-    /// and size on disk, image size, intrinsics, pose and a sample of its pixels. Moving the dataset keeps it; other
-    /// photos, poses, split or downscale change it. Runs and teacher directories store it so
-    /// that resuming or training on other data is refused.
+    /// and size on disk, image size, intrinsics, pose, a sample of its pixels and of its instance
+    /// ids. Moving the dataset keeps it; other photos, poses, split, masks or downscale change it.
+    /// Runs and teacher directories store it so that resuming or training on other data is
+    /// refused.
     pub fn fingerprint(&self) -> String {
         // FNV-1a, 64 bit
         let mut h: u64 = 0xcbf2_9ce4_8422_2325;
@@ -115,6 +116,15 @@ impl Dataset {
                 for x in v.rgb.iter().step_by(61) {
                     eat(&[(x * 255.0).round() as u8]);
                 }
+                // masks change which objects a run learns: a run resumed with other masks, or
+                // without them, is another run (nothing is eaten without masks, so mask-less
+                // fingerprints are as before)
+                if let Some(ids) = &v.instance_ids {
+                    eat(b"ids");
+                    for i in ids.iter().step_by(7) {
+                        eat(&[*i]);
+                    }
+                }
             }
         }
         format!("{h:016x}")
@@ -127,6 +137,36 @@ pub(crate) fn mask_dir(dir: &Path) -> PathBuf {
     let ours = dir.join("masks");
     let grouping = dir.join("object_mask");
     if !ours.is_dir() && grouping.is_dir() { grouping } else { ours }
+}
+
+/// A capture's own masks cover every view or none. `missing` are the mask files not found in
+/// `folder` for `total` views: some missing is refused, naming the first (a scene trained with
+/// masks for part of its views would learn no objects in the others); all missing while
+/// `folder` exists is a warning (the folder is not used).
+pub(crate) fn check_own_masks(folder: &Path, missing: &[PathBuf], total: usize) -> Result<()> {
+    if missing.is_empty() {
+        return Ok(());
+    }
+    if missing.len() < total {
+        return Err(image::err(
+            &missing[0],
+            format!(
+                "is missing: {} has masks for {} of the {total} images and every image needs one (or move the \
+                 folder away to load the scene without masks)",
+                folder.display(),
+                total - missing.len()
+            ),
+        ));
+    }
+    if folder.is_dir() {
+        crate::error::warn(format!(
+            "{}: holds no mask for any of the {total} images (looked for <image name>.png, e.g. {}): the scene is \
+             loaded without masks",
+            folder.display(),
+            missing[0].file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default()
+        ));
+    }
+    Ok(())
 }
 
 /// Replaces every view's instance ids with `opts.masks`' (nothing without it): for each image
@@ -169,8 +209,9 @@ pub(crate) fn given_mask(opts: &LoadOptions, image: &Path) -> Result<Option<Path
     Ok(Some(path))
 }
 
-/// Splits `views` (in order) into train and test: every `every`-th view is held out (0: none).
-pub(crate) fn split(views: Vec<View>, every: usize) -> Dataset {
+/// Splits `views` (in order) into train and test: every `every`-th view is held out (0: none),
+/// then [`check_capture`]s the result.
+pub(crate) fn split(views: Vec<View>, every: usize) -> Result<Dataset> {
     let (mut train, mut test) = (vec![], vec![]);
     for (i, v) in views.into_iter().enumerate() {
         if every > 0 && i % every == every - 1 {
@@ -179,7 +220,126 @@ pub(crate) fn split(views: Vec<View>, every: usize) -> Dataset {
             train.push(v);
         }
     }
-    Dataset { train, test }
+    check_capture(Dataset { train, test })
+}
+
+/// Widest and narrowest field of view (degrees) a camera may have before its focal length is
+/// called absurd (a focal length in the wrong unit: millimetres, or normalised by the width).
+const FOV_DEGREES: (f32, f32) = (0.1, 170.0);
+
+/// Refuses a capture no reconstruction can come from, and warns about a legal but suspicious
+/// one, so that nothing trains on it with a normal summary:
+///
+/// * errors: a focal length giving a field of view outside [`FOV_DEGREES`] or pixels more than
+///   10x wider than tall; a principal point more than half the image outside it; an image that
+///   is both a training and a held-out view (held-out figures would be measured on training
+///   data); several views that all share one pose, or all the same pixels;
+/// * warnings: a principal point outside the image (inside that margin); an image listed twice
+///   among the training views; every view taken from one point (rotation only: no parallax).
+pub(crate) fn check_capture(ds: Dataset) -> Result<Dataset> {
+    let all: Vec<&View> = ds.train.iter().chain(&ds.test).collect();
+    for v in &all {
+        let c = &v.camera;
+        let (w, h) = (c.width as f32, c.height as f32);
+        for (f, size, axis) in [(c.fx, w, "fx"), (c.fy, h, "fy")] {
+            let fov = 2.0 * (0.5 * size / f).atan().to_degrees();
+            if !(f.is_finite() && f > 0.0 && fov >= FOV_DEGREES.0 && fov <= FOV_DEGREES.1) {
+                return Err(image::err(
+                    &v.image_path,
+                    format!(
+                        "focal length {axis} = {f} px gives a field of view of {fov:.3} degrees over its {size} \
+                         pixels; expected {}..{} (is the focal length in another unit, e.g. mm or normalised?)",
+                        FOV_DEGREES.0, FOV_DEGREES.1
+                    ),
+                ));
+            }
+        }
+        if c.fx / c.fy > 10.0 || c.fy / c.fx > 10.0 {
+            return Err(image::err(
+                &v.image_path,
+                format!(
+                    "focal lengths fx = {} and fy = {} differ more than tenfold: pixels that shape are not a camera's",
+                    c.fx, c.fy
+                ),
+            ));
+        }
+        let inside =
+            |p: f32, size: f32, margin: f32| p.is_finite() && p >= -margin * size && p <= (1.0 + margin) * size;
+        if !inside(c.cx, w, 0.5) || !inside(c.cy, h, 0.5) {
+            return Err(image::err(
+                &v.image_path,
+                format!(
+                    "principal point ({}, {}) is far outside the {}x{} image (cx, cy are in pixels from the top-left \
+                     corner)",
+                    c.cx, c.cy, c.width, c.height
+                ),
+            ));
+        }
+        if !inside(c.cx, w, 0.0) || !inside(c.cy, h, 0.0) {
+            crate::error::warn(format!(
+                "{}: principal point ({}, {}) is outside the {}x{} image: used as given",
+                v.image_path.display(),
+                c.cx,
+                c.cy,
+                c.width,
+                c.height
+            ));
+        }
+    }
+    // the same photo twice
+    let key = |v: &View| std::fs::canonicalize(&v.image_path).unwrap_or_else(|_| v.image_path.clone());
+    let train_paths: std::collections::HashMap<PathBuf, usize> =
+        ds.train.iter().fold(Default::default(), |mut m, v| {
+            *m.entry(key(v)).or_insert(0) += 1;
+            m
+        });
+    if let Some(v) = ds.test.iter().find(|v| train_paths.contains_key(&key(v))) {
+        return Err(image::err(
+            &v.image_path,
+            "is both a training view and a held-out view: held-out figures would be measured on a photo the \
+             scene was trained on (list each frame once, or keep the held-out split apart)",
+        ));
+    }
+    if let Some((p, n)) = train_paths.iter().filter(|(_, n)| **n > 1).min_by(|a, b| a.0.cmp(b.0)) {
+        crate::error::warn(format!(
+            "{}: listed {n} times among the training views: it weighs {n}x in training",
+            p.display()
+        ));
+    }
+    if all.len() > 1 {
+        let first = all[0];
+        let same_pose = |v: &&View| {
+            let (a, b) = (v.camera.world_to_cam.to_cols_array(), first.camera.world_to_cam.to_cols_array());
+            a.iter().zip(&b).all(|(x, y)| (x - y).abs() <= 1e-6 * (1.0 + y.abs()))
+        };
+        if all.iter().all(same_pose) {
+            return Err(image::err(
+                &first.image_path,
+                format!(
+                    "all {} views have the same camera pose: a scene needs photos taken from different places",
+                    all.len()
+                ),
+            ));
+        }
+        if all.iter().all(|v| v.rgb == first.rgb) {
+            return Err(image::err(
+                &first.image_path,
+                format!("all {} views have the same pixels: a scene needs different photos of it", all.len()),
+            ));
+        }
+        let centre = |v: &View| v.camera.world_to_cam.inverse().w_axis.truncate();
+        let c0 = centre(first);
+        let extent = all.iter().map(|v| v.camera.world_to_cam.w_axis.truncate().length()).fold(0.0f32, f32::max);
+        if all.iter().all(|v| (centre(v) - c0).length() <= 1e-5 * (1.0 + extent)) {
+            crate::error::warn(format!(
+                "{}: all {} views are taken from one point (the camera only turns): without parallax the \
+                 Gaussians' depth is not constrained",
+                first.image_path.parent().unwrap_or(&first.image_path).display(),
+                all.len()
+            ));
+        }
+    }
+    Ok(ds)
 }
 
 /// Rejects a zero downscale factor.

@@ -128,13 +128,13 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
     let mut maps = Maps::default();
     if single.is_file() {
         let views = load_file(&single, dir, opts, &mut maps)?;
-        Ok(split(views, opts.holdout_every))
+        split(views, opts.holdout_every)
     } else if train_file.is_file() {
         let train = load_file(&train_file, dir, opts, &mut maps)?;
         if test_file.is_file() {
-            Ok(Dataset { train, test: load_file(&test_file, dir, opts, &mut maps)? })
+            super::check_capture(Dataset { train, test: load_file(&test_file, dir, opts, &mut maps)? })
         } else {
-            Ok(split(train, opts.holdout_every))
+            split(train, opts.holdout_every)
         }
     } else {
         Err(err(dir, "no transforms.json or transforms_train.json here"))
@@ -149,7 +149,14 @@ fn load_file(file: &Path, dir: &Path, opts: &LoadOptions, maps: &mut Maps) -> Re
         return Err(err(file, "`frames` is empty"));
     }
     let depth_scale = num(&root, "depth_unit_scale_factor").unwrap_or(1.0);
+    if !(depth_scale.is_finite() && depth_scale > 0.0) {
+        return Err(err(
+            file,
+            format!("depth_unit_scale_factor is {depth_scale}: it must be a positive scale (metres per depth unit)"),
+        ));
+    }
     let mut views = Vec::with_capacity(frames.len());
+    let mut warned_binary = false;
     for (i, f) in frames.iter().enumerate() {
         let at = |m: &str| err(file, format!("frame {i}: {m}"));
         let coef = |key: &str| {
@@ -236,8 +243,23 @@ fn load_file(file: &Path, dir: &Path, opts: &LoadOptions, maps: &mut Maps) -> Re
         // `--masks` replaces the file's own
         let own =
             f.get("instance_mask_path").or_else(|| f.get("mask_path")).and_then(Value::as_str).map(|r| dir.join(r));
-        let instance_ids = match super::given_mask(opts, &path)?.or(own) {
-            Some(p) => Some(resample(read_ids8_full(&p, w, h)?, remap, w, h, k)),
+        let given = super::given_mask(opts, &path)?;
+        let from_mask_path = given.is_none() && f.get("instance_mask_path").is_none() && own.is_some();
+        let instance_ids = match given.or(own) {
+            Some(p) => {
+                let ids = read_ids8_full(&p, w, h)?;
+                // nerfstudio's own `mask_path` is a 0/255 validity mask, not instance ids
+                if from_mask_path && !warned_binary && ids.contains(&255) && ids.iter().all(|&v| v == 0 || v == 255) {
+                    crate::error::warn(format!(
+                        "{}: frame {i}'s mask_path {} holds only 0 and 255, like nerfstudio's validity masks: read as \
+                         instance ids (one object, id 255); give instance ids as instance_mask_path",
+                        file.display(),
+                        p.display()
+                    ));
+                    warned_binary = true;
+                }
+                Some(resample(ids, remap, w, h, k))
+            }
             None => None,
         };
         let depth = match f.get("depth_file_path").and_then(Value::as_str) {
@@ -245,6 +267,20 @@ fn load_file(file: &Path, dir: &Path, opts: &LoadOptions, maps: &mut Maps) -> Re
             None => None,
         };
         views.push(View { image_path: path, camera, rgb, instance_ids, depth });
+    }
+    // masks for every frame or none (as `--masks` requires): a scene trained with masks for part
+    // of its views would learn no objects in the others
+    let with = views.iter().filter(|v| v.instance_ids.is_some()).count();
+    if let Some(v) = views.iter().find(|v| v.instance_ids.is_none()).filter(|_| with > 0) {
+        return Err(err(
+            file,
+            format!(
+                "the frame of {} has no instance_mask_path while {with} of the {} frames have one: every frame \
+                 needs a mask, or none",
+                v.image_path.display(),
+                views.len()
+            ),
+        ));
     }
     Ok(views)
 }

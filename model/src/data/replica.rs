@@ -90,7 +90,7 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
         views.push(View { image_path: path, camera, rgb, instance_ids, depth });
     }
     super::apply_masks(&mut views, opts)?;
-    Ok(split(views, opts.holdout_every))
+    split(views, opts.holdout_every)
 }
 
 /// Sequence-wide mapping of 16-bit instance ids to 8 bits (see the module docs).

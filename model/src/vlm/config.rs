@@ -281,6 +281,53 @@ fn token_ids(v: Option<&Value>) -> Vec<u32> {
     }
 }
 
+/// The rotary base of the text model, read from every form Hugging Face writes: `rope_theta` in
+/// `text_config`; a scaled rope as `rope_scaling` (`{"type" | "rope_type": ..., "factor": ...}`,
+/// in `text_config` or, in older files, at the top); and, since transformers 4.56, both together as
+/// `rope_parameters` (`{"rope_type", "rope_theta", ...}`). This port rotates by unscaled positions,
+/// so any type but `"default"` (or a `factor` other than 1 without a type) is refused, naming the
+/// key: a checkpoint with a scaled rope would otherwise answer with the wrong positions.
+fn rope_theta(top: &Obj, to: &Obj, file: &Path) -> Result<f64, VlmError> {
+    let mut theta = to.f64("rope_theta", Some(10_000.0))?;
+    let places = [(top, "rope_scaling"), (to, "rope_scaling"), (to, "rope_parameters")];
+    for (obj, key) in places {
+        let Some(v) = obj.get(key) else { continue };
+        let name = obj.name(key);
+        if !v.is_object() {
+            return Err(VlmError::config(file, format!("{name} must be an object, got {v}")));
+        }
+        let ro = Obj { v, file, prefix: &name };
+        let mut typed = false;
+        for k in ["rope_type", "type"] {
+            let t = ro.str(k, Some("default"))?;
+            typed |= ro.get(k).is_some();
+            if t != "default" {
+                return Err(VlmError::config(
+                    file,
+                    format!(
+                        "{name}.{k} is \"{t}\": scaled rotary positions are not supported (only \"default\"); \
+                         the model would answer with the wrong positions"
+                    ),
+                ));
+            }
+        }
+        let factor = ro.f64("factor", Some(1.0))?;
+        if !typed && factor != 1.0 {
+            return Err(VlmError::config(
+                file,
+                format!("{name}.factor is {factor} without a type: a scaled rope is not supported"),
+            ));
+        }
+        if ro.get("rope_theta").is_some() {
+            theta = ro.f64("rope_theta", None)?;
+        }
+    }
+    if !(theta.is_finite() && theta > 1.0) {
+        return Err(VlmError::config(file, format!("text_config rope_theta must be a number above 1, got {theta}")));
+    }
+    Ok(theta)
+}
+
 /// Parses `config.json` of a LLaVA-OneVision model directory.
 pub fn parse_llava_config(file: &Path, root: &Value) -> Result<LlavaConfig, VlmError> {
     let top = Obj { v: root, file, prefix: "" };
@@ -344,20 +391,7 @@ pub fn parse_llava_config(file: &Path, root: &Value) -> Result<LlavaConfig, VlmE
     if to.bool("use_sliding_window", false)? {
         return Err(VlmError::config(file, "text_config.use_sliding_window = true is not supported"));
     }
-    let rope_theta = match to.get("rope_parameters").or_else(|| to.get("rope_scaling")) {
-        Some(rp) => {
-            let ro = Obj { v: rp, file, prefix: "text_config.rope_parameters" };
-            let ty = ro.str("rope_type", Some("default")).or_else(|_| ro.str("type", Some("default")))?;
-            if ty != "default" {
-                return Err(VlmError::config(file, format!("rope type \"{ty}\" is not supported (default)")));
-            }
-            match ro.get("rope_theta") {
-                Some(_) => ro.f64("rope_theta", None)?,
-                None => to.f64("rope_theta", Some(10_000.0))?,
-            }
-        }
-        None => to.f64("rope_theta", Some(10_000.0))?,
-    };
+    let rope_theta = rope_theta(&top, &to, file)?;
     let hidden = to.usize("hidden_size", Some(4096))?;
     let heads = to.usize("num_attention_heads", Some(32))?;
     if heads == 0 {

@@ -134,7 +134,12 @@ impl ChatTokenizer {
         if !path.exists() {
             return Err(VlmError::config(&path, "is missing"));
         }
-        let inner = tokenizers::Tokenizer::from_file(&path)
+        // the tokenizers library panics on some malformed files (found by fuzzing): caught, and
+        // reported as a bad file like its errors
+        let inner = crate::backend::quietly(|| tokenizers::Tokenizer::from_file(&path))
+            .map_err(|m| {
+                VlmError::config(&path, format!("cannot load tokenizer: the tokenizers library failed on it ({m})"))
+            })?
             .map_err(|e| VlmError::config(&path, format!("cannot load tokenizer: {e}")))?;
         let mut tok = Self::new(inner, image_token_id, &path)?;
         tok.layout = template_layout(dir)?;

@@ -148,7 +148,7 @@ impl SceneInfo {
             masks: s.scene.masks,
             model,
             backend,
-            scene_views: DEFAULT_SCENE_VIEWS,
+            scene_views: DEFAULT_SCENE_VIEWS.min(s.train_views),
             max_new_tokens,
             max_side: crate::camera::MAX_SIDE,
         })

@@ -112,10 +112,11 @@ fn fox_jpegs_from_shared_datasets_decode() {
     std::fs::create_dir_all(&dir).unwrap();
     let frames: Vec<serde_json::Value> = names
         .iter()
-        .map(|n| {
+        .enumerate()
+        .map(|(i, n)| {
             serde_json::json!({
                 "file_path": fox.join("images").join(n).to_str().unwrap(),
-                "transform_matrix": [[1, 0, 0, 0], [0, 1, 0, 0], [0, 0, 1, 3], [0, 0, 0, 1]],
+                "transform_matrix": [[1, 0, 0, i], [0, 1, 0, 0], [0, 0, 1, 3], [0, 0, 0, 1]],
             })
         })
         .collect();

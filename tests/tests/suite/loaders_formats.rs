@@ -93,7 +93,7 @@ struct Pt {
 }
 
 #[derive(Clone)]
-struct Colmap {
+pub(crate) struct Colmap {
     cams: Vec<Cam>,
     imgs: Vec<Img>,
     pts: Vec<Pt>,
@@ -303,19 +303,20 @@ impl Colmap {
 }
 
 /// Writes the images (pixel blue channel = index of the name in sorted order / 10) and a mask for
-/// `img_a.png`; returns the mask ids.
+/// each (the ids of `img_a.png` returned, the others shifted by their index); returns the ids of
+/// `img_a.png`.
 fn colmap_images(dir: &Path) -> Vec<u8> {
     let mut sorted = NAMES;
     sorted.sort();
+    let ids = |k: u32| -> Vec<u8> { (0..W * H).map(|i| ((i % W + i / W + k) % 4) as u8).collect() };
     for (i, n) in sorted.iter().enumerate() {
         write_rgb(&dir.join("images").join(n), W, H, &gradient(i as f32 / 10.0, W, H)).unwrap();
+        write_gray8(&dir.join("masks").join(n), W, H, &ids(i as u32)).unwrap();
     }
-    let ids: Vec<u8> = (0..W * H).map(|i| ((i % W + i / W) % 4) as u8).collect();
-    write_gray8(&dir.join("masks/img_a.png"), W, H, &ids).unwrap();
-    ids
+    ids(0)
 }
 
-fn colmap_dir(tag: &str, bin: bool) -> (Scratch, Colmap) {
+pub(crate) fn colmap_dir(tag: &str, bin: bool) -> (Scratch, Colmap) {
     let dir = temp_dir(tag);
     let fx = colmap_fixture();
     fx.write(&dir.join("sparse/0"), bin);
@@ -385,10 +386,10 @@ fn colmap_split_downscale_masks_and_layouts() {
     assert_eq!((ds.train.len(), ds.test.len()), (3, 2));
     assert_eq!(names(&ds.test), ["img_b.png", "img_d.png"]);
     assert_eq!(names(&ds.train), ["img_a.png", "img_c.png", "img_e.png"]);
-    // Masks: only img_a has one.
+    // Masks: one per image, none missing.
     let ids = colmap_images(&dir);
     assert_eq!(full.train[0].instance_ids.as_deref(), Some(&ids[..]));
-    assert!(full.train[1..].iter().all(|v| v.instance_ids.is_none() && v.depth.is_none()));
+    assert!(full.train.iter().all(|v| v.instance_ids.is_some() && v.depth.is_none()));
     // Downscale by 2: 4x3, intrinsics halved, the same points project to half the pixel
     // coordinates, colours are 2x2 box averages and masks the top-left samples.
     let (half, _) = colmap::load(&dir, &opts(2, 0)).unwrap();
@@ -570,7 +571,7 @@ fn llff_rows() -> Vec<Vec<f64>> {
     ]
 }
 
-fn llff_dir(tag: &str) -> Scratch {
+pub(crate) fn llff_dir(tag: &str) -> Scratch {
     let dir = temp_dir(tag);
     for (i, n) in ["a.png", "b.jpg.png", "c.png"].iter().enumerate() {
         write_rgb(&dir.join("images").join(n), W, H, &gradient(i as f32 / 4.0, W, H)).unwrap();
@@ -646,11 +647,16 @@ fn llff_downscale_prefers_images_k_and_reads_masks() {
     // With masks (defined on images/), images/ is box-filtered and the masks subsampled.
     let ids: Vec<u8> = (0..48).map(|i| (i % 5) as u8).collect();
     write_gray8(&dir.join("masks/b.jpg.png"), W, H, &ids).unwrap();
+    // a mask folder that covers some images only is refused, naming the first missing mask
+    expect_err(llff::load(&dir, &opts(2, 0)), &["a.png", "is missing", "has masks for 1 of the 3 images"]);
+    for n in ["a.png", "c.png"] {
+        write_gray8(&dir.join("masks").join(n), W, H, &[0; 48]).unwrap();
+    }
     let m = llff::load(&dir, &opts(2, 0)).unwrap();
     assert!(m.train[1].image_path.starts_with(dir.join("images")));
     let got = m.train[1].instance_ids.as_ref().unwrap();
     assert_eq!(got, &(0..12).map(|i| ids[(i / 4) * 16 + (i % 4) * 2]).collect::<Vec<_>>());
-    assert!(m.train[0].instance_ids.is_none());
+    assert_eq!(m.train[0].instance_ids.as_deref(), Some(&[0u8; 12][..]));
     // images_2 with the wrong count is ignored.
     std::fs::remove_dir_all(dir.join("masks")).unwrap();
     std::fs::remove_file(dir.join("images_2/c.png")).unwrap();
@@ -717,7 +723,7 @@ fn replica_labels(i: usize) -> Vec<u16> {
     (0..W * H).map(|p| if p < W { 0 } else { pal[i][(p as usize) % pal[i].len()] }).collect()
 }
 
-fn replica_dir(tag: &str, frames: usize) -> Scratch {
+pub(crate) fn replica_dir(tag: &str, frames: usize) -> Scratch {
     let dir = temp_dir(tag);
     let mut traj = String::new();
     for i in 0..frames {
@@ -938,12 +944,21 @@ fn gaussian_grouping_object_masks_are_read() {
         assert_eq!(a.instance_ids, b.instance_ids);
     }
     let dir = llff_dir("llff-grouping");
-    let ids: Vec<u8> = (0..W * H).map(|i| (i % 3) as u8).collect();
-    write_gray8(&dir.join("object_mask/b.jpg.png"), W, H, &ids).unwrap();
+    let ids = |k: u32| -> Vec<u8> { (0..W * H).map(|i| ((i + k) % 3) as u8).collect() };
+    for (k, n) in ["a.png", "b.jpg.png", "c.png"].iter().enumerate() {
+        write_gray8(&dir.join("object_mask").join(n), W, H, &ids(k as u32)).unwrap();
+    }
     let ds = llff::load(&dir, &opts(1, 0)).unwrap();
     let b = ds.train.iter().find(|v| v.image_path.ends_with("b.jpg.png")).unwrap();
-    assert_eq!(b.instance_ids.as_deref(), Some(&ids[..]));
-    assert!(ds.train.iter().filter(|v| v.instance_ids.is_some()).count() == 1);
+    assert_eq!(b.instance_ids.as_deref(), Some(&ids(1)[..]));
+    assert!(ds.train.iter().all(|v| v.instance_ids.is_some()));
+    // an empty object_mask/ (SAM + DEVA not run yet) loads without masks, with a warning
+    std::fs::remove_dir_all(dir.join("object_mask")).unwrap();
+    std::fs::create_dir_all(dir.join("object_mask")).unwrap();
+    let before = model::error::warnings();
+    let ds = llff::load(&dir, &opts(1, 0)).unwrap();
+    assert!(ds.train.iter().all(|v| v.instance_ids.is_none()));
+    assert!(model::error::warnings() > before, "an empty mask folder is warned about");
 }
 
 #[test]
@@ -978,4 +993,138 @@ fn masks_from_another_tool_replace_any_formats_own() {
         std::fs::remove_dir_all(&dir).ok();
         std::fs::remove_dir_all(&masks).ok();
     }
+}
+
+/// Writes a PNG of raw samples (`bits` per sample, big-endian 16-bit) with an optional palette.
+fn raw_png(path: &Path, w: u32, h: u32, color: png::ColorType, bits: png::BitDepth, data: &[u8]) {
+    std::fs::create_dir_all(path.parent().unwrap()).unwrap();
+    let mut enc = png::Encoder::new(std::fs::File::create(path).unwrap(), w, h);
+    enc.set_color(color);
+    enc.set_depth(bits);
+    if color == png::ColorType::Indexed {
+        enc.set_palette((0..=255u8).flat_map(|i| [i, 255 - i, i / 2]).collect::<Vec<u8>>());
+    }
+    enc.write_header().unwrap().write_image_data(data).unwrap();
+}
+
+/// Instance masks are read by value whatever the PNG layout tools write (8- or 16-bit gray, a
+/// palette's indices, a gray mask saved as RGB), and what cannot be read right is refused, naming
+/// the file and a pixel: ids above 255 (no silent cut to a byte) and colour-coded masks (no
+/// silent read of the red channel).
+#[test]
+fn instance_masks_of_every_png_layout_are_read_by_value_or_refused() {
+    use png::{BitDepth, ColorType};
+    let (dir, _) = colmap_dir("mask-layouts", true);
+    let mask = dir.join("masks/img_a.png");
+    let ids: Vec<u8> = (0..W * H).map(|i| (i * 37 % 256) as u8).collect();
+    let load_a = || colmap::load(&dir, &opts(1, 0)).map(|(ds, _)| ds.train[0].instance_ids.clone().unwrap());
+    // 16-bit gray with ids below 256: the same ids (the high byte alone would make them all 0)
+    let wide: Vec<u8> = ids.iter().flat_map(|&v| (v as u16).to_be_bytes()).collect();
+    raw_png(&mask, W, H, ColorType::Grayscale, BitDepth::Sixteen, &wide);
+    assert_eq!(load_a().unwrap(), ids);
+    // a palette PNG (DEVA): the index is the id, whatever colour the palette gives it
+    raw_png(&mask, W, H, ColorType::Indexed, BitDepth::Eight, &ids);
+    assert_eq!(load_a().unwrap(), ids);
+    // 4-bit palette, packed two pixels a byte
+    let small: Vec<u8> = ids.iter().map(|v| v % 16).collect();
+    let packed: Vec<u8> = small.chunks(2).map(|p| (p[0] << 4) | p[1]).collect();
+    raw_png(&mask, W, H, ColorType::Indexed, BitDepth::Four, &packed);
+    assert_eq!(load_a().unwrap(), small);
+    // a gray mask saved as RGB: read; a colour-coded one: refused
+    let rgb: Vec<u8> = ids.iter().flat_map(|&v| [v, v, v]).collect();
+    raw_png(&mask, W, H, ColorType::Rgb, BitDepth::Eight, &rgb);
+    assert_eq!(load_a().unwrap(), ids);
+    let mut coloured = rgb.clone();
+    coloured[3 * 9 + 1] ^= 0x40;
+    raw_png(&mask, W, H, ColorType::Rgb, BitDepth::Eight, &coloured);
+    expect_err(load_a(), &["img_a.png", "colour-coded mask", "pixel (1, 1)"]);
+    // 16-bit ids above 255 are refused, naming the pixel
+    let mut big = wide.clone();
+    big[2 * 10..2 * 10 + 2].copy_from_slice(&300u16.to_be_bytes());
+    raw_png(&mask, W, H, ColorType::Grayscale, BitDepth::Sixteen, &big);
+    expect_err(load_a(), &["img_a.png", "instance id 300 at pixel (2, 1)", "above 255"]);
+    // some masks missing: refused, naming the first missing mask
+    raw_png(&mask, W, H, ColorType::Grayscale, BitDepth::Eight, &ids);
+    std::fs::remove_file(dir.join("masks/img_c.png")).unwrap();
+    expect_err(load_a(), &["img_c.png", "is missing", "has masks for 4 of the 5 images"]);
+}
+
+/// The synthetic capture's transforms.json, edited by `edit`, loaded.
+fn edited_capture(tag: &str, edit: impl Fn(&mut serde_json::Value)) -> model::Result<model::data::Dataset> {
+    let dir = temp_dir(tag);
+    let o = model::data::synth::SynthOptions { seed: 4, views: 4, width: 16, height: 12, ..Default::default() };
+    model::data::synth::write_dataset(&dir, &o, |_, _| {}).unwrap();
+    let path = dir.join("transforms.json");
+    let mut tf: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+    edit(&mut tf);
+    std::fs::write(&path, tf.to_string()).unwrap();
+    load_any(&dir, &LoadOptions { holdout_every: 2, ..Default::default() })
+}
+
+/// Captures no reconstruction can come from are refused with the image and the problem; the
+/// unedited capture loads.
+#[test]
+fn degenerate_captures_are_refused() {
+    assert_eq!(edited_capture("capture-ok", |_| {}).unwrap().train.len(), 2);
+    let frame0 = |tf: &serde_json::Value| tf["frames"][0].clone();
+    let cases: Vec<(&str, Box<dyn Fn(&mut serde_json::Value)>, &[&str])> = vec![
+        ("focal-mm", Box::new(|tf| tf["fl_x"] = 0.035.into()), &["focal length fx = 0.035", "field of view"]),
+        ("focal-huge", Box::new(|tf| tf["fl_y"] = 1e9.into()), &["focal length fy", "field of view"]),
+        ("principal-far", Box::new(|tf| tf["cx"] = 400.into()), &["principal point (400", "far outside"]),
+        (
+            "same-pose",
+            Box::new(move |tf| {
+                let m = tf["frames"][0]["transform_matrix"].clone();
+                for f in tf["frames"].as_array_mut().unwrap() {
+                    f["transform_matrix"] = m.clone();
+                }
+            }),
+            &["all 4 views have the same camera pose"],
+        ),
+        (
+            "same-pixels",
+            Box::new(move |tf| {
+                let p = tf["frames"][0]["file_path"].clone();
+                for f in tf["frames"].as_array_mut().unwrap() {
+                    f["file_path"] = p.clone();
+                }
+            }),
+            &["is both a training view and a held-out view"],
+        ),
+        (
+            "listed-twice",
+            Box::new(move |tf| {
+                let f = frame0(tf);
+                tf["frames"].as_array_mut().unwrap().insert(1, f);
+            }),
+            &["is both a training view and a held-out view"],
+        ),
+        ("depth-scale", Box::new(|tf| tf["depth_unit_scale_factor"] = (-0.001).into()), &["depth_unit_scale_factor"]),
+    ];
+    for (tag, edit, want) in cases {
+        let e = expect_err(edited_capture(tag, edit), want);
+        assert!(e.contains(".png") || e.contains("transforms.json"), "{tag}: names no file: {e}");
+    }
+}
+
+/// nerfstudio's own `mask_path` is a 0/255 validity mask: read as instance ids (one object) only
+/// with a warning that says so.
+#[test]
+fn binary_nerfstudio_masks_are_warned_about() {
+    let dir = temp_dir("binary-masks");
+    let o = model::data::synth::SynthOptions { seed: 4, views: 4, width: 16, height: 12, ..Default::default() };
+    model::data::synth::write_dataset(&dir, &o, |_, _| {}).unwrap();
+    let path = dir.join("transforms.json");
+    let mut tf: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+    for f in tf["frames"].as_array_mut().unwrap() {
+        let m = f.as_object_mut().unwrap().remove("instance_mask_path").unwrap();
+        let valid: Vec<u8> = (0..16 * 12).map(|i| if i % 16 < 8 { 255 } else { 0 }).collect();
+        write_gray8(&dir.join(m.as_str().unwrap()), 16, 12, &valid).unwrap();
+        f["mask_path"] = m;
+    }
+    std::fs::write(&path, tf.to_string()).unwrap();
+    let before = model::error::warnings();
+    let ds = load_any(&dir, &LoadOptions { holdout_every: 0, ..Default::default() }).unwrap();
+    assert!(ds.train.iter().all(|v| v.instance_ids.as_ref().unwrap().contains(&255)));
+    assert!(model::error::warnings() > before, "a 0/255 mask_path is warned about");
 }

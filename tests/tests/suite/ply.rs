@@ -29,21 +29,45 @@ fn round_trip_is_bit_exact() {
     std::fs::remove_file(&path).ok();
 }
 
+/// The Inria properties every Gaussian needs, as a header block.
+const GAUSSIAN_PROPS: &str = "property float f_dc_0\nproperty float f_dc_1\nproperty float f_dc_2\n\
+    property float opacity\nproperty float scale_0\nproperty float scale_1\nproperty float scale_2\n\
+    property float rot_0\nproperty float rot_1\nproperty float rot_2\nproperty float rot_3\n";
+
 #[test]
-fn ascii_and_big_endian_files_with_missing_optional_properties_load() {
-    let ascii = b"ply\nformat ascii 1.0\ncomment made by hand\nelement vertex 2\nproperty float x\n\
-        property float y\nproperty float z\nproperty uchar red\nend_header\n1 2 3 255\n4 5 6 0\n";
-    let c = ply::parse(ascii, "hand.ply").unwrap();
+fn ascii_and_big_endian_files_load_and_point_clouds_are_refused() {
+    let ascii = format!(
+        "ply\nformat ascii 1.0\ncomment made by hand\nelement vertex 2\nproperty float x\n\
+        property float y\nproperty float z\n{GAUSSIAN_PROPS}property uchar red\nend_header\n\
+        1 2 3 0.1 0.2 0.3 2 -3 -3 -3 0 1 0 0 255\n4 5 6 0 0 0 -1 -2 -2 -2 1 0 0 0 0\n"
+    );
+    let c = ply::parse(ascii.as_bytes(), "hand.ply").unwrap();
     assert_eq!(c.means, vec![[1.0, 2.0, 3.0], [4.0, 5.0, 6.0]]);
-    assert_eq!(c.quats[0], [1.0, 0.0, 0.0, 0.0]);
+    assert_eq!(c.quats[0], [0.0, 1.0, 0.0, 0.0]);
+    assert_eq!(c.opacity_logits, vec![2.0, -1.0]);
     assert_eq!(c.extra["red"], (1, vec![255.0, 0.0]));
-    let mut be = b"ply\nformat binary_big_endian 1.0\nelement vertex 1\nproperty double x\nproperty float y\n\
-        property float z\nend_header\n"
-        .to_vec();
+    let mut be = format!(
+        "ply\nformat binary_big_endian 1.0\nelement vertex 1\nproperty double x\nproperty float y\n\
+        property float z\n{GAUSSIAN_PROPS}end_header\n"
+    )
+    .into_bytes();
     be.extend_from_slice(&2.5f64.to_be_bytes());
-    be.extend_from_slice(&(-1.0f32).to_be_bytes());
-    be.extend_from_slice(&7.0f32.to_be_bytes());
+    for v in [-1.0f32, 7.0, 0.0, 0.0, 0.0, 1.0, -2.0, -2.0, -2.0, 1.0, 0.0, 0.0, 0.0] {
+        be.extend_from_slice(&v.to_be_bytes());
+    }
     assert_eq!(ply::parse(&be, "be.ply").unwrap().means, vec![[2.5, -1.0, 7.0]]);
+    // a point cloud (positions and colours only) is not rendered with made-up Gaussians
+    let cloud = b"ply\nformat ascii 1.0\nelement vertex 1\nproperty float x\nproperty float y\n\
+        property float z\nproperty uchar red\nend_header\n1 2 3 255\n";
+    let e = ply::parse(cloud, "cloud.ply").unwrap_err().to_string();
+    assert!(
+        e.starts_with("cloud.ply: ") && e.contains("lacks the `f_dc_0` property") && e.contains("point cloud"),
+        "{e}"
+    );
+    // one Gaussian property missing (opacity) is refused by name
+    let no_opacity = ascii.replace("property float opacity\n", "");
+    let e = ply::parse(no_opacity.as_bytes(), "hand.ply").unwrap_err().to_string();
+    assert!(e.contains("lacks the `opacity` property"), "{e}");
 }
 
 #[test]
@@ -53,7 +77,7 @@ fn malformed_files_give_errors_naming_the_file_and_the_problem() {
         (
             b"ply\nformat binary_little_endian 1.0\nelement vertex 3\nproperty float x\nproperty float y\n\
             property float z\nend_header\n\x00\x00",
-            "truncated",
+            "lacks the `f_dc_0` property",
         ),
         (
             b"ply\nformat binary_little_endian 1.0\nelement vertex 1\nproperty float x\nproperty float y\n\
@@ -64,7 +88,7 @@ fn malformed_files_give_errors_naming_the_file_and_the_problem() {
         (
             b"ply\nformat ascii 1.0\nelement vertex 2\nproperty float x\nproperty float y\nproperty float z\n\
             end_header\n1 2 3\n4 5\n",
-            "truncated",
+            "lacks the `f_dc_0` property",
         ),
     ];
     for (bytes, want) in cases {

@@ -308,7 +308,7 @@ fn loader_errors_name_the_file_and_the_problem() {
     let text = std::fs::read_to_string(&cfg).unwrap().replace("\"rope_type\": \"default\"", "\"rope_type\": \"yarn\"");
     std::fs::write(&cfg, text).unwrap();
     let e = load_err(&dir);
-    assert!(e.contains("rope type \"yarn\""), "{e}");
+    assert!(e.contains("text_config.rope_parameters.rope_type is \"yarn\""), "{e}");
 
     // Invalid JSON and a missing tokenizer.
     let dir = copy_fixture("vlm-json");

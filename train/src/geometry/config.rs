@@ -125,6 +125,9 @@ impl GeometryConfig {
     /// Refuses values out of range, naming the key.
     pub fn validate(&self) -> Result<()> {
         let bad = |key: &str, why: &str| Err(Error::input(format!("geometry config: {key} {why}")));
+        if self.iters == 0 {
+            return bad("iters", "must be at least 1 (0 would save the untrained initialisation as a run)");
+        }
         let rates = [
             ("lr_means", self.lr_means),
             ("lr_log_scales", self.lr_log_scales),
@@ -139,6 +142,9 @@ impl GeometryConfig {
             if !(v.is_finite() && v >= 0.0) {
                 return bad(k, "must be a finite number >= 0");
             }
+        }
+        if rates.iter().all(|(_, v)| *v == 0.0) {
+            return bad("lr_*", "are all 0: nothing would learn");
         }
         if !(self.lr_means_final_ratio > 0.0 && self.lr_means_final_ratio.is_finite()) {
             return bad("lr_means_final_ratio", "must be > 0");

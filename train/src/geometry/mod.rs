@@ -133,22 +133,37 @@ pub fn run(
         // runs with a fingerprint may resume on a moved copy of the same data; older ones need the same path
         let same_data = if stored.fingerprint.is_empty() { same_dir } else { stored.fingerprint == data.fingerprint };
         if !same_data || stored.downscale != data.downscale {
-            return Err(Error::invalid(
-                &out.dir,
+            let problem = if stored.downscale != data.downscale {
+                format!("was trained at downscale {}, not {}", stored.downscale, data.downscale)
+            } else if same_dir {
                 format!(
-                    "--resume: the run was trained on {} at downscale {} (fingerprint {}), not on {} at downscale {} \
-                     (fingerprint {})",
+                    "the data in {} changed since the run was trained on it: its photos, poses, split or masks \
+                     differ (fingerprint {} then, {} now; masks: {})",
+                    now.display(),
+                    stored.fingerprint,
+                    data.fingerprint,
+                    match &load.masks {
+                        Some(m) => format!("--masks {}", m.display()),
+                        None => "the capture's own, if any".into(),
+                    }
+                )
+            } else {
+                format!(
+                    "was trained on {} (fingerprint {}), not on {} (fingerprint {}): other photos, poses, split \
+                     or masks",
                     was.display(),
-                    stored.downscale,
                     stored.fingerprint,
                     now.display(),
-                    data.downscale,
                     data.fingerprint
-                ),
-            ));
+                )
+            };
+            return Err(Error::invalid(&out.dir, format!("--resume: the run {problem}")));
         }
-        t.cfg.iters = cfg.iters; // train until the requested total (nothing more when already past it)
+        // train until the requested total (nothing more when already past it; the stored total never
+        // drops below the iteration reached, so the saved state stays consistent)
+        t.cfg.iters = cfg.iters.max(t.iter);
         let at = t.iter;
+        crate::ckpt::warn_if_done(&out.dir, at, cfg.iters);
         (t, Some(at))
     } else {
         (GeometryTrainer::new_with_points(ds, points, cfg, device)?, None)

@@ -306,6 +306,7 @@ impl GeometryTrainer {
         let cfg: GeometryConfig = io::read_json(&run.config())?;
         cfg.validate().map_err(|e| Error::invalid(run.config(), e.to_string()))?;
         let (model, state) = run.load_model(device)?;
+        crate::ckpt::check_progress(&run.state(), state.iter, cfg.iters, &state.adam_time)?;
         let path = run.checkpoint();
         let (mut tensors, _) = io::read_f32(&path)?;
         for name in SplatParams::<()>::NAMES {

@@ -314,6 +314,9 @@ impl VlmTrainConfig {
         if !(self.adaptive_floor > 0.0 && self.adaptive_floor.is_finite()) {
             return bad("adaptive_floor", "must be > 0");
         }
+        if self.eval_every > 0 && self.eval_seeds == 0 {
+            return bad("eval_seeds", "must be at least 1 when eval_every is set (0 seeds would report 0 %)");
+        }
         if let Some(base) = &self.base {
             if base.model != self.model {
                 return bad("base.model", "must be the same model shape as this stage's");

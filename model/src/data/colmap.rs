@@ -156,14 +156,7 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<(Dataset, SparsePoints)> {
         camera.cx = (intr.cx / s) as f32;
         camera.cy = (intr.cy / s) as f32;
         let mask = super::mask_dir(dir).join(Path::new(&im.name).with_extension("png"));
-        let instance_ids = if opts.masks.is_some() {
-            None // replaced by --masks below
-        } else if mask.is_file() {
-            Some(read_ids8(&mask, w, h, k)?)
-        } else {
-            missing_masks.push(mask);
-            None
-        };
+        let instance_ids = super::own_mask(opts, mask, &mut missing_masks, |m| read_ids8(m, w, h, k))?;
         views.push(View { image_path: path, camera, rgb, instance_ids, depth: None });
     }
     super::check_own_masks(&super::mask_dir(dir), &missing_masks, views.len())?;

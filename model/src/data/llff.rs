@@ -86,14 +86,7 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
         let mut mask_name = path.file_stem().map(|s| s.to_os_string()).unwrap_or_default();
         mask_name.push(".png");
         let mask = masks.join(mask_name);
-        let instance_ids = if opts.masks.is_some() {
-            None // replaced by --masks below
-        } else if mask.is_file() {
-            Some(read_ids8(&mask, iw, ih, box_k)?)
-        } else {
-            missing_masks.push(mask);
-            None
-        };
+        let instance_ids = super::own_mask(opts, mask, &mut missing_masks, |m| read_ids8(m, iw, ih, box_k))?;
         views.push(View { image_path: path, camera, rgb, instance_ids, depth: None });
     }
     super::check_own_masks(&masks, &missing_masks, views.len())?;

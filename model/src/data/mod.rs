@@ -139,6 +139,24 @@ pub(crate) fn mask_dir(dir: &Path) -> PathBuf {
     if !ours.is_dir() && grouping.is_dir() { grouping } else { ours }
 }
 
+/// The capture's own mask of one view at `path`, read by `read`: `None` under `--masks` (which
+/// replaces it later) or when the file is missing (noted in `missing` for [`check_own_masks`]).
+pub(crate) fn own_mask(
+    opts: &LoadOptions,
+    path: PathBuf,
+    missing: &mut Vec<PathBuf>,
+    read: impl FnOnce(&Path) -> Result<Vec<u8>>,
+) -> Result<Option<Vec<u8>>> {
+    if opts.masks.is_some() {
+        Ok(None)
+    } else if path.is_file() {
+        read(&path).map(Some)
+    } else {
+        missing.push(path);
+        Ok(None)
+    }
+}
+
 /// A capture's own masks cover every view or none. `missing` are the mask files not found in
 /// `folder` for `total` views: some missing is refused, naming the first (a scene trained with
 /// masks for part of its views would learn no objects in the others); all missing while

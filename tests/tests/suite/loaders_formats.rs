@@ -1049,16 +1049,35 @@ fn instance_masks_of_every_png_layout_are_read_by_value_or_refused() {
     expect_err(load_a(), &["img_c.png", "is missing", "has masks for 4 of the 5 images"]);
 }
 
-/// The synthetic capture's transforms.json, edited by `edit`, loaded.
+/// A synthetic capture (4 views of 16x12) whose transforms.json is edited by `edit` (given the
+/// capture's folder too), loaded with every second view held out.
 fn edited_capture(tag: &str, edit: impl Fn(&mut serde_json::Value)) -> model::Result<model::data::Dataset> {
+    edited_capture_in(tag, 2, |_, tf| edit(tf))
+}
+
+fn edited_capture_in(
+    tag: &str,
+    holdout_every: usize,
+    edit: impl Fn(&Path, &mut serde_json::Value),
+) -> model::Result<model::data::Dataset> {
     let dir = temp_dir(tag);
     let o = model::data::synth::SynthOptions { seed: 4, views: 4, width: 16, height: 12, ..Default::default() };
     model::data::synth::write_dataset(&dir, &o, |_, _| {}).unwrap();
     let path = dir.join("transforms.json");
     let mut tf: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
-    edit(&mut tf);
+    edit(&dir, &mut tf);
     std::fs::write(&path, tf.to_string()).unwrap();
-    load_any(&dir, &LoadOptions { holdout_every: 2, ..Default::default() })
+    load_any(&dir, &LoadOptions { holdout_every, ..Default::default() })
+}
+
+/// An edit giving every frame frame 0's `key`.
+fn like_frame0(key: &'static str) -> Box<dyn Fn(&mut serde_json::Value)> {
+    Box::new(move |tf| {
+        let v = tf["frames"][0][key].clone();
+        for f in tf["frames"].as_array_mut().unwrap() {
+            f[key] = v.clone();
+        }
+    })
 }
 
 /// Captures no reconstruction can come from are refused with the image and the problem; the
@@ -1071,26 +1090,8 @@ fn degenerate_captures_are_refused() {
         ("focal-mm", Box::new(|tf| tf["fl_x"] = 0.035.into()), &["focal length fx = 0.035", "field of view"]),
         ("focal-huge", Box::new(|tf| tf["fl_y"] = 1e9.into()), &["focal length fy", "field of view"]),
         ("principal-far", Box::new(|tf| tf["cx"] = 400.into()), &["principal point (400", "far outside"]),
-        (
-            "same-pose",
-            Box::new(move |tf| {
-                let m = tf["frames"][0]["transform_matrix"].clone();
-                for f in tf["frames"].as_array_mut().unwrap() {
-                    f["transform_matrix"] = m.clone();
-                }
-            }),
-            &["all 4 views have the same camera pose"],
-        ),
-        (
-            "same-pixels",
-            Box::new(move |tf| {
-                let p = tf["frames"][0]["file_path"].clone();
-                for f in tf["frames"].as_array_mut().unwrap() {
-                    f["file_path"] = p.clone();
-                }
-            }),
-            &["is both a training view and a held-out view"],
-        ),
+        ("same-pose", like_frame0("transform_matrix"), &["all 4 views have the same camera pose"]),
+        ("same-file", like_frame0("file_path"), &["is both a training view and a held-out view"]),
         (
             "listed-twice",
             Box::new(move |tf| {
@@ -1111,20 +1112,16 @@ fn degenerate_captures_are_refused() {
 /// with a warning that says so.
 #[test]
 fn binary_nerfstudio_masks_are_warned_about() {
-    let dir = temp_dir("binary-masks");
-    let o = model::data::synth::SynthOptions { seed: 4, views: 4, width: 16, height: 12, ..Default::default() };
-    model::data::synth::write_dataset(&dir, &o, |_, _| {}).unwrap();
-    let path = dir.join("transforms.json");
-    let mut tf: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
-    for f in tf["frames"].as_array_mut().unwrap() {
-        let m = f.as_object_mut().unwrap().remove("instance_mask_path").unwrap();
-        let valid: Vec<u8> = (0..16 * 12).map(|i| if i % 16 < 8 { 255 } else { 0 }).collect();
-        write_gray8(&dir.join(m.as_str().unwrap()), 16, 12, &valid).unwrap();
-        f["mask_path"] = m;
-    }
-    std::fs::write(&path, tf.to_string()).unwrap();
     let before = model::error::warnings();
-    let ds = load_any(&dir, &LoadOptions { holdout_every: 0, ..Default::default() }).unwrap();
+    let ds = edited_capture_in("binary-masks", 0, |dir, tf| {
+        for f in tf["frames"].as_array_mut().unwrap() {
+            let m = f.as_object_mut().unwrap().remove("instance_mask_path").unwrap();
+            let valid: Vec<u8> = (0..16 * 12).map(|i| if i % 16 < 8 { 255 } else { 0 }).collect();
+            write_gray8(&dir.join(m.as_str().unwrap()), 16, 12, &valid).unwrap();
+            f["mask_path"] = m;
+        }
+    })
+    .unwrap();
     assert!(ds.train.iter().all(|v| v.instance_ids.as_ref().unwrap().contains(&255)));
     assert!(model::error::warnings() > before, "a 0/255 mask_path is warned about");
 }

@@ -495,6 +495,12 @@ fn broken_datasets_configs_and_arguments_are_refused() {
         out: run(&["train-vlm", "--eval-seeds", "0", "--evaluate"], &[&dir]),
         expect: vec!["--eval-seeds".into()],
     });
+    // held-out seeds that run into the training seeds are not held out
+    s.fails(Case {
+        name: "train-vlm --eval-from into the training seeds".into(),
+        out: run(&["train-vlm", "--eval-from", "999990", "--evaluate"], &[&dir]),
+        expect: vec!["--eval-from 999990".into(), "training seeds".into()],
+    });
     // teacher tokens: from another scene, or from a dataset that changed since, are refused
     let (teacher_other, teacher_base) = (dir.join("teacher-other"), dir.join("teacher-base"));
     s.succeeds("extract other", run(&["extract", "--data"], &[&other, Path::new("--out"), &teacher_other]));

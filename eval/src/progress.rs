@@ -15,8 +15,9 @@ pub struct Progress {
     bar: indicatif::ProgressBar,
     label: String,
     unit: &'static str,
-    /// Plain lines (stderr is not a terminal): the start and the last line's time.
-    log: Option<Mutex<(Instant, Instant)>>,
+    /// Plain lines (stderr is not a terminal): the start, the last line's time, and the count
+    /// the bar started from (a resumed run's first update is its first step done here).
+    log: Option<Mutex<(Instant, Instant, Option<usize>)>>,
 }
 
 impl Progress {
@@ -31,7 +32,7 @@ impl Progress {
         bar.set_style(style);
         bar.set_prefix(label.clone());
         let now = Instant::now();
-        let log = (!std::io::stderr().is_terminal()).then(|| Mutex::new((now, now)));
+        let log = (!std::io::stderr().is_terminal()).then(|| Mutex::new((now, now, None)));
         Self { bar, label, unit, log }
     }
 
@@ -42,7 +43,7 @@ impl Progress {
         self.bar.set_prefix(self.label.clone());
         if let Some(log) = &mut self.log {
             let now = Instant::now();
-            *log.get_mut().unwrap_or_else(|e| e.into_inner()) = (now, now);
+            *log.get_mut().unwrap_or_else(|e| e.into_inner()) = (now, now, None);
         }
     }
 
@@ -61,9 +62,10 @@ impl Progress {
         if let Some(log) = &self.log {
             let mut times = log.lock().unwrap_or_else(|e| e.into_inner());
             let now = Instant::now();
+            let from = *times.2.get_or_insert(done.saturating_sub(1));
             if now - times.1 >= LOG_EVERY || (done >= total && done > 0) {
                 times.1 = now;
-                eprintln!("{}", plain_line(&self.label, self.unit, done, total, now - times.0, extra));
+                eprintln!("{}", plain_line(&self.label, self.unit, done, total, from, now - times.0, extra));
             }
         }
     }
@@ -79,9 +81,19 @@ pub fn peak_rss_gib() -> Option<f64> {
 }
 
 /// `label: done/total unit (rate unit/s, eta) extra`.
-fn plain_line(label: &str, unit: &str, done: usize, total: usize, elapsed: Duration, extra: &str) -> String {
+/// One plain progress line; the rate counts what was done since `from` (where a resumed run's
+/// bar started), not the steps done before.
+fn plain_line(
+    label: &str,
+    unit: &str,
+    done: usize,
+    total: usize,
+    from: usize,
+    elapsed: Duration,
+    extra: &str,
+) -> String {
     let secs = elapsed.as_secs_f64();
-    let rate = if secs > 0.0 { done as f64 / secs } else { 0.0 };
+    let rate = if secs > 0.0 { done.saturating_sub(from) as f64 / secs } else { 0.0 };
     let eta =
         if rate > 0.0 && total > done { format!(", eta {:.0} s", (total - done) as f64 / rate) } else { String::new() };
     format!("{label}: {done}/{total} {unit} ({rate:.2} {unit}/s{eta}) {extra}").trim_end().to_string()
@@ -93,8 +105,11 @@ mod tests {
 
     #[test]
     fn plain_line_reports_rate_and_eta() {
-        let l = plain_line("train", "iters", 30, 90, Duration::from_secs(60), "loss 0.5");
+        let l = plain_line("train", "iters", 30, 90, 0, Duration::from_secs(60), "loss 0.5");
         assert_eq!(l, "train: 30/90 iters (0.50 iters/s, eta 120 s) loss 0.5");
-        assert_eq!(plain_line("x", "steps", 5, 5, Duration::from_secs(2), ""), "x: 5/5 steps (2.50 steps/s)");
+        assert_eq!(plain_line("x", "steps", 5, 5, 0, Duration::from_secs(2), ""), "x: 5/5 steps (2.50 steps/s)");
+        // resumed at step 1,000: 30 steps in 60 s is 0.5 steps/s, not 17
+        let l = plain_line("train", "steps", 1030, 3000, 1000, Duration::from_secs(60), "");
+        assert_eq!(l, "train: 1030/3000 steps (0.50 steps/s, eta 3940 s)");
     }
 }

@@ -5,10 +5,14 @@
 use crate::error::{Error, Result};
 use crate::language::{LanguageConfig, LanguageField, ObjectCrop, mask_out};
 use crate::run::{GeometryRun, LanguageRun};
-use crate::splats::{SplatModel, ViewRender};
+use crate::splats::{SplatModel, ViewRender, host};
 use burn::tensor::{Device, Int, Tensor, TensorData};
 use splat_kernels::api::{SplatOptions, splat};
+use splat_kernels::blend::BlendWeights;
+use splat_kernels::blend_ext::blend;
+use splat_kernels::cpu::SplatInputsRef;
 use splat_kernels::{Camera, Gaussians};
+use std::sync::Arc;
 
 /// Frozen geometry + language field.
 pub struct LanguageScene {
@@ -71,6 +75,52 @@ impl LanguageScene {
         let bg = Tensor::zeros([c], &features.device());
         let opts = SplatOptions { validate: false, ..Default::default() };
         Ok(splat(&self.gaussians(features), cam, bg, &opts)?.features)
+    }
+
+    /// The blend weights of the frozen Gaussians seen from `cam`: [`blend_map`](Self::blend_map)
+    /// with them is [`render_map`](Self::render_map) for any features, at a fraction of the cost
+    /// (`splat_kernels::blend`; what the language stage replays at every step).
+    pub fn blend_weights(&self, cam: &Camera) -> Result<BlendWeights> {
+        cam.validate()?;
+        let m = &self.splats;
+        let n = m.len();
+        let (means, log_scales) = (host(m.means.val()), host(m.log_scales.val()));
+        let (quats, opacity_logits) = (host(m.quats.val()), host(m.opacity_logits.val()));
+        let screen_offsets = vec![0f32; 2 * n];
+        let inp = SplatInputsRef {
+            means: &means,
+            log_scales: &log_scales,
+            quats: &quats,
+            opacity_logits: &opacity_logits,
+            features: &[],
+            background: &[],
+            screen_offsets: &screen_offsets,
+            channels: 0,
+        };
+        Ok(BlendWeights::of(&inp, cam, &SplatOptions::default().config))
+    }
+
+    /// `features` `[N, C]` blended with kept `weights` over a zero background: `[H, W, C]`.
+    pub fn blend_map(&self, features: Tensor<2>, weights: &Arc<BlendWeights>) -> Result<Tensor<3>> {
+        Ok(blend(features, weights)?)
+    }
+
+    /// View-level tokens `[T, D]` with `field` and the kept weights of the view's token camera
+    /// (`blend_weights(&cfg.view_camera(cam))`): [`view_tokens`](Self::view_tokens), faster.
+    pub fn view_tokens_kept(&self, field: &LanguageField, weights: &Arc<BlendWeights>) -> Result<Tensor<2>> {
+        Ok(field.encoder.forward(self.blend_map(field.view_features.val(), weights)?))
+    }
+
+    /// Object-level tokens `[T, D]` with `field`, the kept weights of an object's crop camera and
+    /// its mask: [`object_tokens_with`](Self::object_tokens_with), faster.
+    pub fn object_tokens_kept(
+        &self,
+        field: &LanguageField,
+        weights: &Arc<BlendWeights>,
+        mask: &[f32],
+    ) -> Result<Tensor<2>> {
+        let map = cut_out(self.blend_map(field.object_features.val(), weights)?, mask.to_vec());
+        Ok(field.encoder.forward_level(map, true))
     }
 
     /// RGB, identity and alpha of a view.

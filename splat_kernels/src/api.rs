@@ -103,6 +103,11 @@ fn check_finite<const D: usize>(name: &'static str, t: &Tensor<D>) -> Result<(),
     Ok(())
 }
 
+/// Whether `device` runs CubeCL kernels (wgpu) rather than on the host.
+pub fn on_cube(device: &burn::tensor::Device) -> bool {
+    matches!(device.clone().inner().as_dispatch(), burn::backend::DispatchDevice::Cube(_))
+}
+
 /// Renders `gaussians` from `camera` over `background` (`[C]`).
 ///
 /// Differentiable (hand-written backward) with respect to every Gaussian tensor, the background and
@@ -144,7 +149,7 @@ pub fn splat(
     if options.validate {
         check_finite("background", &background)?;
     }
-    let is_cube = matches!(device.clone().inner().as_dispatch(), burn::backend::DispatchDevice::Cube(_));
+    let is_cube = on_cube(&device);
     let budget = options.max_pass_bytes.unwrap_or(if is_cube { 128 << 20 } else { usize::MAX });
     let floats = budget / 4;
     let hw = (camera.width * camera.height) as usize;

@@ -186,7 +186,7 @@ pub fn bin(inp: &SplatInputsRef, cam: &Camera, cfg: &RasterConfig) -> Binned {
 }
 
 /// Pixel coordinates covered by tile `t`, clipped to the image.
-fn tile_pixels(cam: &Camera, t: usize) -> (u32, u32, u32, u32) {
+pub(crate) fn tile_pixels(cam: &Camera, t: usize) -> (u32, u32, u32, u32) {
     let tx = cam.tiles()[0] as usize;
     let x0 = (t % tx) as u32 * TILE_SIZE;
     let y0 = (t / tx) as u32 * TILE_SIZE;
@@ -252,6 +252,61 @@ fn power_cut(p: &Projected, cfg: &RasterConfig) -> f32 {
     if cfg.alpha_min > 0.0 && p.opacity > 0.0 { (cfg.alpha_min / p.opacity).ln() - 1e-3 } else { f32::NEG_INFINITY }
 }
 
+/// Walks tile `t`'s depth-sorted list front to back exactly as the forward composites it, calling
+/// `visit(q, k, gid, projected, weight)` for every Gaussian that contributes to the tile's pixel
+/// `q` (row-major within the tile), `k` being its position in the tile's list and `weight` its
+/// blend weight `alpha * T`. Returns the tile's final transmittance per pixel.
+#[inline]
+pub(crate) fn walk_tile(
+    b: &Binned,
+    cam: &Camera,
+    cfg: &RasterConfig,
+    t: usize,
+    mut visit: impl FnMut(usize, usize, u32, &Projected, f32),
+) -> Vec<f32> {
+    let (x0, y0, x1, y1) = tile_pixels(cam, t);
+    let (w, h) = ((x1 - x0) as usize, (y1 - y0) as usize);
+    let np = w * h;
+    let mut final_t = vec![1.0f32; np];
+    let mut done = vec![false; np];
+    let mut active = np;
+    let list = &b.gids[b.tile_offsets[t]..b.tile_offsets[t + 1]];
+    for (k, &gid) in list.iter().enumerate() {
+        if active == 0 {
+            break;
+        }
+        let p = b.projected[gid as usize].as_ref().expect("binned Gaussian is projected");
+        let (wx0, wx1, wy0, wy1) = pixel_window(p, cfg, x0, y0, w, h);
+        let cut = power_cut(p, cfg);
+        for py in wy0..wy1 {
+            for px in wx0..wx1 {
+                let q = py * w + px;
+                if done[q] {
+                    continue;
+                }
+                let (power, _, _) = eval_power(p, (x0 as usize + px) as f32 + 0.5, (y0 as usize + py) as f32 + 0.5);
+                if power > 0.0 || power < cut {
+                    continue;
+                }
+                let alpha = (p.opacity * power.exp()).min(cfg.alpha_max);
+                if alpha < cfg.alpha_min {
+                    continue;
+                }
+                let t_pix = final_t[q];
+                let next_t = t_pix * (1.0 - alpha);
+                if next_t < cfg.t_min {
+                    done[q] = true;
+                    active -= 1;
+                    continue;
+                }
+                visit(q, k, gid, p, alpha * t_pix);
+                final_t[q] = next_t;
+            }
+        }
+    }
+    final_t
+}
+
 struct TileFwd {
     image: Vec<f32>,
     alpha: Vec<f32>,
@@ -282,58 +337,24 @@ pub fn forward_binned(inp: &SplatInputsRef, cam: &Camera, cfg: &RasterConfig, b:
                 alpha: vec![0.0; np],
                 depth: vec![0.0; np],
                 top_id: vec![EMPTY_ID; np],
-                final_t: vec![1.0; np],
+                final_t: Vec::new(),
                 n_visited: vec![0; np],
             };
             let mut best_w = vec![0.0f32; np];
-            let mut done = vec![false; np];
-            let mut active = np;
-            let list = &b.gids[b.tile_offsets[t]..b.tile_offsets[t + 1]];
-            for (k, &gid) in list.iter().enumerate() {
-                if active == 0 {
-                    break;
+            let f_all = inp.features;
+            out.final_t = walk_tile(b, cam, cfg, t, |q, k, gid, p, wgt| {
+                let f = &f_all[gid as usize * c..(gid as usize + 1) * c];
+                let img = &mut out.image[q * c..(q + 1) * c];
+                for ch in 0..c {
+                    img[ch] += wgt * f[ch];
                 }
-                let p = b.projected[gid as usize].as_ref().expect("binned Gaussian is projected");
-                let f = &inp.features[gid as usize * c..(gid as usize + 1) * c];
-                let (wx0, wx1, wy0, wy1) = pixel_window(p, cfg, x0, y0, w, h);
-                let cut = power_cut(p, cfg);
-                for py in wy0..wy1 {
-                    for px in wx0..wx1 {
-                        let q = py * w + px;
-                        if done[q] {
-                            continue;
-                        }
-                        let (power, _, _) =
-                            eval_power(p, (x0 as usize + px) as f32 + 0.5, (y0 as usize + py) as f32 + 0.5);
-                        if power > 0.0 || power < cut {
-                            continue;
-                        }
-                        let alpha = (p.opacity * power.exp()).min(cfg.alpha_max);
-                        if alpha < cfg.alpha_min {
-                            continue;
-                        }
-                        let t_pix = out.final_t[q];
-                        let next_t = t_pix * (1.0 - alpha);
-                        if next_t < cfg.t_min {
-                            done[q] = true;
-                            active -= 1;
-                            continue;
-                        }
-                        let wgt = alpha * t_pix;
-                        let img = &mut out.image[q * c..(q + 1) * c];
-                        for ch in 0..c {
-                            img[ch] += wgt * f[ch];
-                        }
-                        out.depth[q] += wgt * p.depth;
-                        if wgt > best_w[q] {
-                            best_w[q] = wgt;
-                            out.top_id[q] = gid as i32;
-                        }
-                        out.final_t[q] = next_t;
-                        out.n_visited[q] = k as i32 + 1;
-                    }
+                out.depth[q] += wgt * p.depth;
+                if wgt > best_w[q] {
+                    best_w[q] = wgt;
+                    out.top_id[q] = gid as i32;
                 }
-            }
+                out.n_visited[q] = k as i32 + 1;
+            });
             for q in 0..np {
                 let tf = out.final_t[q];
                 out.alpha[q] = 1.0 - tf;

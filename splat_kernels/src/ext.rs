@@ -109,7 +109,7 @@ pub fn read_ints<B: Backend>(t: IntTensor<B>) -> Vec<i32> {
     data.convert::<i32>().into_vec::<i32>().expect("i32 data")
 }
 
-fn float_prim<B: Backend>(v: Vec<f32>, shape: Vec<usize>, device: &B::Device) -> FloatTensor<B> {
+pub(crate) fn float_prim<B: Backend>(v: Vec<f32>, shape: Vec<usize>, device: &B::Device) -> FloatTensor<B> {
     B::float_from_data(TensorData::new(v, Shape::from(shape)), device)
 }
 

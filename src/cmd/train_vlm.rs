@@ -3,7 +3,7 @@
 use eval::progress::Progress;
 use model::Backend;
 use std::path::PathBuf;
-use train::vlm::{EVAL_SEEDS, VlmTrainConfig, evaluate_model, train_from};
+use train::vlm::{EVAL_SEEDS, TRAIN_SEEDS, VlmTrainConfig, evaluate_model, train_from};
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -30,9 +30,13 @@ pub struct Args {
     /// train_config.json must equal the base) instead of training it.
     #[arg(long)]
     pub base_model: Option<PathBuf>,
-    /// Held-out seeds for --evaluate (seeds `10000..10000 + n`).
+    /// Held-out seeds for --evaluate (seeds `FROM..FROM + n`).
     #[arg(long, default_value_t = 50)]
     pub eval_seeds: u64,
+    /// The first held-out seed for --evaluate (10000: the seeds training evaluates on; any other
+    /// start below the training seeds, 1000000, gives scenes the model has never been scored on).
+    #[arg(long, default_value_t = EVAL_SEEDS)]
+    pub eval_from: u64,
     /// Go on from OUT's checkpoints: stages OUT already holds are not trained again, an
     /// interrupted one continues from its last checkpoint (the same weights as an uninterrupted
     /// run).
@@ -48,9 +52,17 @@ fn evaluate(dir: &std::path::Path, a: &Args) -> anyhow::Result<()> {
     if a.eval_seeds == 0 {
         anyhow::bail!("--eval-seeds must be at least 1 (the number of held-out scenes to ask about)");
     }
+    if a.eval_from.saturating_add(a.eval_seeds) > TRAIN_SEEDS {
+        anyhow::bail!(
+            "--eval-from {} with --eval-seeds {} reaches the training seeds ({TRAIN_SEEDS} and up): held-out \
+             seeds lie below",
+            a.eval_from,
+            a.eval_seeds
+        );
+    }
     let device = a.backend.device();
     let t0 = std::time::Instant::now();
-    let seeds = EVAL_SEEDS..EVAL_SEEDS + a.eval_seeds;
+    let seeds = a.eval_from..a.eval_from + a.eval_seeds;
     let acc = model::catch_backend("VLM evaluation", || {
         let vlm = model::vlm::LlavaOnevision::load(dir, &device)?;
         evaluate_model(vlm, seeds.clone(), (2, 2), &cfg, &device)
@@ -68,12 +80,14 @@ fn evaluate(dir: &std::path::Path, a: &Args) -> anyhow::Result<()> {
 
 /// The stages of `cfg`'s chain, and the number of the first one to train (1: the innermost base),
 /// after those `base_model` was trained with.
-fn stages(cfg: &VlmTrainConfig, base_model: Option<&std::path::Path>) -> (usize, usize) {
-    let chain: Vec<&VlmTrainConfig> = std::iter::successors(Some(cfg), |c| c.base.as_deref()).collect();
-    let read = |d: &std::path::Path| model::io::read_config::<VlmTrainConfig>(&d.join("train_config.json")).ok();
-    let done =
-        base_model.and_then(read).and_then(|b| chain.iter().position(|c| **c == b)).map_or(0, |i| chain.len() - i);
-    (chain.len(), done + 1)
+fn stages(
+    cfg: &VlmTrainConfig,
+    out: &std::path::Path,
+    base_model: Option<&std::path::Path>,
+    resume: bool,
+) -> (usize, usize) {
+    let chain = std::iter::successors(Some(cfg), |c| c.base.as_deref()).count();
+    (chain, train::vlm::stages_done(cfg, out, base_model, resume) + 1)
 }
 
 pub fn run(a: Args, ranks: &crate::ranks::Ranks) -> anyhow::Result<()> {
@@ -95,7 +109,7 @@ pub fn run(a: Args, ranks: &crate::ranks::Ranks) -> anyhow::Result<()> {
     }
     super::check_config(a.config.as_deref(), cfg.validate())?;
     let device = a.backend.device();
-    let (stages, first) = stages(&cfg, a.base_model.as_deref());
+    let (stages, first) = stages(&cfg, &a.out, a.base_model.as_deref(), a.resume);
     let mut stage = first;
     let stage_label =
         |i: usize| if stages > 1 { format!("train-vlm (stage {i} of {stages})") } else { "train-vlm".into() };

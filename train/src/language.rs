@@ -26,7 +26,9 @@ use model::scene::LanguageScene;
 use model::splats::host;
 use serde::{Deserialize, Serialize};
 use splat_kernels::Camera;
+use splat_kernels::blend::BlendWeights;
 use std::collections::HashMap;
+use std::sync::Arc;
 
 /// Every knob of the language stage (saved beside the run as `config.json`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
@@ -69,6 +71,13 @@ pub struct LanguageTrainConfig {
     /// Training views per step (their mean loss; 1 as in the paper). A data-parallel run splits
     /// each step's views across its ranks, so it needs at least one per rank.
     pub views_per_step: usize,
+    /// Memory (MiB) for the blend weights of the training cameras (views and object crops): the
+    /// geometry is frozen, so each camera's weights are found once and every later step replays
+    /// them (`splat_kernels::blend`: the same maps, no projection, sorting or Gaussian evaluation)
+    /// instead of rasterising forward and backward. Cameras past the budget get their weights
+    /// found again at each visit; 0 rasterises every map as the geometry stage does. The replay
+    /// is a host loop, so on wgpu the maps stay with the device's rasterizer.
+    pub kept_weights_mb: usize,
 }
 
 impl Default for LanguageTrainConfig {
@@ -87,6 +96,7 @@ impl Default for LanguageTrainConfig {
             checkpoint_every: 500,
             checkpoint_seconds: 300,
             views_per_step: 1,
+            kept_weights_mb: 2048,
         }
     }
 }
@@ -139,6 +149,12 @@ pub struct LanguageTrainer {
     /// Per-Gaussian sum of |gradient| of both feature tensors: zero = never seen by any map.
     pub contribution: Vec<f32>,
     masks: HashMap<(usize, u8), (Camera, Vec<f32>)>,
+    /// Blend weights of training cameras `(view, object)` and the bytes they hold.
+    kept: HashMap<(usize, Option<u8>), Arc<BlendWeights>>,
+    kept_bytes: usize,
+    /// Teacher tokens `(view, object)` as read once.
+    targets: HashMap<(usize, Option<u8>), Arc<Vec<f32>>>,
+    targets_bytes: usize,
     device: Device,
     adam: Adam,
 }
@@ -223,6 +239,10 @@ impl LanguageTrainer {
             iter: 0,
             contribution: vec![0.0; n],
             masks: HashMap::new(),
+            kept: HashMap::new(),
+            kept_bytes: 0,
+            targets: HashMap::new(),
+            targets_bytes: 0,
             device: device.clone(),
             adam: AdamConfig::new().with_epsilon(1e-15).build(),
         }
@@ -236,6 +256,59 @@ impl LanguageTrainer {
         let m = self.scene.object_crop(&self.views[v].camera, obj.id, obj.bbox)?;
         self.masks.insert((v, obj.id), m.clone());
         Ok(m)
+    }
+
+    /// The blend weights of a training camera: kept from an earlier step, or found now (and kept
+    /// while they fit in `kept_weights_mb`).
+    fn weights(&mut self, key: (usize, Option<u8>), cam: &Camera) -> Result<Arc<BlendWeights>> {
+        if let Some(w) = self.kept.get(&key) {
+            return Ok(w.clone());
+        }
+        let w = Arc::new(self.scene.blend_weights(cam)?);
+        if self.kept_bytes + w.bytes() <= self.cfg.kept_weights_mb.saturating_mul(1 << 20) {
+            self.kept_bytes += w.bytes();
+            self.kept.insert(key, w.clone());
+        }
+        Ok(w)
+    }
+
+    /// Whether maps replay kept weights (a CPU backend and a budget) or are rasterised.
+    fn replay(&self) -> bool {
+        self.cfg.kept_weights_mb > 0 && !splat_kernels::api::on_cube(&self.device)
+    }
+
+    /// View-level tokens of training view `v` with `field`.
+    fn view_tokens(&mut self, field: &LanguageField, v: usize) -> Result<Tensor<2>> {
+        let cam = self.views[v].camera;
+        if !self.replay() {
+            return self.scene.view_tokens(field, &cam);
+        }
+        let w = self.weights((v, None), &self.scene.cfg.view_camera(&cam))?;
+        self.scene.view_tokens_kept(field, &w)
+    }
+
+    /// Object-level tokens of object `obj` of training view `v` with `field`.
+    fn object_tokens(&mut self, field: &LanguageField, v: usize, obj: &TeacherObject) -> Result<Tensor<2>> {
+        let (oc, mask) = self.mask(v, obj)?;
+        if !self.replay() {
+            return self.scene.object_tokens_with(field, &oc, &mask);
+        }
+        let w = self.weights((v, Some(obj.id)), &oc)?;
+        self.scene.object_tokens_kept(field, &w, &mask)
+    }
+
+    /// The teacher's tokens of view `v` (`None`) or of its object, read from disk once (and kept
+    /// while they fit in the same budget as the weights).
+    fn target(&mut self, v: usize, object: Option<u8>) -> Result<Arc<Vec<f32>>> {
+        if let Some(t) = self.targets.get(&(v, object)) {
+            return Ok(t.clone());
+        }
+        let t = Arc::new(self.teacher.tokens(v, object)?);
+        if self.targets_bytes + 4 * t.len() <= self.cfg.kept_weights_mb.saturating_mul(1 << 20) {
+            self.targets_bytes += 4 * t.len();
+            self.targets.insert((v, object), t.clone());
+        }
+        Ok(t)
     }
 
     /// One optimisation step on training view `v`.
@@ -328,10 +401,9 @@ impl LanguageTrainer {
     ) -> Result<(Tensor<1>, f32, f32, usize)> {
         let d = self.cfg.field.dim;
         let t = self.cfg.field.tokens();
-        let target = |x: Vec<f32>| Tensor::<2>::from_data(TensorData::new(x, [t, d]), ad);
-        let cam = self.views[v].camera;
-        let tokens = self.scene.view_tokens(field, &cam)?;
-        let lv = (tokens - target(self.teacher.tokens(v, None)?)).abs().mean();
+        let target = |x: Arc<Vec<f32>>| Tensor::<2>::from_data(TensorData::new(x.to_vec(), [t, d]), ad);
+        let tokens = self.view_tokens(field, v)?;
+        let lv = (tokens - target(self.target(v, None)?)).abs().mean();
         let mut loss = lv.clone();
         let mut objects = self.teacher.views[v].objects.clone();
         let k = self.cfg.max_objects_per_step;
@@ -345,9 +417,8 @@ impl LanguageTrainer {
         }
         let mut lo_sum: Option<Tensor<1>> = None;
         for obj in &objects {
-            let (oc, mask) = self.mask(v, obj)?;
-            let tok = self.scene.object_tokens_with(field, &oc, &mask)?;
-            let l = (tok - target(self.teacher.tokens(v, Some(obj.id))?)).abs().mean();
+            let tok = self.object_tokens(field, v, obj)?;
+            let l = (tok - target(self.target(v, Some(obj.id))?)).abs().mean();
             lo_sum = Some(match lo_sum {
                 Some(s) => s + l,
                 None => l,
@@ -374,14 +445,13 @@ impl LanguageTrainer {
     /// Mean token L1 over the training views `(view, object)` with the current field.
     pub fn token_l1(&mut self, views: &[usize]) -> Result<(f32, f32)> {
         let (mut lv, mut lo, mut no) = (0.0, 0.0, 0);
+        let field = self.scene.field.clone();
         for &v in views {
-            let cam = self.views[v].camera;
-            let tok = host(self.scene.view_tokens(&self.scene.field, &cam)?);
-            lv += mean_abs_diff(&tok, &self.teacher.tokens(v, None)?);
+            let tok = host(self.view_tokens(&field, v)?);
+            lv += mean_abs_diff(&tok, &self.target(v, None)?);
             for obj in self.teacher.views[v].objects.clone() {
-                let (oc, mask) = self.mask(v, &obj)?;
-                let tok = host(self.scene.object_tokens_with(&self.scene.field, &oc, &mask)?);
-                lo += mean_abs_diff(&tok, &self.teacher.tokens(v, Some(obj.id))?);
+                let tok = host(self.object_tokens(&field, v, &obj)?);
+                lo += mean_abs_diff(&tok, &self.target(v, Some(obj.id))?);
                 no += 1;
             }
         }

@@ -461,6 +461,54 @@ fn wgpu_tokens_and_gradients_match_ndarray() {
     assert!(rel(&gw_cpu, &gw_gpu) < 1e-3);
 }
 
+/// The language stage keeps each training camera's blend weights (the geometry is frozen) and
+/// replays them: view and object tokens and the feature gradients must be the rasterizer's, on
+/// both CPU backends; features of the wrong length are refused.
+#[test]
+fn kept_blend_weights_give_the_rasterized_tokens_and_gradients() {
+    let cam = splat_kernels::Camera::look_at(Vec3::new(2.6, 2.2, 3.0), Vec3::new(0.0, 0.3, 0.0), Vec3::Y, 50.0, 80, 64);
+    for dev in [Device::ndarray(), Device::flex()] {
+        let s = small_scene(&dev);
+        let vc = s.cfg.view_camera(&cam);
+        let oc = s.cfg.object_camera(&cam, [20, 14, 52, 40]);
+        let r = oc.width as usize;
+        let mask: Vec<f32> = (0..r * r).map(|i| !(i / r + i % r).is_multiple_of(3) as u8 as f32).collect();
+        let kept = |c: &splat_kernels::Camera| std::sync::Arc::new(s.blend_weights(c).unwrap());
+        let (wv, wo) = (kept(&vc), kept(&oc));
+        assert!(wv.len() > wv.width * wv.height, "the tabletop covers the view: {} entries", wv.len());
+        let ad = dev.clone().autodiff();
+        let grads = |replay: bool| {
+            let mut f = s.field.clone();
+            let fv = f.view_features.val().autodiff().require_grad();
+            let fo = f.object_features.val().autodiff().require_grad();
+            f.view_features = burn::module::Param::from_tensor(fv.clone());
+            f.object_features = burn::module::Param::from_tensor(fo.clone());
+            f.encoder =
+                Encoder::from_named(f.encoder.named().into_iter().map(|(n, t)| (n, t.autodiff())).collect()).unwrap();
+            let (tv, to) = if replay {
+                (s.view_tokens_kept(&f, &wv).unwrap(), s.object_tokens_kept(&f, &wo, &mask).unwrap())
+            } else {
+                (s.view_tokens(&f, &cam).unwrap(), s.object_tokens_with(&f, &oc, &mask).unwrap())
+            };
+            let target = Tensor::<2>::ones(tv.dims(), &ad);
+            let loss = (tv.clone() - target.clone()).abs().mean() + (to.clone() - target).abs().mean();
+            let g = loss.backward();
+            [host(tv.inner()), host(to.inner()), host(fv.grad(&g).unwrap()), host(fo.grad(&g).unwrap())]
+        };
+        let (raster, replay) = (grads(false), grads(true));
+        for (name, (a, b)) in
+            ["view tokens", "object tokens", "view grads", "object grads"].iter().zip(raster.iter().zip(&replay))
+        {
+            let scale = a.iter().map(|x| x.abs()).fold(0f32, f32::max);
+            let worst = a.iter().zip(b).map(|(x, y)| (x - y).abs()).fold(0f32, f32::max);
+            assert!(scale > 0.0 && worst <= 1e-5 * scale, "{name} on {dev:?}: off by {worst} (scale {scale})");
+        }
+        let short = Tensor::<2>::zeros([s.splats.len() - 1, 4], &dev);
+        let err = s.blend_map(short, &wv).unwrap_err().to_string();
+        assert!(err.contains("Gaussians"), "{err}");
+    }
+}
+
 /// Folding the last (linear) lifting layer into the patch convolution — what the encoder does when
 /// it is cheaper, as at LLaVA-OneVision's size — gives the plain encoder's tokens and gradients.
 #[test]

@@ -442,3 +442,33 @@ fn chatsplat_tokens_answer_a_held_out_scene_nearly_as_well_as_ground_truth_image
 /// objects sharpen late, BENCHMARKS.md).
 const E2E_FLOOR: f64 = 0.85;
 const E2E_GAP: f64 = 0.05;
+
+/// The stage a resumed or `--base-model` chain starts at (what its progress bar names): stages
+/// `--base-model` holds and, with `--resume`, those already finished under `out` are skipped.
+#[test]
+fn stages_done_counts_the_stages_a_run_skips() {
+    use train::vlm::stages_done;
+    let inner = VlmTrainConfig { steps: 3, ..tiny_config() };
+    let mid = VlmTrainConfig { steps: 4, base: Some(Box::new(inner.clone())), ..tiny_config() };
+    let outer = VlmTrainConfig { steps: 5, base: Some(Box::new(mid.clone())), ..tiny_config() };
+    let finish = |dir: &std::path::Path, c: &VlmTrainConfig| {
+        std::fs::create_dir_all(dir).unwrap();
+        model::io::write_json(&dir.join("train_config.json"), c).unwrap();
+        std::fs::write(dir.join("model.safetensors"), b"").unwrap();
+    };
+    let out = temp_dir("stages-done");
+    assert_eq!(stages_done(&outer, &out, None, true), 0);
+    finish(&out.join("base").join("base"), &inner);
+    assert_eq!(stages_done(&outer, &out, None, true), 1, "the innermost stage is done");
+    assert_eq!(stages_done(&outer, &out, None, false), 0, "without --resume every stage trains again");
+    finish(&out.join("base"), &mid);
+    assert_eq!(stages_done(&outer, &out, None, true), 2);
+    // a finished folder of another configuration does not count
+    let other = temp_dir("stages-done-other");
+    finish(&other.join("base"), &VlmTrainConfig { steps: 9, ..mid.clone() });
+    assert_eq!(stages_done(&outer, &other, None, true), 0);
+    // --base-model holding the innermost stage
+    let base = temp_dir("stages-done-base");
+    finish(&base, &inner);
+    assert_eq!(stages_done(&outer, &other, Some(&base), false), 1);
+}

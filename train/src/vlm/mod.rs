@@ -923,6 +923,24 @@ pub fn train_from(
     train_stages(cfg, out, base_model, device, c, resume, &mut progress)
 }
 
+/// How many of `cfg`'s stages (the innermost first) a run into `out` does not train: those
+/// `base_model` holds and, with `resume`, those already finished under `out` (stage `k` from the
+/// end lives in `out/base/.../base`, `k` deep).
+pub fn stages_done(cfg: &VlmTrainConfig, out: &Path, base_model: Option<&Path>, resume: bool) -> usize {
+    let chain: Vec<&VlmTrainConfig> = std::iter::successors(Some(cfg), |c| c.base.as_deref()).collect();
+    let read = |d: &Path| io::read_config::<VlmTrainConfig>(&d.join("train_config.json")).ok();
+    let given =
+        base_model.and_then(read).and_then(|b| chain.iter().position(|c| **c == b)).map_or(0, |i| chain.len() - i);
+    let mut dir = out.to_path_buf();
+    for (i, c) in chain.iter().enumerate().take_while(|_| resume) {
+        if finished(c, &dir) {
+            return given.max(chain.len() - i);
+        }
+        dir = dir.join("base");
+    }
+    given
+}
+
 /// Whether `out` holds the finished model of a stage of `cfg` (its configuration, its model, no
 /// checkpoint of an unfinished run).
 fn finished(cfg: &VlmTrainConfig, out: &Path) -> bool {

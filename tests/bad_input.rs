@@ -549,6 +549,31 @@ fn broken_datasets_configs_and_arguments_are_refused() {
     });
     let lang = run(&["train-language", "--iters", "1", "--run"], &[&bare_run, Path::new("--teacher"), &bare_teacher]);
     s.succeeds("train-language without masks", lang);
+    // learning rates 1000x the defaults: a divergence error, and the checkpoint left loads
+    let (hot, hot_out) = (dir.join("hot.json"), dir.join("language-hot"));
+    std::fs::write(&hot, r#"{"lr_features": 50.0, "lr_encoder": 20.0, "warmup_iters": 0, "checkpoint_every": 1}"#)
+        .unwrap();
+    s.fails(Case {
+        name: "train-language at 1000x the learning rates".into(),
+        out: run(
+            &["train-language", "--iters", "30", "--run"],
+            &[
+                &bare_run,
+                Path::new("--teacher"),
+                &bare_teacher,
+                Path::new("--config"),
+                &hot,
+                Path::new("--out"),
+                &hot_out,
+            ],
+        ),
+        expect: vec!["diverged".into(), "lower lr_features and lr_encoder".into()],
+    });
+    s.check(
+        "diverged language run: its checkpoint loads",
+        model::io::read_f32(&hot_out.join("language.safetensors")).is_ok(),
+        "no loadable language.safetensors",
+    );
     let ask = |extra: &[&str]| {
         let mut args = vec!["ask", "--view", "0", "--max-new-tokens", "2"];
         args.extend(extra);
@@ -692,6 +717,6 @@ fn broken_datasets_configs_and_arguments_are_refused() {
     c.args(["train-language", "--resume", "--iters", "2"]);
     lang_args(&mut c);
     s.succeeds("language kill -9 then resume", c.output().unwrap());
-    s.finish(66);
+    s.finish(68);
     std::fs::remove_dir_all(&dir).ok();
 }

@@ -32,9 +32,10 @@ pub enum Error {
     /// [`catch_backend`](crate::backend::catch_backend).
     #[error("{what} failed: {message}")]
     Backend { what: String, message: String },
-    /// Training stopped because the loss became non-finite.
-    #[error("training diverged: the loss became {loss} at iteration {iter}")]
-    Diverged { iter: usize, loss: f32 },
+    /// Training stopped because the loss became non-finite or rose far above its start; `detail`
+    /// says how and what to change (empty or starting with "; ").
+    #[error("training diverged: the loss became {loss} at iteration {iter}{detail}")]
+    Diverged { iter: usize, loss: f32, detail: String },
 }
 
 /// Says on standard error that an input is legal but suspicious and what was assumed

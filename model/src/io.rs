@@ -70,8 +70,18 @@ pub fn read_config<T: DeserializeOwned>(path: &Path) -> Result<T> {
     serde_json::from_value(value).map_err(|e| Error::invalid(path, format!("config: {e}")))
 }
 
-/// f32 safetensors with optional metadata, atomically.
+/// f32 safetensors with optional metadata, atomically. A non-finite value is refused (naming the
+/// tensor) and nothing is written: [`read_f32`] would refuse the file, so a file already there is
+/// better kept.
 pub fn write_f32(path: &Path, tensors: Named, meta: Option<HashMap<String, String>>) -> Result<()> {
+    for (name, _, v) in &tensors {
+        if let Some(i) = v.iter().position(|x| !x.is_finite()) {
+            return Err(Error::invalid(
+                path,
+                format!("not written: {name} holds a non-finite value ({}) at flat index {i}", v[i]),
+            ));
+        }
+    }
     let bytes: Vec<(String, Vec<usize>, Vec<u8>)> =
         tensors.into_iter().map(|(n, s, v)| (n, s, v.iter().flat_map(|x| x.to_le_bytes()).collect())).collect();
     let mut views = Vec::with_capacity(bytes.len());

@@ -79,7 +79,8 @@ fn evaluate(dir: &std::path::Path, a: &Args) -> anyhow::Result<()> {
 }
 
 /// The stages of `cfg`'s chain, and the number of the first one to train (1: the innermost base),
-/// after those `base_model` was trained with.
+/// after those `base_model` was trained with and, with `--resume`, those already finished under
+/// the run's folder (`train::vlm::stages_done`).
 fn stages(
     cfg: &VlmTrainConfig,
     out: &std::path::Path,

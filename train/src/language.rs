@@ -12,6 +12,7 @@
 use crate::ckpt::AdamStates;
 use crate::dist::{self, Collective, Solo};
 use crate::geometry::view_at;
+use crate::guard::LossGuard;
 use crate::schedule::warmup_cosine;
 use crate::teacher::{TeacherObject, TeacherSet};
 use burn::optim::{Adam, AdamConfig};
@@ -76,7 +77,8 @@ pub struct LanguageTrainConfig {
     /// them (`splat_kernels::blend`: the same maps, no projection, sorting or Gaussian evaluation)
     /// instead of rasterising forward and backward. Cameras past the budget get their weights
     /// found again at each visit; 0 rasterises every map as the geometry stage does. The replay
-    /// is a host loop, so on wgpu the maps stay with the device's rasterizer.
+    /// is a host loop, so on wgpu the maps stay with the device's rasterizer. The teacher tokens
+    /// read once are kept within the same budget.
     pub kept_weights_mb: usize,
 }
 
@@ -149,12 +151,12 @@ pub struct LanguageTrainer {
     /// Per-Gaussian sum of |gradient| of both feature tensors: zero = never seen by any map.
     pub contribution: Vec<f32>,
     masks: HashMap<(usize, u8), (Camera, Vec<f32>)>,
-    /// Blend weights of training cameras `(view, object)` and the bytes they hold.
+    /// Blend weights of training cameras `(view, object)`.
     kept: HashMap<(usize, Option<u8>), Arc<BlendWeights>>,
-    kept_bytes: usize,
     /// Teacher tokens `(view, object)` as read once.
     targets: HashMap<(usize, Option<u8>), Arc<Vec<f32>>>,
-    targets_bytes: usize,
+    /// Bytes held by `kept` and `targets` together (capped by `kept_weights_mb`).
+    kept_bytes: usize,
     device: Device,
     adam: Adam,
 }
@@ -240,9 +242,8 @@ impl LanguageTrainer {
             contribution: vec![0.0; n],
             masks: HashMap::new(),
             kept: HashMap::new(),
-            kept_bytes: 0,
             targets: HashMap::new(),
-            targets_bytes: 0,
+            kept_bytes: 0,
             device: device.clone(),
             adam: AdamConfig::new().with_epsilon(1e-15).build(),
         }
@@ -265,11 +266,20 @@ impl LanguageTrainer {
             return Ok(w.clone());
         }
         let w = Arc::new(self.scene.blend_weights(cam)?);
-        if self.kept_bytes + w.bytes() <= self.cfg.kept_weights_mb.saturating_mul(1 << 20) {
-            self.kept_bytes += w.bytes();
+        if self.fits(w.bytes()) {
             self.kept.insert(key, w.clone());
         }
         Ok(w)
+    }
+
+    /// Whether `bytes` more fit in the budget that the kept weights and tokens share (and if so,
+    /// counts them).
+    fn fits(&mut self, bytes: usize) -> bool {
+        let fits = self.kept_bytes + bytes <= self.cfg.kept_weights_mb.saturating_mul(1 << 20);
+        if fits {
+            self.kept_bytes += bytes;
+        }
+        fits
     }
 
     /// Whether maps replay kept weights (a CPU backend and a budget) or are rasterised.
@@ -304,8 +314,7 @@ impl LanguageTrainer {
             return Ok(t.clone());
         }
         let t = Arc::new(self.teacher.tokens(v, object)?);
-        if self.targets_bytes + 4 * t.len() <= self.cfg.kept_weights_mb.saturating_mul(1 << 20) {
-            self.targets_bytes += 4 * t.len();
+        if self.fits(4 * t.len()) {
             self.targets.insert((v, object), t.clone());
         }
         Ok(t)
@@ -459,20 +468,35 @@ impl LanguageTrainer {
     }
 
     /// Writes the run's checkpoint (field + Adam moments + contribution), `config.json` and
-    /// `state.json`, each atomically.
+    /// `state.json`, each atomically. Non-finite values are refused and nothing is written.
     pub fn save(&self, out: &LanguageRun) -> Result<()> {
+        self.write(out, &self.snapshot())
+    }
+
+    /// What a checkpoint of the current iteration holds (the tensors are shared, not copied).
+    fn snapshot(&self) -> Snapshot {
+        Snapshot {
+            field: self.scene.field.clone(),
+            states: self.states.clone(),
+            iter: self.iter,
+            contribution: self.contribution.clone(),
+        }
+    }
+
+    /// Writes `snap` as the run's checkpoint (see [`save`](Self::save)).
+    fn write(&self, out: &LanguageRun, snap: &Snapshot) -> Result<()> {
         let mut tensors = Vec::new();
-        for (name, t) in self.scene.field.named() {
+        for (name, t) in snap.field.named() {
             tensors.push((name, t.dims().to_vec(), host(t)));
         }
-        tensors.extend(self.states.tensors());
-        tensors.push(("contribution".into(), vec![self.contribution.len()], self.contribution.clone()));
+        tensors.extend(snap.states.tensors());
+        tensors.push(("contribution".into(), vec![snap.contribution.len()], snap.contribution.clone()));
         io::create_dir(&out.dir)?;
         io::write_f32(&out.checkpoint(), tensors, None)?;
         io::write_json(&out.config(), &self.cfg)?;
         let state = LanguageState {
-            iter: self.iter,
-            adam_time: self.states.times(),
+            iter: snap.iter,
+            adam_time: snap.states.times(),
             teacher: StoredPath::new(&self.teacher.dir.dir, &out.dir),
             teacher_model: self.teacher.index.teacher.clone(),
             margin: self.scene.margin,
@@ -507,6 +531,14 @@ impl LanguageTrainer {
         t.iter = state.iter;
         Ok(t)
     }
+}
+
+/// A checkpoint's content at one iteration: kept until the next step's loss has judged it.
+struct Snapshot {
+    field: LanguageField,
+    states: AdamStates,
+    iter: usize,
+    contribution: Vec<f32>,
 }
 
 fn mean_abs_diff(a: &[f32], b: &[f32]) -> f32 {
@@ -626,24 +658,31 @@ pub fn run(
     let mut saved_at = std::time::Instant::now();
     let first = t.iter;
     let b = t.cfg.views_per_step;
+    // A step's loss judges the weights it starts from, so a checkpoint due after step k holds
+    // weights no loss has seen yet: it is written after step k + 1's loss passed the guard. A
+    // divergence thus never reaches disk; the last checkpoint written stays loadable and sound.
+    let mut guard = LossGuard::new("lower lr_features and lr_encoder (and check the teacher tokens)");
+    let mut pending: Option<Snapshot> = None;
     while t.iter < t.cfg.iters {
         let views: Vec<usize> = (0..b).map(|j| view_at(t.iter * b + j, t.views.len(), t.cfg.seed)).collect();
+        let at = t.iter;
         let s = t.step_views(&views, c)?;
-        if !s.loss.is_finite() {
-            return Err(Error::Diverged { iter: t.iter, loss: s.loss });
-        }
+        guard.check(at, s.loss)?;
         if t.iter.is_multiple_of(crate::vlm::CHECK_EVERY) {
             t.check_in_step(c)?;
         }
         if !root {
             continue;
         }
+        if let Some(snap) = pending.take() {
+            t.write(out, &snap)?;
+            saved_at = std::time::Instant::now();
+        }
         progress(LangProgress { iter: t.iter, iters: t.cfg.iters, step: s });
         let by_iter = t.cfg.checkpoint_every > 0 && t.iter.is_multiple_of(t.cfg.checkpoint_every);
         let by_time = t.cfg.checkpoint_seconds > 0 && saved_at.elapsed().as_secs() >= t.cfg.checkpoint_seconds;
         if by_iter || by_time {
-            t.save(out)?;
-            saved_at = std::time::Instant::now();
+            pending = Some(t.snapshot());
         }
     }
     t.check_in_step(c)?;
@@ -660,8 +699,11 @@ pub fn run(
             gaussians,
         });
     }
-    t.save(out)?;
+    // the last update was judged by no step: its token L1 against the one before the first step
     let after = t.token_l1(&all)?;
+    let w = t.cfg.object_weight;
+    guard.check_end(t.iter, before.0 + w * before.1, after.0 + w * after.1)?;
+    t.save(out)?;
     let metrics = LanguageMetrics {
         iters: t.iter,
         train_view_token_l1_before: before.0,

@@ -9,6 +9,7 @@
 pub mod ckpt;
 pub mod dist;
 pub mod geometry;
+pub mod guard;
 pub mod language;
 pub mod schedule;
 pub mod teacher;

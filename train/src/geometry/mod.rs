@@ -180,7 +180,7 @@ pub fn run(
         let v = &ds.train[view_at(t.iter, ds.train.len(), t.cfg.seed)];
         let s = t.step(v)?;
         if !s.loss.is_finite() {
-            return Err(Error::Diverged { iter: t.iter, loss: s.loss });
+            return Err(Error::Diverged { iter: t.iter, loss: s.loss, detail: String::new() });
         }
         progress(Progress { iter: t.iter, iters: t.cfg.iters, loss: s.loss, psnr: s.psnr, gaussians: t.model.len() });
         let by_iter = t.cfg.checkpoint_every > 0 && t.iter.is_multiple_of(t.cfg.checkpoint_every);

@@ -765,7 +765,7 @@ impl Trainer {
         let [answer, aux, h0, h1, h2, slots, places] = values;
         let losses = StepLosses { answer, aux, hops: [h0, h1, h2], slots, places, tower };
         if !(losses.answer.is_finite() && losses.aux.is_finite() && losses.hops.iter().all(|h| h.is_finite())) {
-            return Err(Error::Diverged { iter: self.step, loss: losses.answer + losses.aux });
+            return Err(Error::Diverged { iter: self.step, loss: losses.answer + losses.aux, detail: String::new() });
         }
         for (kind, right) in results {
             self.running.add(kind, right);
@@ -852,7 +852,7 @@ impl Trainer {
             sum_accuracy(c, tower)?
         };
         if !aux.is_finite() {
-            return Err(Error::Diverged { iter: self.step, loss: aux });
+            return Err(Error::Diverged { iter: self.step, loss: aux, detail: String::new() });
         }
         self.update(loss, c)?;
         Ok(StepLosses { aux, tower, ..Default::default() })
@@ -931,8 +931,11 @@ pub fn stages_done(cfg: &VlmTrainConfig, out: &Path, base_model: Option<&Path>, 
     let read = |d: &Path| io::read_config::<VlmTrainConfig>(&d.join("train_config.json")).ok();
     let given =
         base_model.and_then(read).and_then(|b| chain.iter().position(|c| **c == b)).map_or(0, |i| chain.len() - i);
+    if !resume {
+        return given;
+    }
     let mut dir = out.to_path_buf();
-    for (i, c) in chain.iter().enumerate().take_while(|_| resume) {
+    for (i, c) in chain.iter().enumerate() {
         if finished(c, &dir) {
             return given.max(chain.len() - i);
         }

@@ -161,9 +161,22 @@ fn image_tokens(
     Ok(out)
 }
 
+/// Seconds spent making the token grids of the questions of each level, and how many questions.
+pub type TokenSeconds = BTreeMap<Level, (f64, usize)>;
+
+/// What [`answer_file`] gives back.
+#[derive(Clone, Debug, Default)]
+pub struct Answered {
+    pub tally: Tally,
+    /// Per question, the answer given.
+    pub answers: Vec<String>,
+    /// Time to make the token grids (images or field to tokens; not the answers), by level.
+    pub token_seconds: TokenSeconds,
+}
+
 /// Answers every question of `file` from `source` and scores it; `ds` is the dataset the file
-/// is about, `session` the trained scene (needed for (b) and (c)). Returns the tally and, per
-/// question, the answer given.
+/// is about, `session` the trained scene (needed for (b) and (c)). A question ChatSplat's scene
+/// cannot be asked (a click on no object) counts as answered wrong.
 pub fn answer_file(
     vlm: &LlavaOnevision,
     file: &QuestionFile,
@@ -171,11 +184,11 @@ pub fn answer_file(
     session: Option<&ChatSession>,
     source: Source,
     margin: f32,
-) -> Result<(Tally, Vec<String>)> {
+) -> Result<Answered> {
     let opts = greedy();
-    let mut tally = Tally::default();
-    let mut answers = Vec::with_capacity(file.questions.len());
+    let mut out = Answered { answers: Vec::with_capacity(file.questions.len()), ..Default::default() };
     for q in &file.questions {
+        let t0 = std::time::Instant::now();
         let tokens = match source {
             Source::GroundTruth => image_tokens(vlm, file, q, ds, None, margin)?,
             Source::RenderedRgb => {
@@ -184,12 +197,26 @@ pub fn answer_file(
             }
             Source::ChatSplat => {
                 let s = session.ok_or_else(|| Error::input("ChatSplat needs a trained scene"))?;
-                s.tokens(&target_of(file, q, s, DEFAULT_SCENE_VIEWS)?)?
+                // a question the scene cannot be asked (a click that hits no object, e.g. in a
+                // pruned field) is answered wrong, as `chatsplat vqa` does; failures of the
+                // backend or of files stop the run
+                match target_of(file, q, s, DEFAULT_SCENE_VIEWS).and_then(|t| s.tokens(&t)) {
+                    Ok(tokens) => tokens,
+                    Err(e @ (Error::Backend { .. } | Error::Io { .. })) => return Err(e),
+                    Err(e) => {
+                        out.tally.add(q, false);
+                        out.answers.push(format!("(not asked: {e})"));
+                        continue;
+                    }
+                }
             }
         };
+        let e = out.token_seconds.entry(q.level).or_default();
+        e.0 += t0.elapsed().as_secs_f64();
+        e.1 += 1;
         let g = answer(vlm, &tokens, &q.question, &opts, |_| {})?;
-        tally.add(q, exact(&g.text, &q.answer));
-        answers.push(g.text);
+        out.tally.add(q, exact(&g.text, &q.answer));
+        out.answers.push(g.text);
     }
-    Ok((tally, answers))
+    Ok(out)
 }

@@ -344,6 +344,20 @@ impl Canvas {
     }
 }
 
+/// The Pareto front of `points` when larger is better on both axes (e.g. views/s and accuracy):
+/// the indices of the points no other point beats on one axis without losing on the other, in
+/// increasing x. Points with a non-finite coordinate are never on it.
+pub fn pareto_front(points: &[(f64, f64)]) -> Vec<usize> {
+    let ok = |p: &(f64, f64)| p.0.is_finite() && p.1.is_finite();
+    let dominated = |i: usize| {
+        let a = points[i];
+        points.iter().any(|b| ok(b) && b.0 >= a.0 && b.1 >= a.1 && (b.0 > a.0 || b.1 > a.1))
+    };
+    let mut front: Vec<usize> = (0..points.len()).filter(|&i| ok(&points[i]) && !dominated(i)).collect();
+    front.sort_by(|&i, &j| points[i].0.total_cmp(&points[j].0));
+    front
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -358,6 +372,14 @@ mod tests {
     fn pixel(img: &[u8], width: u32, (x, y): (i64, i64)) -> [u8; 3] {
         let i = (y as usize * width as usize + x as usize) * 3;
         [img[i], img[i + 1], img[i + 2]]
+    }
+
+    #[test]
+    fn pareto_front_keeps_the_points_nothing_beats_on_both_axes() {
+        let p = [(1.0, 90.0), (2.0, 85.0), (1.5, 80.0), (4.0, 70.0), (3.0, 70.0), (f64::NAN, 99.0), (4.0, 60.0)];
+        assert_eq!(pareto_front(&p), vec![0, 1, 3]);
+        assert_eq!(pareto_front(&[(1.0, 1.0), (1.0, 1.0)]), vec![0, 1], "ties dominate neither");
+        assert!(pareto_front(&[]).is_empty());
     }
 
     #[test]

@@ -108,19 +108,18 @@ def main():
             for w, h in res:
                 fy = 0.5 * h / math.tan(math.radians(25.0))
                 K = torch.tensor([[[fy, 0, w / 2], [0, fy, h / 2], [0, 0, 1]]], device=device)
-                bg = torch.zeros(1, c, device=device)
 
                 def forward():
                     with torch.no_grad():
                         img, alpha, _ = rasterization(
-                            means, quats, scales, opacities, feats, viewmat, K, w, h, backgrounds=bg
+                            means, quats, scales, opacities, feats, viewmat, K, w, h
                         )
                     return img, alpha
 
                 leaves = [t.detach().clone().requires_grad_(True) for t in (means, quats, scales, opacities, feats)]
 
                 def forward_backward():
-                    img, alpha, _ = rasterization(*leaves, viewmat, K, w, h, backgrounds=bg)
+                    img, alpha, _ = rasterization(*leaves, viewmat, K, w, h)
                     (img.sum() + alpha.sum()).backward()
 
                 fwd = median_ms(torch, forward)

@@ -17,8 +17,13 @@
 #   vlm    vlm-bench: the published 0.5B configuration (random weights), wgpu, flex and ndarray;
 #   train  geometry and language training s/iter on a built-in synthetic scene (wgpu), and
 #          lang-bench's views/s and objects/s (real-size encoder too) on it.
-# CHATSPLAT_GPU_PARTS picks the parts (default "splat peers vlm train": split them over two calls
-# if one would pass the device's 10-minute limit per command). CHATSPLAT_GPU_QUICK=1 shrinks every
+# CHATSPLAT_GPU_PARTS picks the parts (default "splat peers vlm train"; "peers" is "gsplat
+# transformers": split them over two calls if one would pass the device's 10-minute limit per
+# command; vlm takes its reference from CHATSPLAT_GPU_REFERENCE, default
+# OUTDIR/transformers_cuda.json, when there is one).
+# CHATSPLAT_GPU_IMPLS: splat-bench's implementations (default wgpu,ndarray); CHATSPLAT_GPU_STEP_SECS:
+# a limit on each step (default 300 s), so that one that hangs leaves the others their time; a
+# step that fails or runs out prints its exit status and the next one runs. CHATSPLAT_GPU_QUICK=1 shrinks every
 # size and trains on ndarray (a smoke run of the script on the CPU: on lavapipe, 5 language
 # iterations took over 25 minutes of kernel compilation; the peers skip without CUDA).
 # Never part of CI.
@@ -61,11 +66,16 @@ pack() {
 step() {
     echo
     echo "\$ $*"
-    local t0 t1
+    local t0 t1 rc=0
     t0=$(date +%s.%N)
-    "$@"
+    timeout "${CHATSPLAT_GPU_STEP_SECS:-300}" "$@" || rc=$?
     t1=$(date +%s.%N)
-    echo "(wall $(awk "BEGIN{printf \"%.1f\", $t1 - $t0}") s)"
+    if [ "$rc" = 0 ]; then
+        echo "(wall $(awk "BEGIN{printf \"%.1f\", $t1 - $t0}") s)"
+    else
+        echo "(wall $(awk "BEGIN{printf \"%.1f\", $t1 - $t0}") s; exit $rc$([ "$rc" = 124 ] && echo ': out of time'))"
+    fi
+    [ "$rc" = 0 ]
 }
 
 bench() {
@@ -94,7 +104,9 @@ bench() {
     fi
     command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv
     local quick=${CHATSPLAT_GPU_QUICK:-0} parts=" ${CHATSPLAT_GPU_PARTS:-splat peers vlm train} "
+    parts=${parts/ peers / gsplat transformers }
     local n=100000,1000000 c=3,32 res=384x384,1280x720 vlm=0.5b views=32 side=96 geo=1000 lang=300 be=wgpu
+    local impls=${CHATSPLAT_GPU_IMPLS:-wgpu,ndarray}
     if [ "$quick" = 1 ]; then
         n=10000 c=3 res=384x384 views=8 side=64 geo=20 lang=5 be=ndarray
     fi
@@ -104,40 +116,48 @@ bench() {
     fi
     {
         if [[ $parts == *" splat "* ]]; then
-            step "$bin/splat-bench" --n "$n" --c "$c" --res "$res" --impls wgpu,ndarray --max-secs 20
+            step "$bin/splat-bench" --n "$n" --c "$c" --res "$res" --impls "$impls" --max-secs 20 || true
         fi
-        local reference=()
-        if [[ $parts == *" peers "* ]]; then
-            if [ "$cuda" = 1 ]; then
-                if ! python3 -c 'import gsplat' 2>/dev/null && ls .whl/*.whl >/dev/null 2>&1; then
-                    python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site .whl/*.whl
-                    export PYTHONPATH=/tmp/site${PYTHONPATH:+:$PYTHONPATH}
-                fi
-                MAX_JOBS=$(nproc) step python3 eval/gpu/gsplat_bench.py --n "$n" --c "$c" --res "$res" \
-                    --out "$out/gsplat.json" || echo "gsplat-bench failed (exit $?)"
-                if [ "$quick" != 1 ] && step python3 eval/bench/transformers_vlm.py --size "$vlm" --device cuda \
-                    --threads "$(nproc)" --reps 2 --decode 16 --out "$out/transformers_cuda.json"; then
-                    reference=(--reference "$out/transformers_cuda.json")
-                fi
-            else
-                echo "peers: skipped (python3's torch sees no CUDA device)"
+        if [[ $parts == *" gsplat "* || $parts == *" transformers "* ]] && [ "$cuda" = 0 ]; then
+            echo "peers: skipped (python3's torch sees no CUDA device)"
+        fi
+        if [[ $parts == *" gsplat "* ]] && [ "$cuda" = 1 ]; then
+            if ! python3 -c 'import gsplat' 2>/dev/null && ls .whl/*.whl >/dev/null 2>&1; then
+                python3 -m pip install -q --no-index --no-deps --no-compile --no-cache-dir --target /tmp/site .whl/*.whl
+                export PYTHONPATH=/tmp/site${PYTHONPATH:+:$PYTHONPATH}
             fi
+            MAX_JOBS=$(nproc) step python3 eval/gpu/gsplat_bench.py --n "$n" --c "$c" --res "$res" \
+                --out "$out/gsplat.json" || true
+        fi
+        if [[ $parts == *" transformers "* ]] && [ "$cuda" = 1 ] && [ "$quick" != 1 ]; then
+            step python3 eval/bench/transformers_vlm.py --size "$vlm" --device cuda \
+                --threads "$(nproc)" --reps 2 --decode 16 --out "$out/transformers_cuda.json" || true
         fi
         if [[ $parts == *" vlm "* ]]; then
+            local reference=()
+            local ref=${CHATSPLAT_GPU_REFERENCE:-$out/transformers_cuda.json}
+            if [ -f "$ref" ]; then
+                reference=(--reference "$ref")
+            fi
             if [ "$quick" = 1 ]; then
-                step "$bin/vlm-bench" --backend wgpu flex ndarray --reps 1 --decode 4
+                step "$bin/vlm-bench" --backend wgpu flex ndarray --reps 1 --decode 4 || true
             else
-                step "$bin/vlm-bench" --random "$vlm" --backend wgpu flex ndarray --reps 2 --decode 16 "${reference[@]}"
+                step "$bin/vlm-bench" --random "$vlm" --backend wgpu flex ndarray --reps 2 --decode 16 \
+                    "${reference[@]}" || true
             fi
         fi
         if [[ $parts == *" train "* ]]; then
-            local scene=$out/scene run=$out/run
+            # the scene and the runs stay out of OUTDIR (the device returns a few files only)
+            local work=${CHATSPLAT_GPU_WORK:-/tmp/chatsplat-gpu-work}
+            local scene=$work/scene run=$work/run
             rm -rf "$scene" "$run"
-            step "$bin/chatsplat" synth --out "$scene" --views "$views" --width "$side" --height "$side"
-            step "$bin/chatsplat" train --data "$scene" --out "$run" --iters "$geo" --backend "$be"
-            step "$bin/chatsplat" extract --data "$scene" --out "$scene/teacher" --backend "$be"
-            step "$bin/chatsplat" train-language --run "$run" --teacher "$scene/teacher" --iters "$lang" --backend "$be"
-            step "$bin/lang-bench" --run "$run" --backend "$be" --sweep-iters 0 --reps 3 --full-size
+            step "$bin/chatsplat" synth --out "$scene" --views "$views" --width "$side" --height "$side" &&
+                step "$bin/chatsplat" train --data "$scene" --out "$run" --iters "$geo" --backend "$be" &&
+                step "$bin/chatsplat" extract --data "$scene" --out "$scene/teacher" --backend "$be" &&
+                step "$bin/chatsplat" train-language --run "$run" --teacher "$scene/teacher" --iters "$lang" \
+                    --backend "$be" &&
+                step "$bin/lang-bench" --run "$run" --backend "$be" --sweep-iters 0 --reps 3 --full-size &&
+                cp "$run/bench/bench.json" "$out/lang_bench.json" || true
         fi
     } 2>&1 | tee "$out/gpu_bench.log"
 }

@@ -17,16 +17,20 @@ use model::error::{Error, Result};
 use model::language::ObjectCrop;
 use model::vlm::{GenerateOptions, LlavaOnevision, RgbImage};
 use model::vqa::{Level, Question, QuestionFile, target_of};
-use serde::Serialize;
+use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::Path;
 
 /// Where the image tokens come from.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize)]
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
 #[serde(rename_all = "snake_case")]
 pub enum Source {
+    // the aliases read vqa-bench's bench.json, whose keys are the Debug names
+    #[serde(alias = "GroundTruth")]
     GroundTruth,
+    #[serde(alias = "RenderedRgb")]
     RenderedRgb,
+    #[serde(alias = "ChatSplat")]
     ChatSplat,
 }
 
@@ -43,7 +47,7 @@ impl Source {
 }
 
 /// Exact-match counts (right, asked) by level and by kind.
-#[derive(Clone, Debug, Default, PartialEq, Serialize)]
+#[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Tally {
     pub by_level: BTreeMap<Level, (usize, usize)>,
     pub by_kind: BTreeMap<String, (usize, usize)>,

@@ -305,7 +305,17 @@ impl LanguageRun {
         Ok(TeacherDir::new(self.read_state()?.teacher.resolve(&self.dir)))
     }
 
-    /// The trained field (parameters only) and the run's state.
+    /// `Some(iteration)` of the checkpoint when the run has not finished (a finished run writes
+    /// `metrics.json` after its last checkpoint): stopped, killed or diverged.
+    pub fn unfinished(&self) -> Result<Option<usize>> {
+        if self.metrics().is_file() {
+            return Ok(None);
+        }
+        Ok(Some(self.read_state()?.iter))
+    }
+
+    /// The trained field (parameters only) and the run's state; warns when the run is
+    /// [`unfinished`](Self::unfinished).
     pub fn load_field(&self, device: &Device) -> Result<(LanguageField, LanguageState)> {
         if !self.dir.is_dir() {
             return Err(Error::invalid(
@@ -314,6 +324,13 @@ impl LanguageRun {
             ));
         }
         let state = self.read_state()?;
+        if let Some(iter) = self.unfinished()? {
+            crate::error::warn(format_args!(
+                "{}: this language run stopped at iteration {iter} before it finished (it has no metrics.json): \
+                    its field is that checkpoint's; `chatsplat train-language --resume` finishes it",
+                self.dir.display()
+            ));
+        }
         let path = self.checkpoint();
         let (mut tensors, _) = io::read_f32(&path)?;
         let mut named = Vec::new();

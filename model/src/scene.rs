@@ -245,6 +245,18 @@ impl LanguageScene {
     }
 }
 
+/// The `k` Gaussians with the largest language contribution (ties in index order; `k` clamped
+/// to the count), as sorted row indices for [`LanguageScene::subset`]: "model only what a scene
+/// needs". `contribution` `[N]`: each Gaussian's accumulated language gradient (the checkpoint's
+/// `contribution`), zero for one that never reached a language map.
+pub fn top_contributors(contribution: &[f32], k: usize) -> Vec<usize> {
+    let mut order: Vec<usize> = (0..contribution.len()).collect();
+    order.sort_by(|&i, &j| contribution[j].total_cmp(&contribution[i]));
+    order.truncate(k);
+    order.sort_unstable();
+    order
+}
+
 /// Highlights object `id` in red over a rendered RGB view (the paper's picked-object display):
 /// `rgb` `[H, W, 3]`, `ids` `[H, W]`.
 pub fn highlight(rgb: &[f32], ids: &[u8], id: u8) -> Vec<f32> {
@@ -309,4 +321,20 @@ fn cut_out(map: Tensor<3>, mask: Vec<f32>) -> Tensor<3> {
     let size = map.dims()[0];
     let mask = Tensor::<2>::from_data(TensorData::new(mask, [size, size]), &map.device());
     mask_out(map, mask)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::top_contributors;
+
+    #[test]
+    fn top_contributors_keeps_the_largest_in_row_order() {
+        let c = [0.5, 0.0, 2.0, 0.5, 1.0, 0.0];
+        assert_eq!(top_contributors(&c, 2), vec![2, 4]);
+        // a tie at the cut keeps the lower index
+        assert_eq!(top_contributors(&c, 3), vec![0, 2, 4]);
+        assert_eq!(top_contributors(&c, 99), vec![0, 1, 2, 3, 4, 5]);
+        assert!(top_contributors(&c, 0).is_empty());
+        assert!(top_contributors(&[], 3).is_empty());
+    }
 }

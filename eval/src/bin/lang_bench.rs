@@ -477,13 +477,16 @@ fn bench(a: &Args) -> Result<()> {
     // model only what a scene needs: Gaussians ranked by their language contribution
     let contribution = lang.read_contribution()?;
     let base_cfg: LanguageTrainConfig = model::io::read_json(&lang.config())?;
-    let mut order: Vec<usize> = (0..contribution.len()).filter(|&i| contribution[i] > 0.0).collect();
-    order.sort_by(|&i, &j| contribution[j].total_cmp(&contribution[i]));
-    let used = order.len();
-    for frac in [1.0, 0.5, 0.25, 0.1] {
-        let k = ((used as f64 * frac).round() as usize).max(1);
-        let mut keep = order[..k].to_vec();
-        keep.sort_unstable();
+    let used = contribution.iter().filter(|&&c| c > 0.0).count();
+    if used == 0 {
+        println!(
+            "\n(no Gaussian has a language contribution yet: {} holds the run's first checkpoint, before any \
+                step; the rows of Gaussians kept by contribution are left out)",
+            lang.checkpoint().display()
+        );
+    }
+    for frac in [1.0, 0.5, 0.25, 0.1].into_iter().filter(|_| used > 0) {
+        let keep = model::scene::top_contributors(&contribution, ((used as f64 * frac).round() as usize).max(1));
         rows.push(row(
             &format!("kept {:.0}% of contributing", frac * 100.0),
             &scene.subset(&keep),

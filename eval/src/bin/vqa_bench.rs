@@ -67,6 +67,10 @@ struct Args {
     /// views/s, the Pareto front marked) beside bench.json.
     #[arg(long)]
     sweep: bool,
+    /// Instead of running, add up the bench.json of earlier runs (tallies, token seconds and sweep
+    /// points of their scenes) and print, plot and write them as one run into `--out`.
+    #[arg(long, num_args = 1.., value_name = "BENCH_JSON")]
+    merge: Vec<PathBuf>,
 }
 
 /// One way to make a scene's field in the sweep, scored by ChatSplat's answers.
@@ -126,10 +130,10 @@ impl Variant {
 }
 
 /// A sweep point summed over the scenes.
-#[derive(Clone, Debug, Default, serde::Serialize)]
+#[derive(Clone, Debug, Default, serde::Serialize, serde::Deserialize)]
 struct Point {
     name: String,
-    axis: &'static str,
+    axis: String,
     tally: Tally,
     token_seconds: eval::compare::TokenSeconds,
     /// Language-stage seconds per iteration, summed over the scenes that trained one.
@@ -141,6 +145,19 @@ struct Point {
 }
 
 impl Point {
+    fn add(&mut self, o: &Point) {
+        self.tally.merge(&o.tally);
+        for (level, (t, n)) in &o.token_seconds {
+            let e = self.token_seconds.entry(*level).or_default();
+            e.0 += t;
+            e.1 += n;
+        }
+        self.train_seconds += o.train_seconds;
+        self.trained += o.trained;
+        self.gaussians += o.gaussians;
+        self.field_bytes += o.field_bytes;
+        self.scenes += o.scenes;
+    }
     fn rate(&self, level: Level) -> f64 {
         self.token_seconds.get(&level).map(|(t, n)| *n as f64 / t.max(1e-9)).unwrap_or(f64::NAN)
     }
@@ -170,8 +187,9 @@ fn main() -> std::process::ExitCode {
     }
 }
 
-/// Mean L1 and cosine of token grids against the teacher's.
-#[derive(Default, Clone, Copy, serde::Serialize)]
+/// L1 and cosine of token grids against the teacher's: sums over `n` grids while a run adds
+/// them, means in bench.json ([`Fidelity::mean`]).
+#[derive(Default, Clone, Copy, serde::Serialize, serde::Deserialize)]
 struct Fidelity {
     l1: f64,
     cos: f64,
@@ -194,9 +212,83 @@ impl Fidelity {
         let n = self.n.max(1) as f64;
         Self { l1: self.l1 / n, cos: self.cos / n, n: self.n }
     }
+    /// Adds the means `m` of another run back as sums.
+    fn add_mean(&mut self, m: Fidelity) {
+        self.l1 += m.l1 * m.n as f64;
+        self.cos += m.cos * m.n as f64;
+        self.n += m.n;
+    }
+}
+
+/// What a run adds up over its scenes; `--merge` adds the bench.json of several runs.
+#[derive(Default)]
+struct Totals {
+    tallies: BTreeMap<Source, Tally>,
+    /// Seconds spent making tokens and how many, per path and level.
+    seconds: BTreeMap<(Source, Level), (f64, usize)>,
+    fid_rgb: Fidelity,
+    fid_cs: Fidelity,
+    points: Vec<Point>,
+    /// Held-out seeds, ranges `[first, end)`.
+    seeds: Vec<[u64; 2]>,
+}
+
+/// The parts of a bench.json that `--merge` adds (older files lack `token_seconds`).
+#[derive(serde::Deserialize)]
+struct BenchJson {
+    #[serde(default)]
+    seeds: Option<[u64; 2]>,
+    #[serde(default)]
+    seed_ranges: Vec<[u64; 2]>,
+    tallies: BTreeMap<Source, Tally>,
+    #[serde(default)]
+    token_seconds: Vec<(Source, Level, f64, usize)>,
+    fidelity_rendered_rgb: Fidelity,
+    fidelity_chatsplat: Fidelity,
+    #[serde(default)]
+    sweep: Vec<Point>,
+}
+
+impl Totals {
+    fn add(&mut self, b: &BenchJson) {
+        for (s, t) in &b.tallies {
+            self.tallies.entry(*s).or_default().merge(t);
+        }
+        for &(s, l, t, n) in &b.token_seconds {
+            let e = self.seconds.entry((s, l)).or_default();
+            e.0 += t;
+            e.1 += n;
+        }
+        self.fid_rgb.add_mean(b.fidelity_rendered_rgb);
+        self.fid_cs.add_mean(b.fidelity_chatsplat);
+        for p in &b.sweep {
+            match self.points.iter_mut().find(|q| q.name == p.name) {
+                Some(q) => q.add(p),
+                None => self.points.push(p.clone()),
+            }
+        }
+        self.seeds.extend(b.seeds.iter().chain(&b.seed_ranges));
+    }
+
+    fn scenes(&self) -> u64 {
+        self.seeds.iter().map(|[a, b]| b - a).sum()
+    }
+
+    /// "5 held-out seeds: 30000-30002, 30003, 30004".
+    fn label(&self) -> String {
+        let ranges: Vec<String> = self
+            .seeds
+            .iter()
+            .map(|&[a, b]| if b == a + 1 { a.to_string() } else { format!("{a}-{}", b - 1) })
+            .collect();
+        format!("{} held-out seeds: {}", self.scenes(), ranges.join(", "))
+    }
 }
 
 fn bench(a: &Args) -> Result<()> {
+    if !a.merge.is_empty() {
+        return merge(a);
+    }
     let device: Device = a.backend.device();
     let vlm_dir = match &a.vlm {
         Some(d) => d.clone(),
@@ -219,10 +311,8 @@ fn bench(a: &Args) -> Result<()> {
     language_config.iters = a.language_iters;
     language_config.checkpoint_every = 0;
     model::io::create_dir(&a.out)?;
-    let mut tallies: BTreeMap<Source, Tally> = BTreeMap::new();
-    let mut points: Vec<Point> = Vec::new();
-    let mut seconds: BTreeMap<(Source, Level), (f64, usize)> = BTreeMap::new();
-    let (mut fid_rgb, mut fid_cs) = (Fidelity::default(), Fidelity::default());
+    let mut totals = Totals { seeds: vec![[a.first_seed, a.first_seed + a.seeds]], ..Default::default() };
+    let Totals { tallies, seconds, fid_rgb, fid_cs, points, .. } = &mut totals;
     let d = vlm.cfg.vision.hidden_size;
     for seed in a.first_seed..a.first_seed + a.seeds {
         let dir = a.out.join(format!("seed{seed}"));
@@ -324,7 +414,7 @@ fn bench(a: &Args) -> Result<()> {
         let mut record = |v: Variant, session: &ChatSession, ans: Answered, seconds_per_iter: Option<f64>| {
             let name = v.name(a, channels);
             let i = points.iter().position(|p| p.name == name).unwrap_or_else(|| {
-                points.push(Point { name: name.clone(), axis: v.axis(), ..Default::default() });
+                points.push(Point { name: name.clone(), axis: v.axis().into(), ..Default::default() });
                 points.len() - 1
             });
             let p = &mut points[i];
@@ -362,10 +452,7 @@ fn bench(a: &Args) -> Result<()> {
                 }
                 Variant::Kept(pct) => {
                     let c = lang.read_contribution()?;
-                    let mut order: Vec<usize> = (0..c.len()).collect();
-                    order.sort_by(|&i, &j| c[j].total_cmp(&c[i]));
-                    let mut keep = order[..(c.len() * pct).div_ceil(100)].to_vec();
-                    keep.sort_unstable();
+                    let keep = model::scene::top_contributors(&c, (c.len() * pct).div_ceil(100));
                     let mut s = ChatSession::open(&run, None, &vlm_dir, &device)?;
                     s.scene = s.scene.subset(&keep);
                     (s, None)
@@ -405,13 +492,61 @@ fn bench(a: &Args) -> Result<()> {
             record(v, &field, ans, seconds_per_iter);
         }
     }
-    println!(
-        "\n## ChatSplat vs the VLM on images ({} held-out seeds from {}, {} views of {}px)\n",
-        a.seeds, a.first_seed, a.views, a.resolution
-    );
+    let settings = serde_json::json!({
+        "seeds": [a.first_seed, a.first_seed + a.seeds], "views": a.views, "resolution": a.resolution,
+        "geometry_iters": a.geometry_iters, "language_iters": a.language_iters,
+        "language_config": language_config, "backend": a.backend.to_string(),
+    });
+    report(&totals, &format!("{} views of {}px", a.views, a.resolution), settings, &a.out)
+}
+
+/// `--merge`: the bench.json of earlier runs added up and reported as one.
+fn merge(a: &Args) -> Result<()> {
+    let mut totals = Totals::default();
+    for f in &a.merge {
+        let b: BenchJson = model::io::read_json(f)?;
+        if b.seeds.is_none() && b.seed_ranges.is_empty() {
+            return Err(model::Error::invalid(f, "names no seeds: not a vqa-bench bench.json"));
+        }
+        if let Some(dup) =
+            totals.seeds.iter().find(|r| b.seeds.iter().chain(&b.seed_ranges).any(|s| s[0] < r[1] && r[0] < s[1]))
+        {
+            return Err(model::Error::invalid(
+                f,
+                format!("its seeds overlap seeds {}..{} of an earlier file: a scene would count twice", dup[0], dup[1]),
+            ));
+        }
+        totals.add(&b);
+    }
+    let missing = a.merge.len() - a.merge.iter().filter(|f| has_token_seconds(f)).count();
+    if missing > 0 {
+        eprintln!(
+            "note: {missing} of {} files predate token_seconds: the views/s and objects/s of the three paths {} \
+                (the sweep's rates are in every file)",
+            a.merge.len(),
+            if missing == a.merge.len() { "are not known" } else { "come from the others" }
+        );
+    }
+    model::io::create_dir(&a.out)?;
+    let settings = serde_json::json!({
+        "seed_ranges": totals.seeds, "merged_from": a.merge,
+    });
+    report(&totals, "merged", settings, &a.out)
+}
+
+fn has_token_seconds(f: &std::path::Path) -> bool {
+    model::io::read_json::<serde_json::Value>(f).is_ok_and(|v| v.get("token_seconds").is_some())
+}
+
+/// Prints the comparison (and the sweep, when there is one) and writes bench.json (`settings`
+/// first) and sweep.png into `out`.
+fn report(t: &Totals, what: &str, settings: serde_json::Value, out: &std::path::Path) -> Result<()> {
+    let empty = Tally::default();
+    let tally = |s: Source| t.tallies.get(&s).unwrap_or(&empty);
+    println!("\n## ChatSplat vs the VLM on images ({}, {what})\n", t.label());
     println!("| path | view | object | scene | overall | questions |\n|---|---|---|---|---|---|");
     for source in Source::ALL {
-        let t = &tallies[&source];
+        let t = tally(source);
         let f = |l: Level| t.level(l).map(|v| format!("{v:.1}")).unwrap_or_else(|| "-".into());
         let n: usize = t.by_level.values().map(|(_, n)| n).sum();
         println!(
@@ -423,19 +558,19 @@ fn bench(a: &Args) -> Result<()> {
             t.overall()
         );
     }
-    let kinds: Vec<String> = tallies[&Source::GroundTruth].by_kind.keys().cloned().collect();
+    let kinds: Vec<String> = tally(Source::GroundTruth).by_kind.keys().cloned().collect();
     println!(
         "\n| question type | (a) ground truth | (b) rendered RGB | (c) ChatSplat | asked |\n|---|---|---|---|---|"
     );
     for k in &kinds {
         let pct = |s: Source| {
-            tallies[&s]
+            tally(s)
                 .by_kind
                 .get(k)
                 .map(|(r, n)| format!("{:.1}", 100.0 * *r as f64 / (*n).max(1) as f64))
                 .unwrap_or("-".into())
         };
-        let n = tallies[&Source::GroundTruth].by_kind[k].1;
+        let n = tally(Source::GroundTruth).by_kind.get(k).map_or(0, |e| e.1);
         println!(
             "| {k} | {} | {} | {} | {n} |",
             pct(Source::GroundTruth),
@@ -444,44 +579,47 @@ fn bench(a: &Args) -> Result<()> {
         );
     }
     println!("\n| tokens of | views/s | objects/s | view token L1 vs teacher(GT) | cosine |\n|---|---|---|---|---|");
-    let rate = |s: Source, l: Level| seconds.get(&(s, l)).map(|(t, n)| *n as f64 / t.max(1e-9)).unwrap_or(0.0);
-    let (fr, fc) = (fid_rgb.mean(), fid_cs.mean());
+    let rate = |s: Source, l: Level| t.seconds.get(&(s, l)).map(|(t, n)| *n as f64 / t.max(1e-9));
+    let fmt = |r: Option<f64>| r.map_or("-".into(), |r| format!("{r:.1}"));
+    let (fr, fc) = (t.fid_rgb.mean(), t.fid_cs.mean());
     for (name, s, f) in [
         ("(b) render RGB + vision tower", Source::RenderedRgb, &fr),
         ("(c) ChatSplat: render language map + encoder", Source::ChatSplat, &fc),
     ] {
         println!(
-            "| {name} | {:.1} | {:.1} | {:.4} | {:.4} |",
-            rate(s, Level::View),
-            rate(s, Level::Object),
+            "| {name} | {} | {} | {:.4} | {:.4} |",
+            fmt(rate(s, Level::View)),
+            fmt(rate(s, Level::Object)),
             f.l1,
             f.cos
         );
     }
-    let baseline = (rate(Source::RenderedRgb, Level::View), tallies[&Source::RenderedRgb].overall());
-    if a.sweep {
-        sweep_report(&points, baseline, a)?;
+    let baseline = rate(Source::RenderedRgb, Level::View).map(|r| (r, tally(Source::RenderedRgb).overall()));
+    if !t.points.is_empty() {
+        sweep_report(&t.points, baseline, t, out)?;
     }
-    let json = serde_json::json!({
-        "seeds": [a.first_seed, a.first_seed + a.seeds], "views": a.views, "resolution": a.resolution,
-        "geometry_iters": a.geometry_iters, "language_iters": a.language_iters,
-        "language_config": language_config, "backend": a.backend.to_string(),
-        "tallies": tallies
+    let mut json = settings;
+    let figures = serde_json::json!({
+        "tallies": t.tallies
             .iter()
             .map(|(s, t)| (format!("{s:?}"), serde_json::to_value(t).unwrap()))
             .collect::<serde_json::Map<_, _>>(),
-        "fidelity_rendered_rgb": fr, "fidelity_chatsplat": fc, "sweep": points,
+        "token_seconds": t.seconds.iter().map(|(&(s, l), &(secs, n))| (s, l, secs, n)).collect::<Vec<_>>(),
+        "fidelity_rendered_rgb": fr, "fidelity_chatsplat": fc, "sweep": t.points,
     });
-    model::io::write_json(&a.out.join("bench.json"), &json)?;
-    println!("\nfigures -> {}", a.out.join("bench.json").display());
+    if let (Some(j), serde_json::Value::Object(f)) = (json.as_object_mut(), figures) {
+        j.extend(f);
+    }
+    model::io::write_json(&out.join("bench.json"), &json)?;
+    println!("\nfigures -> {}", out.join("bench.json").display());
     Ok(())
 }
 
 /// Prints the sweep's table and writes its plot: ChatSplat's exact match against views/s, one
 /// series per axis through the configured field, the Pareto front, and the rendered-RGB baseline
-/// (`baseline`: its views/s and exact match).
-fn sweep_report(points: &[Point], baseline: (f64, f64), a: &Args) -> Result<()> {
-    println!("\n## Speed against error on ChatSplat's answers ({} held-out seeds from {})\n", a.seeds, a.first_seed);
+/// (`baseline`: its views/s and exact match, when the runs timed it).
+fn sweep_report(points: &[Point], baseline: Option<(f64, f64)>, t: &Totals, out: &std::path::Path) -> Result<()> {
+    println!("\n## Speed against error on ChatSplat's answers ({})\n", t.label());
     println!(
         "| field | Gaussians | field MB | view | object | scene | overall | count | colors | left_of | views/s \
          | objects/s | train s/iter |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|"
@@ -489,9 +627,10 @@ fn sweep_report(points: &[Point], baseline: (f64, f64), a: &Args) -> Result<()> 
     for p in points {
         let n = p.scenes.max(1);
         let lv = |l: Level| p.tally.level(l).map(|v| format!("{v:.1}")).unwrap_or_else(|| "-".into());
+        let (right, asked) = p.tally.by_level.values().fold((0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
         let train = if p.trained > 0 { format!("{:.3}", p.train_seconds / p.trained as f64) } else { "-".into() };
         println!(
-            "| {} | {} | {:.2} | {} | {} | {} | {:.1} | {} | {} | {} | {:.1} | {:.1} | {train} |",
+            "| {} | {} | {:.2} | {} | {} | {} | {:.1} ({right}/{asked}) | {} | {} | {} | {:.1} | {:.1} | {train} |",
             p.name,
             p.gaussians / n,
             p.field_bytes as f64 / n as f64 / 1e6,
@@ -526,15 +665,17 @@ fn sweep_report(points: &[Point], baseline: (f64, f64), a: &Args) -> Result<()> 
         points: front.iter().map(|&i| all[i]).collect(),
         color: [0; 3],
     });
-    series.push(Series { label: "LLaVA-OV on rendered RGB".into(), points: vec![baseline], color: [120; 3] });
+    if let Some(b) = baseline {
+        series.push(Series { label: "LLaVA-OV on rendered RGB".into(), points: vec![b], color: [120; 3] });
+    }
     let chart = Chart {
-        title: format!("ChatSplat answers: speed against exact match ({} seeds)", a.seeds),
+        title: format!("ChatSplat answers: speed against exact match ({} held-out scenes)", t.scenes()),
         x_label: "views per second (view tokens)".into(),
         y_label: "exact match (%)".into(),
         log_x: true,
         series,
     };
-    let png = a.out.join("sweep.png");
+    let png = out.join("sweep.png");
     chart.write_png(&png, 900, 600)?;
     println!("plot -> {}", png.display());
     Ok(())

@@ -201,6 +201,7 @@ fn learning_rates_too_high_train_or_stop_with_a_clear_error_and_a_sound_checkpoi
     eprintln!("lr x10: token L1 view {:.3} -> {:.3}", s.before.0, s.after.0);
     assert!(s.after.0 < s.before.0, "lr x10: view token L1 {} -> {}", s.before.0, s.after.0);
     assert_saved_run_is_sound(&case);
+    assert_eq!(case.language().unfinished().unwrap(), None, "a finished run");
 
     let _ = std::fs::remove_dir_all(case.language().dir);
     let mut c = cfg(40);
@@ -213,6 +214,8 @@ fn learning_rates_too_high_train_or_stop_with_a_clear_error_and_a_sound_checkpoi
     assert!(matches!(err, model::error::Error::Diverged { .. }), "{text}");
     assert!(text.contains("lower lr_features and lr_encoder") && text.contains("first loss"), "{text}");
     let state = case.language().read_state().unwrap();
+    // what loads it (chat, ask, vqa, serve, lang-bench) is told that it did not finish
+    assert_eq!(case.language().unfinished().unwrap(), Some(state.iter), "a diverged run is unfinished");
     let l1 = assert_saved_run_is_sound(&case);
     eprintln!("lr x1000: the checkpoint kept is iteration {}, view token L1 {l1:.3}", state.iter);
     assert!(l1 < 10.0 * s.before.0, "the kept checkpoint is a blown-up one: view token L1 {l1}");

@@ -126,11 +126,32 @@ pub struct ChatSession {
 }
 
 impl ChatSession {
-    /// Loads geometry run `run`, its language run (`language`, default `run/language`), the
-    /// run's cameras and the VLM in `vlm_dir`.
+    /// Loads geometry run `run`, its language run (`language`, default `run/language`; a
+    /// compacted one renders its language maps from the Gaussians it kept), the run's cameras and
+    /// the VLM in `vlm_dir`.
     pub fn open(run: &GeometryRun, language: Option<&Path>, vlm_dir: &Path, device: &Device) -> Result<Self> {
+        Self::open_as(run, language, vlm_dir, device, true)
+    }
+
+    /// [`open`](Self::open) with every Gaussian for the language maps, a compacted run's too
+    /// (what benchmarks compare a compaction against).
+    pub fn open_full(run: &GeometryRun, language: Option<&Path>, vlm_dir: &Path, device: &Device) -> Result<Self> {
+        Self::open_as(run, language, vlm_dir, device, false)
+    }
+
+    fn open_as(
+        run: &GeometryRun,
+        language: Option<&Path>,
+        vlm_dir: &Path,
+        device: &Device,
+        compact: bool,
+    ) -> Result<Self> {
         let language = language.map(LanguageRun::new).unwrap_or_else(|| run.language());
-        let scene = LanguageScene::load(run, &language, device)?;
+        let scene = if compact {
+            LanguageScene::open(run, &language, device)?
+        } else {
+            LanguageScene::load(run, &language, device)?
+        };
         let cams = run.read_cameras()?;
         let vlm = LlavaOnevision::load(vlm_dir, device)?;
         if vlm.cfg.vision.hidden_size != scene.cfg.dim {

@@ -283,6 +283,28 @@ impl LanguageRun {
     pub fn metrics(&self) -> PathBuf {
         self.dir.join("metrics.json")
     }
+    /// [`Compaction`]: the Gaussians the language maps keep, when the run was compacted.
+    pub fn compaction(&self) -> PathBuf {
+        self.dir.join("compact.json")
+    }
+    /// The run's [`Compaction`], if it has one, checked against a geometry of `gaussians` rows.
+    pub fn read_compaction(&self, gaussians: usize) -> Result<Option<Compaction>> {
+        let path = self.compaction();
+        if !path.is_file() {
+            return Ok(None);
+        }
+        let c: Compaction = io::read_json(&path)?;
+        if c.gaussians != gaussians {
+            return Err(Error::invalid(
+                &path,
+                format!("was made for {} Gaussians, but the geometry has {gaussians}", c.gaussians),
+            ));
+        }
+        if c.kept.is_empty() || c.kept.windows(2).any(|w| w[0] >= w[1]) || c.kept.last() >= Some(&gaussians) {
+            return Err(Error::invalid(&path, "kept: expected ascending row indices below the Gaussian count"));
+        }
+        Ok(Some(c))
+    }
     /// Answers and scores of `chatsplat vqa`.
     pub fn vqa(&self) -> PathBuf {
         self.dir.join("vqa.json")
@@ -350,6 +372,26 @@ impl LanguageRun {
             tensors.remove("contribution").ok_or_else(|| Error::invalid(&path, "tensor contribution is missing"))?;
         Ok(v)
     }
+}
+
+/// What compacting a language run kept (`compact.json`): the Gaussians with the largest language
+/// contribution, as few as keep the training views' token L1 within `tolerance` of the whole
+/// field's. Inference renders the language maps (and picks objects) from these rows only; RGB
+/// stays with every Gaussian. The checkpoint keeps every row, so `--resume` trains on.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Compaction {
+    /// Gaussians of the geometry run.
+    pub gaussians: usize,
+    /// The rows kept, ascending.
+    pub kept: Vec<usize>,
+    /// The largest relative rise of the training views' token L1 (view + object) allowed.
+    pub tolerance: f32,
+    /// Training-view token L1 (view, object) of the whole field and of the rows kept.
+    pub token_l1_full: (f32, f32),
+    pub token_l1_kept: (f32, f32),
+    /// Each fraction of the Gaussians tried, largest first: (fraction, view L1, object L1).
+    pub candidates: Vec<(f64, f32, f32)>,
 }
 
 /// One training view in `teacher.json`.

@@ -24,6 +24,9 @@ pub struct LanguageScene {
     pub sh_degree: usize,
     pub background: [f32; 3],
     pub field: LanguageField,
+    /// Every Gaussian, for RGB renders, when `splats` holds only those the language maps keep
+    /// ([`subset`](Self::subset), a compacted run).
+    pub display: Option<SplatModel>,
     /// Object crop margin (the teacher's).
     pub margin: f32,
     /// Whether the geometry was trained with instance masks: without them the rendered identity
@@ -48,8 +51,21 @@ impl LanguageScene {
             sh_degree: state.sh_degree,
             background: state.background,
             field,
+            display: None,
             margin: lstate.margin,
             masks: state.data.masks,
+        })
+    }
+
+    /// [`load`](Self::load) for inference: a compacted run ([`model::run::Compaction`]) keeps
+    /// only its kept Gaussians for the language maps and picks.
+    ///
+    /// [`model::run::Compaction`]: crate::run::Compaction
+    pub fn open(run: &GeometryRun, language: &LanguageRun, device: &Device) -> Result<Self> {
+        let scene = Self::load(run, language, device)?;
+        Ok(match language.read_compaction(scene.splats.len())? {
+            Some(c) => scene.subset(&c.kept),
+            None => scene,
         })
     }
 
@@ -125,7 +141,7 @@ impl LanguageScene {
 
     /// RGB, identity and alpha of a view.
     pub fn render(&self, cam: &Camera) -> Result<ViewRender> {
-        self.splats.render(cam, self.sh_degree, self.background)
+        self.display.as_ref().unwrap_or(&self.splats).render(cam, self.sh_degree, self.background)
     }
 
     /// The view-level map `[H, W, Cv]` of a view camera (rendered from its token camera), with
@@ -218,6 +234,7 @@ impl LanguageScene {
     }
 
     /// The scene restricted to Gaussians `keep` (row indices): "model only what a scene needs".
+    /// Language maps and picks use those rows; RGB renders keep every Gaussian.
     pub fn subset(&self, keep: &[usize]) -> LanguageScene {
         let dev = self.splats.means.val().device();
         let idx: Vec<i64> = keep.iter().map(|&i| i as i64).collect();
@@ -239,6 +256,7 @@ impl LanguageScene {
             sh_degree: self.sh_degree,
             background: self.background,
             field: LanguageField::from_named(named).expect("the same tensors"),
+            display: Some(self.display.clone().unwrap_or_else(|| self.splats.clone())),
             margin: self.margin,
             masks: self.masks,
         }

@@ -278,6 +278,7 @@ fn run_scene(plan: &Plan, s: &Scene, d: &SceneDirs, shard: &str) -> anyhow::Resu
             backend: plan.backend,
             resume,
             config: Some(cfg_path),
+            no_compact: false,
         };
         super::train_language::run(args, &crate::ranks::Ranks::Solo)?;
         time("language", t0);

@@ -90,6 +90,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
             backend: a.backend,
             resume: false,
             config: Some(language_cfg),
+            no_compact: false,
         },
         &crate::ranks::Ranks::Solo,
     )?;

@@ -31,6 +31,12 @@ pub struct Args {
     /// A config.json with any LanguageTrainConfig fields (others keep their defaults).
     #[arg(long)]
     pub config: Option<PathBuf>,
+    /// Keep every Gaussian for the language maps. By default the run is compacted after training:
+    /// the fewest Gaussians (by language contribution) whose training views' token L1 stays
+    /// within `compact_tolerance` (3 %) of the whole field's are written to compact.json, and
+    /// chat, ask, vqa and serve render language maps from those alone.
+    #[arg(long)]
+    pub no_compact: bool,
 }
 
 pub fn run(a: Args, ranks: &crate::ranks::Ranks) -> anyhow::Result<()> {
@@ -51,10 +57,18 @@ pub fn run(a: Args, ranks: &crate::ranks::Ranks) -> anyhow::Result<()> {
     super::check_config(a.config.as_deref(), cfg.validate())?;
     let geometry = GeometryRun::new(&a.run);
     let out = a.out.as_ref().map(LanguageRun::new).unwrap_or_else(|| geometry.language());
-    if a.iters.is_none() && a.resume && out.config().is_file() {
-        // resuming without --iters: the run's own total
-        cfg.iters = model::io::read_json::<LanguageTrainConfig>(&out.config())?.iters;
+    if a.resume && out.config().is_file() {
+        let saved = model::io::read_json::<LanguageTrainConfig>(&out.config())?;
+        if a.iters.is_none() {
+            // resuming without --iters: the run's own total
+            cfg.iters = saved.iters;
+        }
+        cfg.compact_tolerance = saved.compact_tolerance;
     }
+    if a.no_compact {
+        cfg.compact_tolerance = 0.0;
+    }
+    let cfg_tolerance = cfg.compact_tolerance;
     let device = a.backend.device();
     let c = ranks.collective();
     if c.size() > 1 && c.is_root() {
@@ -94,5 +108,26 @@ pub fn run(a: Args, ranks: &crate::ranks::Ranks) -> anyhow::Result<()> {
         s.gaussians,
         out.dir.display()
     );
+    if let Some(c) = &s.compaction {
+        println!(
+            "compact: the language maps keep {} of {} Gaussians ({:.0} %); training token L1 view {:.4} -> {:.4}, \
+                object {:.4} -> {:.4} (within {} %) -> {}",
+            c.kept.len(),
+            c.gaussians,
+            100.0 * c.kept.len() as f64 / c.gaussians.max(1) as f64,
+            c.token_l1_full.0,
+            c.token_l1_kept.0,
+            c.token_l1_full.1,
+            c.token_l1_kept.1,
+            100.0 * c.tolerance,
+            out.compaction().display()
+        );
+    } else if cfg_tolerance > 0.0 {
+        println!(
+            "compact: no fraction of the Gaussians down to half kept the training views' token L1 within {} %: \
+                every Gaussian kept",
+            100.0 * cfg_tolerance
+        );
+    }
     Ok(())
 }

@@ -80,6 +80,12 @@ pub struct LanguageTrainConfig {
     /// is a host loop, so on wgpu the maps stay with the device's rasterizer. The teacher tokens
     /// read once are kept within the same budget.
     pub kept_weights_mb: usize,
+    /// Model only what a scene needs: after training, keep the fewest Gaussians (by language
+    /// contribution; half, 35, 25, 15 or 10 %) whose training views' token L1 (view + weighted
+    /// object) rises by at most this fraction over the whole field's, and write them to
+    /// `compact.json` (inference then renders language maps from those alone; 0: keep all).
+    /// Calibrated on five held-out scenes (BENCHMARKS.md).
+    pub compact_tolerance: f32,
 }
 
 impl Default for LanguageTrainConfig {
@@ -99,6 +105,7 @@ impl Default for LanguageTrainConfig {
             checkpoint_seconds: 300,
             views_per_step: 1,
             kept_weights_mb: 2048,
+            compact_tolerance: crate::compact::DEFAULT_TOLERANCE,
         }
     }
 }
@@ -126,6 +133,9 @@ impl LanguageTrainConfig {
         }
         if self.views_per_step == 0 {
             return bad("views_per_step", "must be at least 1");
+        }
+        if !(self.compact_tolerance.is_finite() && self.compact_tolerance >= 0.0) {
+            return bad("compact_tolerance", "must be a finite number >= 0 (0: keep every Gaussian)");
         }
         Ok(())
     }
@@ -218,6 +228,7 @@ impl LanguageTrainer {
             sh_degree: state.sh_degree,
             background: state.background,
             field,
+            display: None,
             margin: teacher.index.object_margin,
             masks: state.data.masks,
         };
@@ -453,13 +464,38 @@ impl LanguageTrainer {
 
     /// Mean token L1 over the training views `(view, object)` with the current field.
     pub fn token_l1(&mut self, views: &[usize]) -> Result<(f32, f32)> {
-        let (mut lv, mut lo, mut no) = (0.0, 0.0, 0);
         let field = self.scene.field.clone();
+        self.l1_over(views, |t, v| t.view_tokens(&field, v), |t, v, obj| t.object_tokens(&field, v, obj))
+    }
+
+    /// [`token_l1`](Self::token_l1) of another scene on the same geometry, its own field and
+    /// Gaussians (a [`subset`](LanguageScene::subset) of the trainer's, say), rasterised; the
+    /// object crops, masks and targets are the trainer's.
+    pub fn token_l1_of(&mut self, scene: &LanguageScene, views: &[usize]) -> Result<(f32, f32)> {
+        self.l1_over(
+            views,
+            |t, v| scene.view_tokens(&scene.field, &t.views[v].camera),
+            |t, v, obj| {
+                let (oc, mask) = t.mask(v, obj)?;
+                scene.object_tokens_with(&scene.field, &oc, &mask)
+            },
+        )
+    }
+
+    /// Mean token L1 (view, object) over `views` and their objects of the tokens `view` and
+    /// `object` make, against the teacher's.
+    fn l1_over(
+        &mut self,
+        views: &[usize],
+        mut view: impl FnMut(&mut Self, usize) -> Result<Tensor<2>>,
+        mut object: impl FnMut(&mut Self, usize, &TeacherObject) -> Result<Tensor<2>>,
+    ) -> Result<(f32, f32)> {
+        let (mut lv, mut lo, mut no) = (0.0, 0.0, 0);
         for &v in views {
-            let tok = host(self.view_tokens(&field, v)?);
+            let tok = host(view(self, v)?);
             lv += mean_abs_diff(&tok, &self.target(v, None)?);
             for obj in self.teacher.views[v].objects.clone() {
-                let tok = host(self.object_tokens(&field, v, &obj)?);
+                let tok = host(object(self, v, &obj)?);
                 lo += mean_abs_diff(&tok, &self.target(v, Some(obj.id))?);
                 no += 1;
             }
@@ -597,6 +633,8 @@ pub struct LangSummary {
     pub resumed_from: Option<usize>,
     pub gaussians_used: usize,
     pub gaussians: usize,
+    /// What compacting kept (`None`: off, on another rank, or no fraction held).
+    pub compaction: Option<model::run::Compaction>,
 }
 
 /// `metrics.json` of a language run.
@@ -639,6 +677,7 @@ pub fn run(
         // train until the requested total (nothing more when already past it; the stored total never
         // drops below the iteration reached, so the saved state stays consistent)
         t.cfg.iters = cfg.iters.max(t.iter);
+        t.cfg.compact_tolerance = cfg.compact_tolerance;
         let at = t.iter;
         if c.is_root() {
             crate::ckpt::warn_if_done(&out.dir, at, cfg.iters);
@@ -648,6 +687,10 @@ pub fn run(
         (LanguageTrainer::new(run, TeacherSet::open(teacher_dir)?, cfg, device)?, None)
     };
     let root = c.is_root();
+    // a compaction belongs to the weights it was chosen on: training on makes it stale
+    if root && out.compaction().is_file() {
+        std::fs::remove_file(out.compaction()).map_err(|e| Error::io(out.compaction(), "cannot remove", e))?;
+    }
     if resumed_from.is_none() && root {
         t.save(out)?;
     }
@@ -697,6 +740,7 @@ pub fn run(
             resumed_from,
             gaussians_used: used,
             gaussians,
+            compaction: None,
         });
     }
     // the last update was judged by no step: its token L1 against the one before the first step
@@ -715,6 +759,10 @@ pub fn run(
         gaussians_used: used,
     };
     io::write_json(&out.metrics(), &metrics)?;
+    let compaction = if t.cfg.compact_tolerance > 0.0 { crate::compact::choose(&mut t, after)? } else { None };
+    if let Some(c) = &compaction {
+        io::write_json(&out.compaction(), c)?;
+    }
     Ok(LangSummary {
         before,
         after,
@@ -722,5 +770,6 @@ pub fn run(
         resumed_from,
         gaussians_used: used,
         gaussians: t.contribution.len(),
+        compaction,
     })
 }

@@ -7,6 +7,7 @@
 #![allow(deprecated)] // burn-ndarray is deprecated in burn 0.22 in favour of burn-flex.
 
 pub mod ckpt;
+pub mod compact;
 pub mod dist;
 pub mod geometry;
 pub mod guard;

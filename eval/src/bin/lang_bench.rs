@@ -343,7 +343,8 @@ fn bench(a: &Args) -> Result<()> {
     let lang = a.language.as_ref().map(LanguageRun::new).unwrap_or_else(|| geometry.language());
     let out = a.out.clone().unwrap_or_else(|| a.run.join("bench"));
     model::io::create_dir(&out)?;
-    let session = ChatSession::open(&geometry, Some(&lang.dir), &vlm_dir, &device)?;
+    // every Gaussian: the rows below keep fractions of them, and the run's compaction among them
+    let session = ChatSession::open_full(&geometry, Some(&lang.dir), &vlm_dir, &device)?;
     let teacher_dir = lang.teacher()?.dir;
     let ds = TeacherSet::open(&teacher_dir)?.dataset()?;
     let held: &[View] = if ds.test.is_empty() { &ds.train } else { &ds.test };
@@ -474,6 +475,9 @@ fn bench(a: &Args) -> Result<()> {
         L1 | views/s | objects/s | train s/iter |\n|---|---|---|---|---|---|---|---|---|---|";
     println!("\n## Speed against error\n\n{header}");
     rows.push(row("trained (this run)", scene, vlm, held, a.reps, None)?);
+    if let Some(c) = lang.read_compaction(scene.splats.len())? {
+        rows.push(row("compacted (compact.json)", &scene.subset(&c.kept), vlm, held, a.reps, None)?);
+    }
     // model only what a scene needs: Gaussians ranked by their language contribution
     let contribution = lang.read_contribution()?;
     let base_cfg: LanguageTrainConfig = model::io::read_json(&lang.config())?;

@@ -76,8 +76,11 @@ struct Args {
 /// One way to make a scene's field in the sweep, scored by ChatSplat's answers.
 #[derive(Clone, Copy, Debug, PartialEq)]
 enum Variant {
-    /// The field as configured (the reference point).
+    /// The field as configured, every Gaussian (the reference point).
     Configured,
+    /// The field as `train-language` leaves it by default: compacted (compact.json), the
+    /// comparison's (c).
+    Compacted,
     /// Language features of this many channels per level.
     Channels(usize),
     /// The configured field with only this percentage of its Gaussians, those with the largest
@@ -91,8 +94,9 @@ enum Variant {
     GeometryIters(usize),
 }
 
-const SWEEP: [Variant; 9] = [
+const SWEEP: [Variant; 10] = [
     Variant::Configured,
+    Variant::Compacted,
     Variant::Channels(8),
     Variant::Channels(16),
     Variant::Channels(64),
@@ -110,6 +114,7 @@ impl Variant {
     fn name(self, a: &Args, channels: usize) -> String {
         match self {
             Variant::Configured => format!("configured ({channels} ch, all Gaussians)"),
+            Variant::Compacted => "compacted (the default: compact.json)".into(),
             Variant::Channels(c) => format!("{c} channels"),
             Variant::Kept(p) => format!("{p} % of the Gaussians kept"),
             Variant::Patch(p) => format!("map at {p} px per token"),
@@ -122,7 +127,7 @@ impl Variant {
     fn axis(self) -> &'static str {
         match self {
             Variant::Configured | Variant::Channels(_) => "channels",
-            Variant::Kept(_) => "Gaussians kept",
+            Variant::Kept(_) | Variant::Compacted => "Gaussians kept",
             Variant::Patch(_) => "map resolution",
             Variant::LanguageIters(_) | Variant::GeometryIters(_) => "iterations",
         }
@@ -440,20 +445,25 @@ fn bench(a: &Args) -> Result<()> {
                     bar.update_with(p.iter, p.iters, &format!("loss {:.4}", p.step.loss))
                 }
             })?;
-            Ok((ChatSession::open(run, Some(&lang.dir), &vlm_dir, &device)?, l.seconds_per_iter))
+            Ok((ChatSession::open_full(run, Some(&lang.dir), &vlm_dir, &device)?, l.seconds_per_iter))
         };
         for v in SWEEP.into_iter().chain([GEOMETRY_SWEEP]) {
-            let mut cfg = language_config.clone();
+            // the sweep's fields are compared with every Gaussian (the configured one's compaction
+            // is a point of its own)
+            let mut cfg = LanguageTrainConfig { compact_tolerance: 0.0, ..language_config.clone() };
             let (field, seconds_per_iter) = match v {
                 Variant::Configured => {
-                    let ans = configured.take().expect("ChatSplat's answers of the configured field");
+                    (ChatSession::open_full(&run, None, &vlm_dir, &device)?, Some(l.seconds_per_iter))
+                }
+                Variant::Compacted => {
+                    let ans = configured.take().expect("ChatSplat's answers of the default field");
                     record(v, &session, ans, Some(l.seconds_per_iter));
                     continue;
                 }
                 Variant::Kept(pct) => {
                     let c = lang.read_contribution()?;
                     let keep = model::scene::top_contributors(&c, (c.len() * pct).div_ceil(100));
-                    let mut s = ChatSession::open(&run, None, &vlm_dir, &device)?;
+                    let mut s = ChatSession::open_full(&run, None, &vlm_dir, &device)?;
                     s.scene = s.scene.subset(&keep);
                     (s, None)
                 }

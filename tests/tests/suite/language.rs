@@ -421,7 +421,16 @@ fn small_scene(dev: &Device) -> model::scene::LanguageScene {
         ..Default::default()
     };
     let field = LanguageField::new(&cfg, cloud.len(), 3, dev);
-    model::scene::LanguageScene { cfg, splats, sh_degree: 0, background: [1.0; 3], field, margin: 0.1, masks: true }
+    model::scene::LanguageScene {
+        cfg,
+        splats,
+        sh_degree: 0,
+        background: [1.0; 3],
+        field,
+        display: None,
+        margin: 0.1,
+        masks: true,
+    }
 }
 
 #[test]

@@ -25,14 +25,14 @@ fn fixture() -> PathBuf {
 
 /// A dataset, its geometry run (the initial cloud, edited by `geometry`) and teacher tokens from
 /// the tiny fixture, in three scratch folders.
-struct Case {
+pub(crate) struct Case {
     _data: Scratch,
     run: Scratch,
     teacher: Scratch,
 }
 
 impl Case {
-    fn new(tag: &str, geometry: impl FnOnce(&mut SplatModel)) -> Self {
+    pub(crate) fn new(tag: &str, geometry: impl FnOnce(&mut SplatModel)) -> Self {
         use model::data::{LoadOptions, load_any};
         use train::geometry::{GeometryConfig, GeometryTrainer, data_ref, write_cameras};
         let data = temp_dir(&format!("{tag}-data"));
@@ -56,7 +56,7 @@ impl Case {
         Case { _data: data, run: run_dir, teacher }
     }
 
-    fn geometry(&self) -> GeometryRun {
+    pub(crate) fn geometry(&self) -> GeometryRun {
         GeometryRun::new(&*self.run)
     }
 
@@ -92,26 +92,27 @@ impl Case {
     }
 
     /// Trains the language stage into `run/language` with `cfg`.
-    fn train(&self, cfg: LanguageTrainConfig) -> model::error::Result<train::language::LangSummary> {
-        run(
-            &self.geometry(),
-            &self.teacher,
-            &self.language(),
-            cfg,
-            &Device::ndarray(),
-            false,
-            &train::dist::Solo,
-            |_| {},
-        )
+    pub(crate) fn train(&self, cfg: LanguageTrainConfig) -> model::error::Result<train::language::LangSummary> {
+        self.train_on(cfg, false)
     }
 
-    fn language(&self) -> LanguageRun {
+    /// [`train`](Self::train), or with `resume` on from the run's checkpoint.
+    pub(crate) fn train_on(
+        &self,
+        cfg: LanguageTrainConfig,
+        resume: bool,
+    ) -> model::error::Result<train::language::LangSummary> {
+        let (dev, solo) = (Device::ndarray(), train::dist::Solo);
+        run(&self.geometry(), &self.teacher, &self.language(), cfg, &dev, resume, &solo, |_| {})
+    }
+
+    pub(crate) fn language(&self) -> LanguageRun {
         LanguageRun::new(self.run.join("language"))
     }
 }
 
 /// A short language stage that fits these scenes (the fixture's 27x27 tokens of 108-px images).
-fn cfg(iters: usize) -> LanguageTrainConfig {
+pub(crate) fn cfg(iters: usize) -> LanguageTrainConfig {
     let mut c = LanguageTrainConfig { iters, warmup_iters: 5, checkpoint_every: 10, ..Default::default() };
     c.field.view_channels = 8;
     c.field.object_channels = 8;
@@ -340,6 +341,7 @@ fn a_field_of_a_million_gaussians_renders_and_trains_without_overflow() {
         sh_degree: 0,
         background: [1.0; 3],
         field,
+        display: None,
         margin: 0.1,
         masks: true,
     };

@@ -37,6 +37,8 @@ mod language;
 
 mod language_hard_cases;
 
+mod compact;
+
 /// The suite's allocator: the system's, noting the largest single allocation a thread asks for
 /// while [`track_allocations`] is on (the parser fuzzing checks that no corrupt header makes a
 /// parser allocate before it has checked the sizes against the bytes present).

@@ -135,12 +135,9 @@ pub enum GraderError {
     /// The grader URL is set but not the model or the key.
     #[error("{ENV_URL} is set but {0} is not")]
     MissingEnv(&'static str),
-    #[error("the grader needs the `curl` binary, which is not on PATH")]
-    NoCurl,
-    #[error("cannot run curl: {0}")]
-    Curl(String),
-    #[error("grader request to {endpoint} failed ({status}): {stderr}; response: {response}")]
-    Request { endpoint: String, status: String, stderr: String, response: String },
+    /// The request failed or the endpoint refused it (the key is redacted from every field).
+    #[error("grader request to {endpoint} failed ({status}): {detail}; response: {response}")]
+    Request { endpoint: String, status: String, detail: String, response: String },
     #[error("grader returned a non-JSON response ({error}): {body}")]
     NotJson { error: String, body: String },
     #[error("grader response has no choices[0].message.content: {0}")]
@@ -149,7 +146,7 @@ pub enum GraderError {
     NoScore(String),
 }
 
-/// An OpenAI-compatible chat-completions grader, called through the system `curl` binary.
+/// An OpenAI-compatible chat-completions grader, asked over HTTP(S) in process (ureq, rustls).
 #[derive(Clone, PartialEq)]
 pub struct Grader {
     /// Base URL without the trailing slash, e.g. `https://api.openai.com/v1`.
@@ -216,39 +213,36 @@ impl Grader {
         parse_score(content).ok_or_else(|| GraderError::NoScore(truncate(content, 300)))
     }
 
-    /// Grades one answer with a POST to `{url}/chat/completions` through `curl` (the body goes on
-    /// stdin). Note that the key is passed to curl as a command-line header.
+    /// Grades one answer with a POST to `{url}/chat/completions`, in process: the key travels in
+    /// the request's `Authorization` header only (no other process sees it in its arguments, as
+    /// one did when this spawned `curl`) and is redacted from every error.
     pub fn grade(&self, question: &str, reference: &str, answer: &str) -> Result<f32, GraderError> {
-        use std::io::Write;
-        use std::process::{Command, Stdio};
         let endpoint = format!("{}/chat/completions", self.url);
         let body = self.request_body(question, reference, answer).to_string();
-        let mut child = Command::new("curl")
-            .args(["-sS", "--fail-with-body", "-H"])
-            .arg(format!("Authorization: Bearer {}", self.key))
-            .args(["-H", "Content-Type: application/json", "--data-binary", "@-"])
-            .arg(&endpoint)
-            .stdin(Stdio::piped())
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped())
-            .spawn()
-            .map_err(|e| match e.kind() {
-                std::io::ErrorKind::NotFound => GraderError::NoCurl,
-                _ => GraderError::Curl(e.to_string()),
-            })?;
-        let wrote = child.stdin.take().expect("piped stdin").write_all(body.as_bytes());
-        let out = child.wait_with_output().map_err(|e| GraderError::Curl(e.to_string()))?;
         let redact = |s: &str| if self.key.is_empty() { s.to_string() } else { s.replace(&self.key, "***") };
-        let stdout = redact(&String::from_utf8_lossy(&out.stdout));
-        if !out.status.success() || wrote.is_err() {
-            return Err(GraderError::Request {
-                endpoint,
-                status: out.status.to_string(),
-                stderr: redact(String::from_utf8_lossy(&out.stderr).trim()),
-                response: truncate(&stdout, 300),
-            });
+        let failed = |status: String, detail: String, response: &str| GraderError::Request {
+            endpoint: redact(&endpoint),
+            status,
+            detail: redact(&detail),
+            response: truncate(&redact(response), 300),
+        };
+        let agent: ureq::Agent = ureq::Agent::config_builder()
+            .timeout_global(Some(std::time::Duration::from_secs(120)))
+            .http_status_as_error(false)
+            .build()
+            .into();
+        let mut response = agent
+            .post(&endpoint)
+            .header("Authorization", &format!("Bearer {}", self.key))
+            .header("Content-Type", "application/json")
+            .send(body.as_bytes())
+            .map_err(|e| failed("no response".into(), e.to_string(), ""))?;
+        let status = response.status();
+        let text = response.body_mut().read_to_string().map_err(|e| failed(status.to_string(), e.to_string(), ""))?;
+        if !status.is_success() {
+            return Err(failed(status.to_string(), "the endpoint refused the request".into(), &text));
         }
-        Self::parse_response(&stdout)
+        Self::parse_response(&redact(&text))
     }
 }
 
@@ -366,6 +360,57 @@ mod tests {
         let e = Grader::parse_response(&format!("<html>{}</html>", "x".repeat(1000))).unwrap_err().to_string();
         assert!(e.contains("non-JSON") && e.chars().count() < 450, "{e}");
         assert!(Grader::parse_response(r#"{"error": "bad"}"#).unwrap_err().to_string().contains("choices[0]"));
+    }
+
+    /// A local endpoint: the request arrives with the key in its header, a reply is scored, and
+    /// an error reply that echoes the key never shows it.
+    #[test]
+    fn grade_asks_over_http_with_the_key_in_the_header_only() {
+        use std::io::{BufRead, BufReader, Read, Write};
+        let listener = std::net::TcpListener::bind("127.0.0.1:0").unwrap();
+        let addr = listener.local_addr().unwrap();
+        let replies = [
+            ("200 OK", r#"{"choices": [{"message": {"content": "85"}}]}"#.to_string()),
+            ("401 Unauthorized", r#"{"error": "invalid key sk-secret-123"}"#.to_string()),
+        ];
+        let server = std::thread::spawn(move || {
+            let mut requests = Vec::new();
+            for (status, body) in replies {
+                let (stream, _) = listener.accept().unwrap();
+                let mut r = BufReader::new(stream);
+                let (mut head, mut len) = (String::new(), 0);
+                loop {
+                    let mut line = String::new();
+                    r.read_line(&mut line).unwrap();
+                    if let Some(v) = line.to_ascii_lowercase().strip_prefix("content-length:") {
+                        len = v.trim().parse().unwrap();
+                    }
+                    head.push_str(&line);
+                    if line == "\r\n" {
+                        break;
+                    }
+                }
+                let mut body_in = vec![0; len];
+                r.read_exact(&mut body_in).unwrap();
+                requests.push((head, String::from_utf8(body_in).unwrap()));
+                let fields = "Content-Type: application/json\r\nConnection: close";
+                let reply = format!("HTTP/1.1 {status}\r\n{fields}\r\nContent-Length: {}\r\n\r\n{body}", body.len());
+                r.get_mut().write_all(reply.as_bytes()).unwrap();
+            }
+            requests
+        });
+        let g = Grader { url: format!("http://{addr}/v1"), model: "judge".into(), key: "sk-secret-123".into() };
+        assert_eq!(g.grade("What colour?", "red", "red"), Ok(85.0));
+        let e = g.grade("What colour?", "red", "blue").unwrap_err().to_string();
+        assert!(e.contains("401") && e.contains("***") && !e.contains("sk-secret-123"), "{e}");
+        let requests = server.join().unwrap();
+        let (head, body) = &requests[0];
+        assert!(head.starts_with("POST /v1/chat/completions "), "{head}");
+        assert!(head.to_ascii_lowercase().contains("authorization: bearer sk-secret-123"), "{head}");
+        assert!(body.contains("\"model\":\"judge\"") && !body.contains("sk-secret-123"), "{body}");
+        // nothing listens there any more: a failed connection names the endpoint, not the key
+        let e = g.grade("q", "r", "a").unwrap_err().to_string();
+        assert!(e.contains("no response") && e.contains(&addr.to_string()) && !e.contains("sk-secret-123"), "{e}");
     }
 
     /// The only test touching the process environment (tests run in parallel threads).

@@ -43,10 +43,54 @@ impl Rng {
         }
         weights.len().saturating_sub(1)
     }
+    /// Shuffles `v` in place (Fisher-Yates from the back: every permutation equally likely).
+    pub fn shuffle<T>(&mut self, v: &mut [T]) {
+        for i in (1..v.len()).rev() {
+            let j = (self.next_u64() % (i as u64 + 1)) as usize;
+            v.swap(i, j);
+        }
+    }
+    /// Moves a uniform random choice of `k` of `v`'s items, in random order, to its front
+    /// (Fisher-Yates from the front, stopped after `k` draws; `k` clamped to the length).
+    pub fn partial_shuffle<T>(&mut self, v: &mut [T], k: usize) {
+        let n = v.len();
+        for i in 0..k.min(n) {
+            let j = i + (self.next_u64() % (n - i) as u64) as usize;
+            v.swap(i, j);
+        }
+    }
     /// Standard normal (Box-Muller).
     pub fn normal(&mut self) -> f32 {
         let u1 = self.f().max(1e-7);
         let u2 = self.f();
         (-2.0 * u1.ln()).sqrt() * (std::f32::consts::TAU * u2).cos()
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::Rng;
+
+    #[test]
+    fn shuffles_are_seeded_permutations() {
+        let mut a: Vec<usize> = (0..50).collect();
+        Rng::new(7).shuffle(&mut a);
+        let mut b: Vec<usize> = (0..50).collect();
+        Rng::new(7).shuffle(&mut b);
+        assert_eq!(a, b, "the same seed, the same order");
+        assert_ne!(a, (0..50).collect::<Vec<_>>(), "shuffled");
+        let mut sorted = a.clone();
+        sorted.sort_unstable();
+        assert_eq!(sorted, (0..50).collect::<Vec<_>>(), "a permutation");
+
+        let mut p: Vec<usize> = (0..10).collect();
+        Rng::new(3).partial_shuffle(&mut p, 4);
+        let mut sorted = p.clone();
+        sorted.sort_unstable();
+        assert_eq!(sorted, (0..10).collect::<Vec<_>>(), "still a permutation");
+        let mut q: Vec<usize> = (0..3).collect();
+        Rng::new(3).partial_shuffle(&mut q, 99);
+        q.sort_unstable();
+        assert_eq!(q, [0, 1, 2], "k past the length is clamped");
     }
 }

@@ -250,7 +250,7 @@ fn run_scene(plan: &Plan, s: &Scene, d: &SceneDirs, shard: &str) -> anyhow::Resu
             out: Some(d.teacher.clone()),
             masks: None,
             downscale: 1,
-            margin: 0.1, // the teacher crop margin the demo and extract default to
+            margin: model::language::CROP_MARGIN,
             shard: None,
             backend: plan.backend,
         })?;

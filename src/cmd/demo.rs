@@ -70,7 +70,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         out: Some(data.join("teacher")),
         downscale: 1,
         masks: None,
-        margin: 0.1,
+        margin: model::language::CROP_MARGIN,
         shard: None,
         backend: a.backend,
     })?;

@@ -27,7 +27,7 @@ pub struct Args {
     #[arg(long, default_value_t = 1)]
     pub downscale: u32,
     /// Object crop margin as a fraction of the object's box, per side.
-    #[arg(long, default_value_t = 0.1)]
+    #[arg(long, default_value_t = model::language::CROP_MARGIN)]
     pub margin: f32,
     #[arg(long, default_value_t = Backend::Ndarray)]
     pub backend: Backend,

@@ -429,10 +429,7 @@ impl LanguageTrainer {
         let k = self.cfg.max_objects_per_step;
         if k > 0 && objects.len() > k {
             let mut rng = model::rng::Rng::new(self.cfg.seed ^ (draw as u64).wrapping_mul(0x9E37_79B9_7F4A_7C15));
-            for i in 0..k {
-                let j = i + (rng.next_u64() % (objects.len() - i) as u64) as usize;
-                objects.swap(i, j);
-            }
+            rng.partial_shuffle(&mut objects, k);
             objects.truncate(k);
         }
         let mut lo_sum: Option<Tensor<1>> = None;

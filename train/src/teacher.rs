@@ -38,7 +38,13 @@ pub struct ExtractOptions {
 
 impl Default for ExtractOptions {
     fn default() -> Self {
-        Self { margin: 0.1, min_object_pixels: 64, ignore_ids: vec![0], load: LoadOptions::default(), shard: (0, 1) }
+        Self {
+            margin: model::language::CROP_MARGIN,
+            min_object_pixels: 64,
+            ignore_ids: vec![0],
+            load: LoadOptions::default(),
+            shard: (0, 1),
+        }
     }
 }
 

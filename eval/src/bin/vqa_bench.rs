@@ -20,6 +20,7 @@ use eval::progress::Progress;
 use model::chat::{ChatSession, DEFAULT_SCENE_VIEWS};
 use model::data::synth::{SynthOptions, write_dataset};
 use model::data::{LoadOptions, load_any};
+use model::language::CROP_MARGIN;
 use model::run::{GeometryRun, LanguageRun, TeacherDir};
 use model::splats::host;
 use model::vlm::{LlavaOnevision, RgbImage};
@@ -356,7 +357,7 @@ fn bench(a: &Args) -> Result<()> {
         let qf = load_questions(&data.join("questions.json"))?;
         let mut configured = None;
         for source in Source::ALL {
-            let answered = answer_file(&vlm, &qf, &ds, Some(&session), source, 0.1)?;
+            let answered = answer_file(&vlm, &qf, &ds, Some(&session), source, CROP_MARGIN)?;
             tallies.entry(source).or_default().merge(&answered.tally);
             if source == Source::ChatSplat {
                 configured = Some(answered);
@@ -382,7 +383,7 @@ fn bench(a: &Args) -> Result<()> {
                 let (x, y) = obj?;
                 let ids = gt_view.instance_ids.as_ref()?;
                 let id = ids[y * w + x];
-                model::language::ObjectCrop::of(ids, w, h, id, 0.1).map(|c| c.masked_image(img, ids, id))
+                model::language::ObjectCrop::of(ids, w, h, id, CROP_MARGIN).map(|c| c.masked_image(img, ids, id))
             };
             let level = q.level;
             let gt_tokens = host(vlm.teacher_tokens(&if obj.is_some() {
@@ -497,7 +498,7 @@ fn bench(a: &Args) -> Result<()> {
                     (s, Some(t))
                 }
             };
-            let ans = answer_file(&vlm, &qf, &ds, Some(&field), Source::ChatSplat, 0.1)?;
+            let ans = answer_file(&vlm, &qf, &ds, Some(&field), Source::ChatSplat, CROP_MARGIN)?;
             eprintln!("seed {seed} sweep: {}: {:.1} %", v.name(a, channels), ans.tally.overall());
             record(v, &field, ans, seconds_per_iter);
         }

@@ -14,6 +14,10 @@ use crate::vlm::RgbImage;
 /// The crop square is at least this fraction of the view's shorter side.
 pub const MIN_CROP_FRACTION: f32 = 0.5;
 
+/// The default margin (of the mask box's size, each side) of an object's crop: the teacher's,
+/// and so the language field's and the object questions'.
+pub const CROP_MARGIN: f32 = 0.1;
+
 /// Where an object's crop lies in its view.
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub struct ObjectCrop {

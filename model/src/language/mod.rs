@@ -25,6 +25,6 @@ pub mod field;
 pub mod frozen;
 
 pub use config::LanguageConfig;
-pub use crop::{ObjectCrop, object_box, object_image, objects_in};
+pub use crop::{CROP_MARGIN, ObjectCrop, object_box, object_image, objects_in};
 pub use field::{Encoder, LanguageField, mask_out};
 pub use frozen::FrozenEncoder;

@@ -187,10 +187,7 @@ fn permuting_gaussians_does_not_change_the_image() {
     let scene = random_scene(120, 4, &cam, 11);
     let n = scene.len();
     let mut perm: Vec<usize> = (0..n).collect();
-    let mut r = Rng::new(12);
-    for i in (1..n).rev() {
-        perm.swap(i, (r.next_u64() % (i as u64 + 1)) as usize);
-    }
+    Rng::new(12).shuffle(&mut perm);
     let p = scene.permuted(&perm);
     let cfg = RasterConfig::default();
     let a = cpu::forward(&scene.inputs(), &cam, &cfg);

@@ -425,7 +425,7 @@ fn chatsplat_tokens_answer_a_held_out_scene_nearly_as_well_as_ground_truth_image
     let session = model::chat::ChatSession::open(&run, None, &vlm_dir, &dev).unwrap();
     let qf = model::vqa::load_questions(&scene.data.join("questions.json")).unwrap();
     let score = |source| {
-        let t = answer_file(&vlm, &qf, &ds, Some(&session), source, 0.1).unwrap().tally;
+        let t = answer_file(&vlm, &qf, &ds, Some(&session), source, model::language::CROP_MARGIN).unwrap().tally;
         let (right, n): (usize, usize) = t.by_level.values().fold((0, 0), |(r, n), v| (r + v.0, n + v.1));
         right as f64 / n.max(1) as f64
     };

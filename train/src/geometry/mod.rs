@@ -46,11 +46,7 @@ pub fn classes_of(ds: &Dataset) -> usize {
 pub fn view_at(iter: usize, views: usize, seed: u64) -> usize {
     let epoch = iter / views.max(1);
     let mut order: Vec<usize> = (0..views).collect();
-    let mut rng = Rng::new(seed ^ (epoch as u64).wrapping_mul(0x2545_F491_4F6C_DD1D));
-    for i in (1..order.len()).rev() {
-        let j = (rng.next_u64() % (i as u64 + 1)) as usize;
-        order.swap(i, j);
-    }
+    Rng::new(seed ^ (epoch as u64).wrapping_mul(0x2545_F491_4F6C_DD1D)).shuffle(&mut order);
     order[iter % views.max(1)]
 }
 

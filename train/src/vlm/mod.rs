@@ -181,7 +181,7 @@ impl Default for VlmTrainConfig {
             adaptive_floor: 0.05,
             feature_noise: 0.1,
             resolution: 96,
-            margin: 0.1,
+            margin: model::language::CROP_MARGIN,
             label_tokens_until: 0.3,
             label_tokens_end: 0.6,
             label_weight: 1.0,

@@ -409,18 +409,23 @@ fn end_to_end_language_field_chat_and_export() {
 /// A small language scene on `dev`: the built-in Gaussian tabletop with a fresh field.
 fn small_scene(dev: &Device) -> model::scene::LanguageScene {
     let (cloud, _) = model::data::synth::gaussians::tabletop(7, 14);
-    let splats = model::splats::SplatModel::from_cloud(&cloud, None, 2, dev);
+    scene_of(model::splats::SplatModel::from_cloud(&cloud, None, 2, dev), 5, dev)
+}
+
+/// A language scene of `splats` with a fresh 4 + 4-channel field (6x6 tokens of width 8 from
+/// `patch`-px map cells), white background, SH degree 0.
+pub(crate) fn scene_of(splats: model::splats::SplatModel, patch: usize, dev: &Device) -> model::scene::LanguageScene {
     let cfg = LanguageConfig {
         view_channels: 4,
         object_channels: 4,
         hidden: 8,
         dim: 8,
         grid: 6,
-        patch: 5,
+        patch,
         teacher_image: 84,
         ..Default::default()
     };
-    let field = LanguageField::new(&cfg, cloud.len(), 3, dev);
+    let field = LanguageField::new(&cfg, splats.len(), 3, dev);
     model::scene::LanguageScene {
         cfg,
         splats,

@@ -12,7 +12,6 @@
 use burn::tensor::{Device, Tensor, TensorData};
 use chatsplat_tests::{Scratch, host, temp_dir};
 use glam::Vec3;
-use model::language::{LanguageConfig, LanguageField};
 use model::run::{GeometryRun, LanguageRun, TeacherDir};
 use model::splats::SplatModel;
 use std::path::{Path, PathBuf};
@@ -323,28 +322,7 @@ fn a_field_of_a_million_gaussians_renders_and_trains_without_overflow() {
         cloud.opacity_logits.push(if last { 4.0 } else { 0.0 });
         cloud.sh_dc.push([0.5; 3]);
     }
-    let splats = SplatModel::from_cloud(&cloud, None, 2, &dev);
-    let cfg = LanguageConfig {
-        view_channels: 4,
-        object_channels: 4,
-        hidden: 8,
-        dim: 8,
-        grid: 6,
-        patch: 8,
-        teacher_image: 84,
-        ..Default::default()
-    };
-    let field = LanguageField::new(&cfg, N, 3, &dev);
-    let scene = model::scene::LanguageScene {
-        cfg,
-        splats,
-        sh_degree: 0,
-        background: [1.0; 3],
-        field,
-        display: None,
-        margin: 0.1,
-        masks: true,
-    };
+    let scene = super::language::scene_of(SplatModel::from_cloud(&cloud, None, 2, &dev), 8, &dev);
     let cam = splat_kernels::Camera::look_at(Vec3::ZERO, Vec3::Z, -Vec3::Y, 60.0, 96, 96);
     let vc = scene.cfg.view_camera(&cam);
     let w = std::sync::Arc::new(scene.blend_weights(&vc).unwrap());

@@ -152,6 +152,14 @@ impl ChatSession {
         } else {
             LanguageScene::load(run, &language, device)?
         };
+        // after the loads, which name a missing or broken run better
+        if let Some(iter) = language.unfinished()? {
+            crate::error::warn(format_args!(
+                "{}: this language run stopped at iteration {iter} before it finished (it has no metrics.json): \
+                    its field is that checkpoint's; `chatsplat train-language --resume` finishes it",
+                language.dir.display()
+            ));
+        }
         let cams = run.read_cameras()?;
         let vlm = LlavaOnevision::load(vlm_dir, device)?;
         if vlm.cfg.vision.hidden_size != scene.cfg.dim {

@@ -336,8 +336,7 @@ impl LanguageRun {
         Ok(Some(self.read_state()?.iter))
     }
 
-    /// The trained field (parameters only) and the run's state; warns when the run is
-    /// [`unfinished`](Self::unfinished).
+    /// The trained field (parameters only) and the run's state.
     pub fn load_field(&self, device: &Device) -> Result<(LanguageField, LanguageState)> {
         if !self.dir.is_dir() {
             return Err(Error::invalid(
@@ -346,13 +345,6 @@ impl LanguageRun {
             ));
         }
         let state = self.read_state()?;
-        if let Some(iter) = self.unfinished()? {
-            crate::error::warn(format_args!(
-                "{}: this language run stopped at iteration {iter} before it finished (it has no metrics.json): \
-                    its field is that checkpoint's; `chatsplat train-language --resume` finishes it",
-                self.dir.display()
-            ));
-        }
         let path = self.checkpoint();
         let (mut tensors, _) = io::read_f32(&path)?;
         let mut named = Vec::new();

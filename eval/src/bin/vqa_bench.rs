@@ -226,6 +226,14 @@ impl Fidelity {
     }
 }
 
+/// Adds `p` to the point of its name in `points`, or appends it (the sweep's order).
+fn add_point(points: &mut Vec<Point>, p: &Point) {
+    match points.iter_mut().find(|q| q.name == p.name) {
+        Some(q) => q.add(p),
+        None => points.push(p.clone()),
+    }
+}
+
 /// What a run adds up over its scenes; `--merge` adds the bench.json of several runs.
 #[derive(Default)]
 struct Totals {
@@ -247,8 +255,9 @@ struct BenchJson {
     #[serde(default)]
     seed_ranges: Vec<[u64; 2]>,
     tallies: BTreeMap<Source, Tally>,
+    /// `None` in files written before the runs stored it.
     #[serde(default)]
-    token_seconds: Vec<(Source, Level, f64, usize)>,
+    token_seconds: Option<Vec<(Source, Level, f64, usize)>>,
     fidelity_rendered_rgb: Fidelity,
     fidelity_chatsplat: Fidelity,
     #[serde(default)]
@@ -260,7 +269,7 @@ impl Totals {
         for (s, t) in &b.tallies {
             self.tallies.entry(*s).or_default().merge(t);
         }
-        for &(s, l, t, n) in &b.token_seconds {
+        for &(s, l, t, n) in b.token_seconds.iter().flatten() {
             let e = self.seconds.entry((s, l)).or_default();
             e.0 += t;
             e.1 += n;
@@ -268,10 +277,7 @@ impl Totals {
         self.fid_rgb.add_mean(b.fidelity_rendered_rgb);
         self.fid_cs.add_mean(b.fidelity_chatsplat);
         for p in &b.sweep {
-            match self.points.iter_mut().find(|q| q.name == p.name) {
-                Some(q) => q.add(p),
-                None => self.points.push(p.clone()),
-            }
+            add_point(&mut self.points, p);
         }
         self.seeds.extend(b.seeds.iter().chain(&b.seed_ranges));
     }
@@ -418,25 +424,18 @@ fn bench(a: &Args) -> Result<()> {
         // speed against error: other fields of the same scene, each scored on ChatSplat's answers
         let channels = language_config.field.view_channels;
         let mut record = |v: Variant, session: &ChatSession, ans: Answered, seconds_per_iter: Option<f64>| {
-            let name = v.name(a, channels);
-            let i = points.iter().position(|p| p.name == name).unwrap_or_else(|| {
-                points.push(Point { name: name.clone(), axis: v.axis().into(), ..Default::default() });
-                points.len() - 1
-            });
-            let p = &mut points[i];
-            p.tally.merge(&ans.tally);
-            for (level, (t, n)) in ans.token_seconds {
-                let e = p.token_seconds.entry(level).or_default();
-                e.0 += t;
-                e.1 += n;
-            }
-            if let Some(s) = seconds_per_iter {
-                p.train_seconds += s;
-                p.trained += 1;
-            }
-            p.gaussians += session.scene.splats.len();
-            p.field_bytes += field_bytes(session);
-            p.scenes += 1;
+            let scene = Point {
+                name: v.name(a, channels),
+                axis: v.axis().into(),
+                tally: ans.tally,
+                token_seconds: ans.token_seconds,
+                train_seconds: seconds_per_iter.unwrap_or(0.0),
+                trained: seconds_per_iter.is_some() as usize,
+                gaussians: session.scene.splats.len(),
+                field_bytes: field_bytes(session),
+                scenes: 1,
+            };
+            add_point(points, &scene);
         };
         let train_field = |run: &GeometryRun, tag: &str, cfg: LanguageTrainConfig| -> Result<(ChatSession, f64)> {
             let lang = LanguageRun::new(run.dir.join(format!("language-{tag}")));
@@ -514,8 +513,10 @@ fn bench(a: &Args) -> Result<()> {
 /// `--merge`: the bench.json of earlier runs added up and reported as one.
 fn merge(a: &Args) -> Result<()> {
     let mut totals = Totals::default();
+    let mut missing = 0;
     for f in &a.merge {
         let b: BenchJson = model::io::read_json(f)?;
+        missing += b.token_seconds.is_none() as usize;
         if b.seeds.is_none() && b.seed_ranges.is_empty() {
             return Err(model::Error::invalid(f, "names no seeds: not a vqa-bench bench.json"));
         }
@@ -529,7 +530,6 @@ fn merge(a: &Args) -> Result<()> {
         }
         totals.add(&b);
     }
-    let missing = a.merge.len() - a.merge.iter().filter(|f| has_token_seconds(f)).count();
     if missing > 0 {
         eprintln!(
             "note: {missing} of {} files predate token_seconds: the views/s and objects/s of the three paths {} \
@@ -543,10 +543,6 @@ fn merge(a: &Args) -> Result<()> {
         "seed_ranges": totals.seeds, "merged_from": a.merge,
     });
     report(&totals, "merged", settings, &a.out)
-}
-
-fn has_token_seconds(f: &std::path::Path) -> bool {
-    model::io::read_json::<serde_json::Value>(f).is_ok_and(|v| v.get("token_seconds").is_some())
 }
 
 /// Prints the comparison (and the sweep, when there is one) and writes bench.json (`settings`

@@ -83,17 +83,25 @@ impl Ranks {
             let parts: Vec<String> =
                 by.iter().take(3).map(|(what, d)| format!("{what} {:.1} s", d.as_secs_f64())).collect();
             let peak = eval::progress::peak_rss_gib().map_or(String::new(), |g| format!("; peak memory {g:.2} GiB"));
-            eprintln!(
+            say(&format!(
                 "rank {} of {}: {:.1} s in collectives ({:.1} % of {seconds:.1} s: {}){peak}",
                 m.rank(),
                 m.size(),
                 total.as_secs_f64(),
                 share(total),
                 parts.join(", ")
-            );
+            ));
         }
         let _ = seconds;
     }
+}
+
+/// One line on standard error in a single write: `eprintln!` writes its pieces one by one, so
+/// the lines of two ranks that share mpirun's standard error could interleave mid-line.
+#[cfg(feature = "mpi")]
+fn say(line: &str) {
+    use std::io::Write;
+    let _ = std::io::stderr().lock().write_all(format!("{line}\n").as_bytes());
 }
 
 #[cfg(feature = "mpi")]
@@ -155,7 +163,7 @@ mod mpi_ranks {
 
         /// Prints `message` with this rank and stops the whole job.
         pub fn abort(&self, message: &str) -> ! {
-            eprintln!("error (rank {} of {}): {message}; stopping every rank", self.rank, self.size);
+            super::say(&format!("error (rank {} of {}): {message}; stopping every rank", self.rank, self.size));
             self.world.abort(1)
         }
 

@@ -1,6 +1,7 @@
 //! The chatsplat model and its inference path, in the order data flows through them:
 //!
-//! 1. [`data`] — posed photos (nerfstudio/Blender, COLMAP, LLFF, Replica) and the built-in
+//! 1. [`question_file`] — question files about a scene (the types the synthetic scenes write);
+//!    [`data`] — posed photos (nerfstudio/Blender, COLMAP, LLFF, Replica) and the built-in
 //!    synthetic scenes ([`data::synth`]: objects, ray caster, questions).
 //! 2. [`splats`] — the 3D Gaussians (`SplatModel`, a burn `Module`), [`cloud`] and [`ply`].
 //! 3. [`language`] — per-Gaussian language features, the encoder that turns a rendered feature
@@ -23,6 +24,7 @@ pub mod io;
 pub mod rng;
 
 pub mod data;
+pub mod question_file;
 
 pub mod cloud;
 pub mod ply;

@@ -1,9 +1,9 @@
 //! Tensor-level entry point: [`splat`] renders a set of Gaussians on any backend (NdArray, wgpu,
 //! and either under autodiff) and returns feature, alpha, depth and top-id maps.
 
-use crate::SplatError;
 use crate::camera::Camera;
 use crate::constants::RasterConfig;
+use crate::error::SplatError;
 use crate::ext::{SplatBackend, SplatPrims};
 use burn::backend::Dispatch;
 use burn::tensor::{Int, Tensor};

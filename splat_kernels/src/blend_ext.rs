@@ -8,8 +8,8 @@
 //!
 //! The weights are constants (the geometry is frozen); only the features get a gradient.
 
-use crate::SplatError;
 use crate::blend::BlendWeights;
+use crate::error::SplatError;
 use crate::ext::{float_prim, read_floats};
 use burn::backend::autodiff::{
     Autodiff,

@@ -81,8 +81,8 @@ impl Camera {
     }
 
     /// Checks the intrinsics; every op calls this before doing any work.
-    pub fn validate(&self) -> Result<(), crate::SplatError> {
-        let bad = |what: String| Err(crate::SplatError::InvalidCamera(what));
+    pub fn validate(&self) -> Result<(), crate::error::SplatError> {
+        let bad = |what: String| Err(crate::error::SplatError::InvalidCamera(what));
         if self.width == 0 || self.height == 0 {
             return bad(format!("image size {}x{} must be at least 1x1", self.width, self.height));
         }

@@ -50,11 +50,11 @@ impl SplatInputsRef<'_> {
     }
 
     /// Checks lengths against `N` and `C` and that every value is finite.
-    pub fn validate(&self) -> Result<(), crate::SplatError> {
+    pub fn validate(&self) -> Result<(), crate::error::SplatError> {
         let n = self.len();
         let c = self.channels;
         if c == 0 {
-            return Err(crate::SplatError::Shape("features must have at least one channel".into()));
+            return Err(crate::error::SplatError::Shape("features must have at least one channel".into()));
         }
         let checks: [(&str, &[f32], usize, usize); 7] = [
             ("means", self.means, n * 3, 3),
@@ -67,14 +67,18 @@ impl SplatInputsRef<'_> {
         ];
         for (name, data, want, width) in checks {
             if data.len() != want {
-                return Err(crate::SplatError::Shape(format!(
+                return Err(crate::error::SplatError::Shape(format!(
                     "{name} has {} values, expected {want} ({} rows of {width})",
                     data.len(),
                     want / width.max(1)
                 )));
             }
             if let Some(k) = data.iter().position(|v| !v.is_finite()) {
-                return Err(crate::SplatError::NonFinite { tensor: name, row: k / width.max(1), value: data[k] });
+                return Err(crate::error::SplatError::NonFinite {
+                    tensor: name,
+                    row: k / width.max(1),
+                    value: data[k],
+                });
             }
         }
         Ok(())

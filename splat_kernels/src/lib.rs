@@ -12,6 +12,7 @@
 //! * [`blend_ext`] — the kept weights as a differentiable burn op ([`blend_ext::blend`]).
 //! * [`api`] — the tensor-level entry point [`api::splat`].
 //! * [`dense`] — the same math written with ordinary burn tensor ops (benchmark baseline).
+//! * [`error`] — [`SplatError`], what every layer returns.
 #![allow(deprecated)] // burn-ndarray is deprecated in burn 0.22 in favour of burn-flex.
 
 pub mod api;
@@ -22,6 +23,7 @@ pub mod constants;
 pub mod cpu;
 pub mod cube;
 pub mod dense;
+pub mod error;
 pub mod ext;
 pub mod project;
 pub mod reference;
@@ -29,17 +31,4 @@ pub mod reference;
 pub use api::{Gaussians, SplatRender, splat};
 pub use camera::Camera;
 pub use constants::RasterConfig;
-
-/// Errors of the splatting op: bad shapes, non-finite inputs, bad cameras.
-#[derive(Debug, Clone, PartialEq, thiserror::Error)]
-pub enum SplatError {
-    /// A tensor has the wrong shape.
-    #[error("splat: bad input shape: {0}")]
-    Shape(String),
-    /// An input holds NaN or an infinity (policy: rejected with this error, never rendered).
-    #[error("splat: {tensor} row {row} holds a non-finite value ({value})")]
-    NonFinite { tensor: &'static str, row: usize, value: f32 },
-    /// The camera cannot be used.
-    #[error("splat: invalid camera: {0}")]
-    InvalidCamera(String),
-}
+pub use error::SplatError;

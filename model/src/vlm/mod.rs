@@ -67,8 +67,12 @@ pub fn default_model_dir() -> Result<PathBuf, VlmError> {
 /// Loader and prompt errors; each names the file (or says it is about the prompt).
 #[derive(Debug, thiserror::Error)]
 pub enum VlmError {
-    #[error("{path}: {message}")]
-    Io { path: String, message: String },
+    #[error("{path}: {source}")]
+    Io {
+        path: String,
+        #[source]
+        source: std::io::Error,
+    },
     #[error("{path}: {message}")]
     Config { path: String, message: String },
     #[error("{path}: {message}")]
@@ -79,7 +83,7 @@ pub enum VlmError {
 
 impl VlmError {
     pub fn io(path: &Path, e: std::io::Error) -> Self {
-        VlmError::Io { path: path.display().to_string(), message: e.to_string() }
+        VlmError::Io { path: path.display().to_string(), source: e }
     }
     pub fn config(path: &Path, message: impl Into<String>) -> Self {
         VlmError::Config { path: path.display().to_string(), message: message.into() }

@@ -12,11 +12,11 @@ use model::data::synth::raycast::{SynthView, render_view};
 use model::data::synth::scene::Scene;
 use model::data::synth::{SCENE_VIEWS, random_camera};
 use model::language::ObjectCrop;
+use model::question_file::Level;
 use model::rng::Rng;
 use model::vlm::preprocess::ImagePatches;
 use model::vlm::preprocess::{RgbImage, resize};
 use model::vlm::{LlavaConfig, ProcessorConfig};
-use model::vqa::Level;
 use serde::{Deserialize, Serialize};
 
 /// What a sample shows.

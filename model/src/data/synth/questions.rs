@@ -23,8 +23,8 @@
 //! | scene | count_shape | How many cubes are in the scene? | `1` |
 
 use super::scene::{Color, Object, Scene, Shape, Size};
+use crate::question_file::Level;
 use crate::rng::Rng;
-use crate::vqa::Level;
 use serde::{Deserialize, Serialize};
 
 /// An object is seen in a view when it covers at least this fraction of the image.

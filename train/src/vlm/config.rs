@@ -1,0 +1,375 @@
+//! What a train-vlm run is: the model's shape and every knob of the training ([`VlmTrainConfig`]),
+//! the seeds it draws from and holds out.
+
+use super::data::SampleKind;
+use super::hops;
+use crate::schedule::warmup_cosine;
+use model::data::synth::questions::Kind;
+use model::error::{Error, Result};
+use model::rng::Rng;
+use model::vlm::config::{Act, TextConfig, VisionConfig};
+use model::vlm::{LlavaConfig, ProcessorConfig};
+use serde::{Deserialize, Serialize};
+use std::collections::BTreeMap;
+
+/// Scene seeds training draws from (`TRAIN_SEEDS..`); every seed below is held out.
+pub const TRAIN_SEEDS: u64 = 1_000_000;
+/// The held-out seeds evaluation uses by default (`EVAL_SEEDS..EVAL_SEEDS + n`).
+pub const EVAL_SEEDS: u64 = 10_000;
+
+/// The model's size.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct Shape {
+    pub image_size: usize,
+    pub patch_size: usize,
+    pub vision_width: usize,
+    pub vision_layers: usize,
+    pub vision_heads: usize,
+    pub vision_mlp: usize,
+    pub text_width: usize,
+    pub text_layers: usize,
+    pub text_heads: usize,
+    pub text_kv_heads: usize,
+    pub text_mlp: usize,
+}
+
+impl Default for Shape {
+    fn default() -> Self {
+        Self {
+            image_size: 96,
+            patch_size: 12,
+            vision_width: 128,
+            vision_layers: 4,
+            vision_heads: 4,
+            vision_mlp: 384,
+            text_width: 128,
+            text_layers: 4,
+            text_heads: 4,
+            text_kv_heads: 2,
+            text_mlp: 384,
+        }
+    }
+}
+
+/// Every knob of VLM training (saved beside the model as `train_config.json`).
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(default, deny_unknown_fields)]
+pub struct VlmTrainConfig {
+    pub seed: u64,
+    pub steps: usize,
+    pub model: Shape,
+    /// Peak learning rate (AdamW), reached after `warmup` steps, cosine-decayed to `min_lr`.
+    pub lr: f64,
+    pub min_lr: f64,
+    pub warmup: usize,
+    pub weight_decay: f32,
+    /// Images per step (a scene sample counts its views).
+    pub images_per_step: usize,
+    /// Questions asked per sample (at most).
+    pub questions_per_sample: usize,
+    /// Train on these question kinds only (empty: all); for curricula and ablations.
+    pub kinds: Vec<Kind>,
+    /// Extra weight of a question kind when a sample's questions are picked (absent: 1): more
+    /// of a kind that lags, e.g. `{"left_of": 4}`.
+    pub kind_weights: BTreeMap<Kind, f32>,
+    /// Probability of a view, object and scene step.
+    pub mix: [f32; 3],
+    /// Weight of the auxiliary per-token loss.
+    pub aux_weight: f32,
+    /// The first this many steps train the tower and the auxiliary head alone (no LLM), on
+    /// `tower_images` object crops and views per step: shape, the slowest thing for a small ViT to
+    /// see, is learned in cheap steps before the LLM starts reading the tokens.
+    pub tower_steps: usize,
+    pub tower_images: usize,
+    /// Peak learning rate of the tower's phase (0: `lr`); a ViT this small learns shape sooner
+    /// at a higher rate than the LLM tolerates.
+    pub tower_lr: f64,
+    /// Rate the tower's phase decays to (cosine, after the warm-up); 0: no decay (constant at the
+    /// phase's peak).
+    pub tower_min_lr: f64,
+    /// After the tower's phase the vision tower learns at this multiple of the rate (1: like the
+    /// rest); below 1 the LLM's first steps, whose gradients are large and noisy, do not wash out
+    /// the shapes the tower's phase taught it.
+    pub tower_lr_scale: f64,
+    /// Weights of the supervised hops ([`hops`]): dedupe, words, find (in `HopKind::ALL` order),
+    /// and of the slot and place heads; all zero: the answers alone teach the LLM.
+    pub hop_weights: [f32; 3],
+    pub slot_weight: f32,
+    pub place_weight: f32,
+    /// Draw question kinds (and the level of each step) in proportion to their recent training
+    /// error (plus `adaptive_floor`) instead of uniformly: steps go where answers are still wrong.
+    pub adaptive: bool,
+    pub adaptive_floor: f32,
+    /// Std of the noise on the vision tokens, relative to their RMS.
+    pub feature_noise: f32,
+    /// Side of the rendered views (the synthetic datasets' resolution).
+    pub resolution: u32,
+    /// Object crop margin (the teacher's).
+    pub margin: f32,
+    /// Label tokens (the curriculum): every image's tokens are the label tokens until this
+    /// fraction of the steps, then the tower's take over linearly until `label_tokens_end`.
+    pub label_tokens_until: f32,
+    pub label_tokens_end: f32,
+    /// Weight of the tower's mean squared error against the label tokens.
+    pub label_weight: f32,
+    /// Evaluate on held-out seeds every this many steps (0: only at the end).
+    pub eval_every: usize,
+    /// Held-out seeds for evaluation during training.
+    pub eval_seeds: u64,
+    /// Write a checkpoint (`OUT/checkpoint/`, what `--resume` reads) every this many steps and
+    /// at every evaluation (0: only at evaluations).
+    pub checkpoint_every: usize,
+    /// The backend this stage trains on (absent: the command's `--backend`). Backends differ in
+    /// the last bits of a float, and a training run amplifies them, so a committed model's
+    /// configuration names the backend each of its stages was trained on.
+    pub backend: Option<model::Backend>,
+    /// A first stage: train this configuration (same model shape) before this one, which then
+    /// starts from its weights with a fresh optimizer and fresh heads (auxiliary, slot, place;
+    /// they are not part of the llava-hf files), so a fine-tuned model is reproduced from its seeds
+    /// by one command.
+    pub base: Option<Box<VlmTrainConfig>>,
+}
+
+impl Default for VlmTrainConfig {
+    fn default() -> Self {
+        Self {
+            seed: 1,
+            steps: 3000,
+            model: Shape::default(),
+            lr: 2e-3,
+            min_lr: 1e-4,
+            warmup: 100,
+            weight_decay: 0.01,
+            images_per_step: 16,
+            questions_per_sample: 6,
+            kinds: Vec::new(),
+            kind_weights: BTreeMap::new(),
+            mix: [0.45, 0.3, 0.25],
+            aux_weight: 0.5,
+            tower_steps: 0,
+            tower_images: 32,
+            tower_lr: 0.0,
+            tower_min_lr: 0.0,
+            tower_lr_scale: 1.0,
+            hop_weights: [0.3, 0.5, 0.5],
+            slot_weight: 0.3,
+            place_weight: 0.0,
+            adaptive: true,
+            adaptive_floor: 0.05,
+            feature_noise: 0.1,
+            resolution: 96,
+            margin: model::language::CROP_MARGIN,
+            label_tokens_until: 0.3,
+            label_tokens_end: 0.6,
+            label_weight: 1.0,
+            eval_every: 500,
+            eval_seeds: 8,
+            checkpoint_every: 250,
+            backend: None,
+            base: None,
+        }
+    }
+}
+
+impl VlmTrainConfig {
+    /// The LLaVA-OneVision configuration of this shape with a vocabulary of `vocab` words.
+    pub fn llava_config(&self, vocab: usize) -> LlavaConfig {
+        let m = &self.model;
+        LlavaConfig {
+            vision: VisionConfig {
+                hidden_size: m.vision_width,
+                intermediate_size: m.vision_mlp,
+                num_layers: m.vision_layers,
+                num_heads: m.vision_heads,
+                image_size: m.image_size,
+                patch_size: m.patch_size,
+                layer_norm_eps: 1e-6,
+                act: Act::GeluTanh,
+            },
+            text: TextConfig {
+                vocab_size: vocab,
+                hidden_size: m.text_width,
+                intermediate_size: m.text_mlp,
+                num_layers: m.text_layers,
+                num_heads: m.text_heads,
+                num_kv_heads: m.text_kv_heads,
+                head_dim: m.text_width / m.text_heads,
+                rms_norm_eps: 1e-6,
+                rope_theta: 10_000.0,
+                max_positions: 4096,
+                tie_word_embeddings: true,
+                eos_token_ids: vec![2],
+                act: Act::Silu,
+            },
+            image_token_id: 3,
+            vision_feature_layer: -1,
+            projector_act: Act::Gelu,
+            projector_bias: true,
+            pinpoints: vec![(m.image_size, m.image_size)],
+            max_num_patches: 1,
+        }
+    }
+
+    /// The image processor: the tower's size, SigLIP's normalisation, Pillow bicubic.
+    pub fn processor(&self) -> ProcessorConfig {
+        let s = self.model.image_size;
+        ProcessorConfig {
+            mean: [0.5; 3],
+            std: [0.5; 3],
+            rescale_factor: 1.0 / 255.0,
+            size: (s, s),
+            resample: 3,
+            pinpoints: vec![(s, s)],
+        }
+    }
+
+    /// Refuses values out of range, naming the key.
+    pub fn validate(&self) -> Result<()> {
+        let bad = |key: &str, why: &str| Err(Error::input(format!("vlm config: {key} {why}")));
+        let m = &self.model;
+        if m.patch_size == 0 || m.image_size < m.patch_size {
+            return bad("model.patch_size", "must be in 1..=image_size");
+        }
+        if m.vision_heads == 0 || !m.vision_width.is_multiple_of(m.vision_heads) {
+            return bad("model.vision_width", "must be a multiple of vision_heads");
+        }
+        if m.text_heads == 0
+            || !m.text_width.is_multiple_of(m.text_heads)
+            || !(m.text_width / m.text_heads).is_multiple_of(2)
+        {
+            return bad("model.text_width", "must be text_heads times an even head width");
+        }
+        if m.text_kv_heads == 0 || !m.text_heads.is_multiple_of(m.text_kv_heads) {
+            return bad("model.text_kv_heads", "must divide text_heads");
+        }
+        if !(self.lr > 0.0 && self.lr.is_finite() && self.min_lr >= 0.0) {
+            return bad("lr", "must be > 0 (and min_lr >= 0)");
+        }
+        if !(self.tower_lr >= 0.0 && self.tower_lr.is_finite()) {
+            return bad("tower_lr", "must be >= 0 (0: lr)");
+        }
+        if !(self.tower_min_lr >= 0.0 && self.tower_min_lr.is_finite()) {
+            return bad("tower_min_lr", "must be >= 0 (0: no decay)");
+        }
+        if !(self.tower_lr_scale >= 0.0 && self.tower_lr_scale.is_finite()) {
+            return bad("tower_lr_scale", "must be >= 0 (1: the tower learns like the rest)");
+        }
+        if self.tower_steps > 0 && (self.tower_steps >= self.steps || self.tower_images == 0) {
+            return bad("tower_steps", "must be below steps (and tower_images at least 1)");
+        }
+        if self.images_per_step < SCENE_IMAGES || self.questions_per_sample == 0 {
+            return bad("images_per_step", "must be at least 4 and questions_per_sample at least 1");
+        }
+        if self.mix.iter().any(|p| !(*p >= 0.0)) || self.mix.iter().sum::<f32>() <= 0.0 {
+            return bad("mix", "must be three non-negative weights, not all zero");
+        }
+        for (sample, p) in SampleKind::ALL.iter().zip(self.mix) {
+            let level = sample.level();
+            if p > 0.0 && !self.kinds.is_empty() && !self.kinds.iter().any(|k| k.level() == level) {
+                return bad("kinds", "must include a question kind of every level that mix draws");
+            }
+        }
+        if self.kind_weights.values().any(|w| !(*w > 0.0 && w.is_finite())) {
+            return bad("kind_weights", "must be finite and > 0");
+        }
+        if self.resolution < m.patch_size as u32 {
+            return bad("resolution", "must be at least the patch size");
+        }
+        if self.head_weights().any(|w| !(w >= 0.0 && w.is_finite())) {
+            return bad("hop_weights", "must be finite and non-negative (and slot_weight, place_weight too)");
+        }
+        if self.supervised() && (m.text_layers < hops::MIN_LAYERS || m.text_heads < hops::MIN_HEADS) {
+            return bad(
+                "hop_weights",
+                &format!(
+                    "need model.text_layers >= {} and model.text_heads >= {} (or all weights 0)",
+                    hops::MIN_LAYERS,
+                    hops::MIN_HEADS
+                ),
+            );
+        }
+        if !(self.adaptive_floor > 0.0 && self.adaptive_floor.is_finite()) {
+            return bad("adaptive_floor", "must be > 0");
+        }
+        if self.eval_every > 0 && self.eval_seeds == 0 {
+            return bad("eval_seeds", "must be at least 1 when eval_every is set (0 seeds would report 0 %)");
+        }
+        if let Some(base) = &self.base {
+            if base.model != self.model {
+                return bad("base.model", "must be the same model shape as this stage's");
+            }
+            base.validate().map_err(|e| Error::input(format!("{e} (in base)")))?;
+        }
+        Ok(())
+    }
+
+    /// Probability that an image's LLM input is its label tokens at step `i`.
+    pub fn label_probability(&self, i: usize) -> f32 {
+        let t = i as f32 / self.steps.max(1) as f32;
+        if t < self.label_tokens_until {
+            1.0
+        } else if t >= self.label_tokens_end {
+            0.0
+        } else {
+            1.0 - (t - self.label_tokens_until) / (self.label_tokens_end - self.label_tokens_until).max(1e-6)
+        }
+    }
+
+    /// How likely a question of `kind` is to be picked from a sample's questions: its
+    /// `kind_weights` entry times, when adaptive, how much it still needs (`running`).
+    pub fn question_weight(&self, kind: Kind, running: &RunningAccuracy) -> f32 {
+        let w = self.kind_weights.get(&kind).copied().unwrap_or(1.0);
+        w * if self.adaptive { running.need(kind, self.adaptive_floor) } else { 1.0 }
+    }
+
+    /// The weights of the supervised hops, then of the slot and place heads.
+    fn head_weights(&self) -> impl Iterator<Item = f32> + '_ {
+        self.hop_weights.iter().copied().chain([self.slot_weight, self.place_weight])
+    }
+
+    /// Whether any hop or head is supervised (the forward then records what they need).
+    pub fn supervised(&self) -> bool {
+        self.head_weights().any(|w| w > 0.0)
+    }
+
+    /// The learning rate of step `i`: in the tower's phase a warm-up to its peak (`tower_lr`, else
+    /// `lr`), then a cosine to `tower_min_lr` (0: held at the peak); after it the warm-up again,
+    /// then a cosine from `lr` to `min_lr`.
+    pub fn lr_at(&self, i: usize) -> f64 {
+        if i < self.tower_steps {
+            let peak = if self.tower_lr > 0.0 { self.tower_lr } else { self.lr };
+            let floor = if self.tower_min_lr > 0.0 { self.tower_min_lr } else { peak };
+            return warmup_cosine(i, self.tower_steps, self.warmup, peak, floor);
+        }
+        warmup_cosine(i - self.tower_steps, self.steps - self.tower_steps, self.warmup, self.lr, self.min_lr)
+    }
+}
+
+/// A fresh training scene's seed (never a held-out one).
+pub(super) fn train_seed(rng: &mut Rng) -> u64 {
+    TRAIN_SEEDS + rng.next_u64() % 1_000_000_000
+}
+
+pub(super) const SCENE_IMAGES: usize = model::data::synth::SCENE_VIEWS;
+
+/// Recent training accuracy per question kind (exponential moving average of exact match over
+/// training batches), what adaptive sampling draws by.
+#[derive(Clone, Debug, Default, Serialize, Deserialize)]
+pub struct RunningAccuracy {
+    acc: BTreeMap<Kind, f32>,
+}
+
+impl RunningAccuracy {
+    const DECAY: f32 = 0.95;
+
+    pub fn add(&mut self, kind: Kind, right: bool) {
+        let a = self.acc.entry(kind).or_insert(0.0);
+        *a = Self::DECAY * *a + (1.0 - Self::DECAY) * right as u8 as f32;
+    }
+
+    /// How much a kind is still worth drawing: its error plus `floor`.
+    pub fn need(&self, kind: Kind, floor: f32) -> f32 {
+        1.0 - self.acc.get(&kind).copied().unwrap_or(0.0) + floor
+    }
+}

@@ -1,0 +1,349 @@
+//! The training state and one step: samples drawn by running accuracy, the packed forward, the
+//! gradients all-reduced over the ranks, AdamW.
+
+use super::batch::{AUX_CLASSES, LabelTokens, Packed, Trainable, exact, forward, pack};
+use super::data::{DataSpec, Sample, SampleKind, pick_questions};
+use super::{Accuracy, RunningAccuracy, SCENE_IMAGES, VlmTrainConfig, batch, init_model, train_seed};
+use crate::dist::{self, Collective};
+use burn::optim::{AdamWConfig, GradientsParams};
+use burn::tensor::Device;
+use model::data::synth::questions::{Kind, Qa};
+use model::error::{Error, Result};
+use model::rng::Rng;
+use model::vlm::LlavaOnevision;
+use serde::{Deserialize, Serialize};
+
+/// One line of `training_log.json`, also what [`train`]'s progress callback sees after every step.
+#[derive(Clone, Debug, Serialize, Deserialize)]
+pub struct LogLine {
+    /// Steps done.
+    pub step: usize,
+    /// Steps of this stage (for progress; not logged).
+    #[serde(skip)]
+    pub steps: usize,
+    pub seconds: f64,
+    pub lr: f64,
+    pub answer_loss: f32,
+    pub aux_loss: f32,
+    /// The supervised hops' losses (dedupe, words, find) and the slot head's.
+    #[serde(default)]
+    pub hop_loss: [f32; 3],
+    #[serde(default)]
+    pub slot_loss: f32,
+    #[serde(default)]
+    pub place_loss: f32,
+    /// The auxiliary head's accuracy on the step's object tokens: colour, shape, size.
+    #[serde(default)]
+    pub tower_accuracy: [f32; 3],
+    /// Held-out accuracy, when this step evaluated.
+    pub eval: Option<Accuracy>,
+    /// Held-out accuracy reading label tokens, when this step evaluated.
+    pub eval_labels: Option<Accuracy>,
+    /// Seconds of `seconds` spent drawing samples (every rank draws the whole step).
+    #[serde(default)]
+    pub drawing_seconds: f64,
+}
+
+/// The samples of one step: a level drawn by `cfg.mix` (adaptive: weighted by how much its kinds
+/// still need), fresh scenes until the step's images are filled, questions picked per sample.
+fn step_samples(
+    cfg: &VlmTrainConfig,
+    spec: &DataSpec,
+    running: &RunningAccuracy,
+    rng: &mut Rng,
+) -> Vec<(Sample, Vec<Qa>)> {
+    let allowed = |k: Kind| cfg.kinds.is_empty() || cfg.kinds.contains(&k);
+    let weights: Vec<f32> = SampleKind::ALL
+        .iter()
+        .zip(cfg.mix)
+        .map(|(sample, p)| {
+            if !cfg.adaptive || p <= 0.0 {
+                return p;
+            }
+            let kinds: Vec<Kind> =
+                Kind::ALL.into_iter().filter(|k| sample.level() == k.level() && allowed(*k)).collect();
+            let need: f32 = kinds.iter().map(|k| running.need(*k, cfg.adaptive_floor)).sum::<f32>();
+            p * need / kinds.len().max(1) as f32
+        })
+        .collect();
+    let kind = SampleKind::ALL[rng.weighted(&weights)];
+    let per = if kind == SampleKind::Scene { SCENE_IMAGES } else { 1 };
+    let want = (cfg.images_per_step / per).max(1);
+    let mut out = Vec::with_capacity(want);
+    while out.len() < want {
+        let seed = train_seed(rng);
+        if let Some(s) = spec.sample(kind, seed, rng) {
+            let asked: Vec<Qa> = s.qas.iter().filter(|q| allowed(q.kind)).cloned().collect();
+            if !asked.is_empty() {
+                let qs = pick_questions(&asked, cfg.questions_per_sample, |k| cfg.question_weight(k, running), rng);
+                out.push((s, qs));
+            }
+        }
+    }
+    out
+}
+
+/// The losses of one training step (before its update).
+#[derive(Clone, Copy, Debug, Default)]
+pub struct StepLosses {
+    pub answer: f32,
+    pub aux: f32,
+    /// dedupe, words, find ([`hops::HopKind::ALL`] order)
+    pub hops: [f32; 3],
+    pub slots: f32,
+    pub places: f32,
+    /// The auxiliary head's accuracy on object tokens: colour, shape, size.
+    pub tower: [f32; 3],
+}
+
+/// The training state: the model (on the autodiff device), AdamW, the data generator.
+pub struct Trainer {
+    pub cfg: VlmTrainConfig,
+    pub model: Trainable,
+    pub step: usize,
+    spec: DataSpec,
+    pub(super) rng: Rng,
+    pub(super) optim: burn::optim::ModuleOptimizer,
+    device: Device,
+    pub labels: LabelTokens,
+    pub running: RunningAccuracy,
+    /// Time spent drawing samples (rendering the scenes, picking questions, the noise): every rank
+    /// of a data-parallel run draws the whole step.
+    pub drawing: std::time::Duration,
+}
+
+impl Trainer {
+    /// A fresh model of `cfg` on `device` (autodiff is added here).
+    pub fn new(cfg: &VlmTrainConfig, device: &Device) -> Result<Self> {
+        cfg.validate()?;
+        let ad = device.clone().autodiff();
+        let vlm = init_model(cfg, &ad)?;
+        Self::starting_from(cfg, vlm, &ad)
+    }
+
+    /// A trainer of `cfg` that starts from `vlm` (on `device`, which must carry autodiff), with
+    /// fresh heads and optimizer.
+    pub fn starting_from(cfg: &VlmTrainConfig, vlm: LlavaOnevision, device: &Device) -> Result<Self> {
+        cfg.validate()?;
+        let ad = device.clone();
+        let spec = DataSpec::new(&vlm.cfg, &vlm.processor, cfg.resolution, cfg.margin);
+        let classes: usize = AUX_CLASSES.iter().sum();
+        let mut rng = Rng::new(cfg.seed ^ 0xDA7A);
+        let aux = model::vlm::layers::init_linear(&mut rng, vlm.cfg.vision.hidden_size, classes, true, 0.02, &ad);
+        let vlm_dim = vlm.cfg.vision.hidden_size;
+        let slot_classes = batch::SLOT_CLASSES.iter().sum();
+        let slots = model::vlm::layers::init_linear(&mut rng, vlm.cfg.text.hidden_size, slot_classes, true, 0.02, &ad);
+        // its own generator: `rng` goes on to draw the data, which must not depend on this head
+        let (mut place_rng, place_classes) = (Rng::new(cfg.seed ^ 0x91ACE), 2 * batch::place_classes(&vlm));
+        let places =
+            model::vlm::layers::init_linear(&mut place_rng, vlm.cfg.text.hidden_size, place_classes, true, 0.02, &ad);
+        Ok(Self {
+            cfg: cfg.clone(),
+            model: Trainable { vlm, aux, slots, places },
+            step: 0,
+            spec,
+            rng,
+            optim: AdamWConfig::new().with_weight_decay(cfg.weight_decay).init(),
+            labels: LabelTokens::new(vlm_dim, cfg.seed),
+            device: ad,
+            running: RunningAccuracy::default(),
+            drawing: std::time::Duration::ZERO,
+        })
+    }
+
+    /// The data generator (held-out samples for evaluation come from it too).
+    pub fn spec(&self) -> &DataSpec {
+        &self.spec
+    }
+
+    /// One optimisation step on fresh samples; the losses before the update. On a rank of a
+    /// data-parallel run (`c`) every rank draws the whole step (samples, label-token flags, noise)
+    /// from the same generator and runs its share ([`crate::dist`]); the losses, the exact-match
+    /// results and the gradients are the whole batch's on every rank.
+    pub fn step(&mut self, c: &dyn Collective) -> Result<StepLosses> {
+        if self.step < self.cfg.tower_steps {
+            return self.tower_step(c);
+        }
+        let t0 = std::time::Instant::now();
+        let samples = step_samples(&self.cfg, &self.spec, &self.running, &mut self.rng);
+        let mine = dist::share(samples.len(), c.rank(), c.size());
+        if mine.is_empty() {
+            return Err(too_few_samples(samples.len(), c.size()));
+        }
+        let mut p: Packed = pack(&self.model.vlm, &samples[mine.clone()])?;
+        let prob = self.cfg.label_probability(self.step);
+        let per = p.images;
+        let flags: Vec<bool> = (0..samples.len() * per).map(|_| self.rng.f() < prob).collect();
+        p.label_tokens.copy_from_slice(&flags[mine.start * per..mine.end * per]);
+        let labels = (self.cfg.label_weight > 0.0 || prob > 0.0).then_some(&self.labels);
+        let cfg = &self.cfg;
+        let supervise = cfg.supervised();
+        let vision = &self.model.vlm.cfg.vision;
+        let values = per * vision.tokens() * vision.hidden_size;
+        let eps: Vec<f32> = if cfg.feature_noise > 0.0 {
+            (0..samples.len() * values).map(|_| self.rng.normal()).collect()
+        } else {
+            vec![]
+        };
+        let noise = Some((cfg.feature_noise, eps.get(mine.start * values..mine.end * values).unwrap_or(&[])));
+        self.drawing += t0.elapsed();
+        let parts = match c.size() {
+            1 => None,
+            size => {
+                let local = batch::counts(&p, self.model.vlm.cfg.text.num_heads);
+                let global = dist::global_counts(c, "the step's item counts", &local)?;
+                Some(batch::Parts::new(&local, &global.try_into().expect("8 counts"), size))
+            }
+        };
+        let f = forward(&self.model, &p, labels, noise, supervise, parts.as_ref().map(|w| (w, c)), &self.device)?;
+        let mut loss = f.answer_loss.clone()
+            + f.aux_loss.clone() * cfg.aux_weight
+            + f.label_loss * cfg.label_weight
+            + f.slot_loss.clone() * cfg.slot_weight
+            + f.place_loss.clone() * cfg.place_weight;
+        for (h, w) in f.hop_loss.iter().zip(cfg.hop_weights) {
+            loss = loss + h.clone() * w;
+        }
+        let one = |t: &burn::tensor::Tensor<1>| model::splats::host(t.clone())[0];
+        let mut values = [
+            one(&f.answer_loss),
+            one(&f.aux_loss),
+            one(&f.hop_loss[0]),
+            one(&f.hop_loss[1]),
+            one(&f.hop_loss[2]),
+            one(&f.slot_loss),
+            one(&f.place_loss),
+        ];
+        let tower = batch::tower_accuracy(&p, f.aux_logits.clone());
+        let results = exact(&p, f.log_probs.clone());
+        let (values, tower, results) = if c.size() == 1 {
+            (values, tower.map(|(r, n)| r as f32 / n.max(1) as f32), results)
+        } else {
+            let first: usize = samples[..mine.start].iter().map(|s| s.1.len()).sum();
+            let total: usize = samples.iter().map(|s| s.1.len()).sum();
+            (sum_losses(c, &mut values)?, sum_accuracy(c, tower)?, gather_results(c, &samples, first, total, &results)?)
+        };
+        let [answer, aux, h0, h1, h2, slots, places] = values;
+        let losses = StepLosses { answer, aux, hops: [h0, h1, h2], slots, places, tower };
+        if !(losses.answer.is_finite() && losses.aux.is_finite() && losses.hops.iter().all(|h| h.is_finite())) {
+            return Err(Error::Diverged { iter: self.step, loss: losses.answer + losses.aux, detail: String::new() });
+        }
+        for (kind, right) in results {
+            self.running.add(kind, right);
+        }
+        self.update(loss, c)?;
+        Ok(losses)
+    }
+}
+
+/// A step's samples are fewer than the ranks.
+fn too_few_samples(samples: usize, ranks: usize) -> Error {
+    Error::input(format!(
+        "a step drew {samples} samples for {ranks} ranks: every rank needs at least one (raise images_per_step \
+         to at least 4 x the ranks, and tower_images to at least the ranks, or run fewer ranks)"
+    ))
+}
+
+/// The losses of every rank's part summed, divided by the ranks: the whole batch's.
+fn sum_losses(c: &dyn Collective, values: &mut [f32; 7]) -> Result<[f32; 7]> {
+    let mut v: Vec<f64> = values.iter().map(|&x| x as f64).collect();
+    c.sum_f64("the step's losses", &mut v)?;
+    Ok(std::array::from_fn(|i| (v[i] / c.size() as f64) as f32))
+}
+
+/// The tower's accuracy per task over every rank's object tokens.
+fn sum_accuracy(c: &dyn Collective, tower: [(usize, usize); 3]) -> Result<[f32; 3]> {
+    let counts: Vec<usize> = tower.iter().flat_map(|&(r, n)| [r, n]).collect();
+    let g = dist::global_counts(c, "the tower's accuracy", &counts)?;
+    Ok(std::array::from_fn(|k| g[2 * k] as f32 / g[2 * k + 1].max(1) as f32))
+}
+
+/// Every rank's exact-match results in the whole step's question order (this rank's start at
+/// question `first` of `total`).
+fn gather_results(
+    c: &dyn Collective,
+    samples: &[(Sample, Vec<Qa>)],
+    first: usize,
+    total: usize,
+    mine: &[(Kind, bool)],
+) -> Result<Vec<(Kind, bool)>> {
+    let mut right = vec![0f64; total];
+    for (i, (_, r)) in mine.iter().enumerate() {
+        right[first + i] = *r as u8 as f64;
+    }
+    c.sum_f64("the step's exact-match results", &mut right)?;
+    let kinds = samples.iter().flat_map(|s| s.1.iter().map(|q| q.kind));
+    Ok(kinds.zip(right).map(|(k, r)| (k, r > 0.5)).collect())
+}
+
+impl Trainer {
+    /// A pre-training step of the tower alone (object crops and views, half each on average).
+    fn tower_step(&mut self, c: &dyn Collective) -> Result<StepLosses> {
+        let t0 = std::time::Instant::now();
+        let (mut samples, mut images) = (Vec::new(), 0);
+        while images < self.cfg.tower_images {
+            let kind = if self.rng.f() < 0.5 { SampleKind::Object } else { SampleKind::View };
+            let seed = train_seed(&mut self.rng);
+            if let Some(s) = self.spec.sample(kind, seed, &mut self.rng) {
+                images += s.images.len();
+                samples.push((s, Vec::new()));
+            }
+        }
+        self.drawing += t0.elapsed();
+        let mine = dist::share(samples.len(), c.rank(), c.size());
+        if mine.is_empty() {
+            return Err(too_few_samples(samples.len(), c.size()));
+        }
+        let part = match c.size() {
+            1 => None,
+            size => {
+                let all = batch::tower_tokens(&self.model.vlm, &samples);
+                let local = batch::tower_tokens(&self.model.vlm, &samples[mine.clone()]);
+                Some(size as f32 * dist::part(local, all))
+            }
+        };
+        let (loss, tower) = batch::tower_loss(&self.model, &samples[mine], part, &self.device);
+        let mut aux = model::splats::host(loss.clone())[0];
+        let tower = if c.size() == 1 {
+            tower.map(|(r, n)| r as f32 / n.max(1) as f32)
+        } else {
+            let mut v = [aux as f64];
+            c.sum_f64("the step's losses", &mut v)?;
+            aux = (v[0] / c.size() as f64) as f32;
+            sum_accuracy(c, tower)?
+        };
+        if !aux.is_finite() {
+            return Err(Error::Diverged { iter: self.step, loss: aux, detail: String::new() });
+        }
+        self.update(loss, c)?;
+        Ok(StepLosses { aux, tower, ..Default::default() })
+    }
+
+    /// Backward pass of `loss`, the gradients averaged over the ranks, one AdamW update at this
+    /// step's learning rate (the vision tower's scaled by `tower_lr_scale` after its own phase),
+    /// next step.
+    fn update(&mut self, loss: burn::tensor::Tensor<1>, c: &dyn Collective) -> Result<()> {
+        let mut grads = loss.backward();
+        let lr = self.cfg.lr_at(self.step);
+        let scale = self.cfg.tower_lr_scale;
+        let split = self.step >= self.cfg.tower_steps && scale != 1.0;
+        if c.size() == 1 {
+            if split {
+                // AdamW normalises the gradient away, so the tower gets its own update at its own rate
+                let tower = GradientsParams::from_module(&mut grads, &self.model.vlm.vision);
+                self.model = self.optim.step(lr * scale, self.model.clone(), tower);
+            }
+            let rest = GradientsParams::from_grads(grads, &self.model);
+            self.model = self.optim.step(lr, self.model.clone(), rest);
+        } else {
+            let mut all = dist::reduce_grads(c, &self.model, GradientsParams::from_grads(grads, &self.model))?;
+            if split {
+                let tower = dist::take_grads(&mut all, &self.model.vlm.vision);
+                self.model = self.optim.step(lr * scale, self.model.clone(), tower);
+            }
+            self.model = self.optim.step(lr, self.model.clone(), all);
+        }
+        self.step += 1;
+        Ok(())
+    }
+}

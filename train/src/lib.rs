@@ -7,11 +7,11 @@
 #![allow(deprecated)] // burn-ndarray is deprecated in burn 0.22 in favour of burn-flex.
 
 pub mod ckpt;
-pub mod compact;
 pub mod dist;
 pub mod geometry;
 pub mod guard;
 pub mod language;
+pub use language::compact;
 pub mod schedule;
 pub mod teacher;
 pub mod vlm;

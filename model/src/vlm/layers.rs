@@ -4,7 +4,8 @@
 use super::VlmError;
 use super::config::Act;
 use super::cpu;
-use super::cpu::convert::{narrowed, widened};
+use super::cpu::convert::widened;
+pub use super::host::in_dtype;
 use super::host::{HostTensor, HostValues};
 use super::weights::WeightStore;
 use crate::rng::Rng;
@@ -106,37 +107,6 @@ pub fn in_precision<const D: usize, const E: usize>(
 ) -> Tensor<E> {
     let dtype = x.dtype();
     if held == dtype { f(x) } else { in_dtype(f(in_dtype(x, held)), dtype) }
-}
-
-/// `t` in `dtype` (no op when it already is). f32 <-> f16 on flex is converted on the host with
-/// F16C vector instructions: burn-flex's own cast goes element by element through f64 in
-/// software, which made the f16-weight vision tower 3x slower than f32 (14.7 s vs 5.2 s per view).
-pub fn in_dtype<const D: usize>(t: Tensor<D>, dtype: DType) -> Tensor<D> {
-    let from = t.dtype();
-    if from == dtype {
-        return t;
-    }
-    let device = t.device();
-    let pair = matches!((from, dtype), (DType::F32, DType::F16) | (DType::F16, DType::F32));
-    if !pair || device.is_autodiff() || device != Device::flex() {
-        return t.cast(dtype);
-    }
-    let shape = t.shape();
-    let n = shape.num_elements();
-    // read where flex holds it, or else as data
-    let held = HostTensor::of(&t);
-    let data = match held.as_ref().and_then(|h| h.contiguous(n)) {
-        Some(HostValues::F32(v)) => TensorData::new(narrowed(v), shape),
-        Some(HostValues::F16(v)) => TensorData::new(widened(v), shape),
-        None => {
-            let d = t.into_data();
-            match from {
-                DType::F32 => TensorData::new(narrowed(d.as_slice::<f32>().expect("f32 data")), shape),
-                _ => TensorData::new(widened(d.as_slice::<half::f16>().expect("f16 data")), shape),
-            }
-        }
-    };
-    Tensor::from_data(data, (&device, dtype))
 }
 
 /// A `LayerNorm` of the checkpoint (`prefix.weight`, `prefix.bias`).

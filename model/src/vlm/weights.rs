@@ -177,7 +177,7 @@ impl WeightStore {
 
     /// `t` as this store holds matmul weights: f16 with [`WeightStore::with_half`], else as is.
     pub fn hold<const D: usize>(&self, t: Tensor<D>) -> Tensor<D> {
-        if self.half { super::layers::in_dtype(t, DType::F16) } else { t }
+        if self.half { super::host::in_dtype(t, DType::F16) } else { t }
     }
 }
 

@@ -8,18 +8,13 @@
 //! tolerance was set on five held-out scenes, where answers through the kept rows were also
 //! measured (BENCHMARKS.md, "Model only what a scene needs: the compact default").
 
-use crate::language::LanguageTrainer;
+use super::LanguageTrainer;
 use model::error::Result;
 use model::run::Compaction;
 use model::scene::top_contributors;
 
 /// Fractions of the Gaussians tried, largest first.
 pub const FRACTIONS: [f64; 5] = [0.5, 0.35, 0.25, 0.15, 0.1];
-
-/// The default largest relative rise of the training views' token L1. On the five held-out
-/// scenes of BENCHMARKS.md, 25 % of the Gaussians raised it 1.0-2.6 % (their answers: 652 of 734
-/// right against 654 with every Gaussian) and 15 % raised it 4.5-9.2 %, so 3 % keeps a quarter.
-pub const DEFAULT_TOLERANCE: f32 = 0.03;
 
 /// The compaction of trainer `t`'s field at its `cfg.compact_tolerance`; `full` = its training
 /// views' token L1 (view, object) with every Gaussian. `None` when not even half the Gaussians

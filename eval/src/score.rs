@@ -416,6 +416,8 @@ mod tests {
     /// The only test touching the process environment (tests run in parallel threads).
     #[test]
     fn grader_from_env() {
+        // SAFETY: no other test reads or writes the environment (this is the only one), and the
+        // grader reads it only inside this test's own calls.
         let set = |k: &str, v: Option<&str>| unsafe {
             match v {
                 Some(v) => std::env::set_var(k, v),

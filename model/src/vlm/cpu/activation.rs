@@ -90,6 +90,7 @@ mod avx2 {
             let v = unsafe { _mm256_loadu_ps(c.as_ptr()) };
             let inner = _mm256_fmadd_ps(_mm256_mul_ps(k, v), _mm256_mul_ps(v, v), v);
             let y = _mm256_mul_ps(v, sigmoid8(_mm256_mul_ps(c2, inner)));
+            // SAFETY: `c` holds 8 floats and is borrowed mutably.
             unsafe { _mm256_storeu_ps(c.as_mut_ptr(), y) };
         }
         chunks.into_remainder().iter_mut().for_each(|v| *v = super::gelu_tanh(*v));
@@ -102,8 +103,10 @@ mod avx2 {
         for (u, g) in (&mut ups).zip(&mut gates) {
             // SAFETY: `u` and `g` hold 8 floats each.
             let gv = unsafe { _mm256_loadu_ps(g.as_ptr()) };
+            // SAFETY: as above.
             let uv = unsafe { _mm256_loadu_ps(u.as_ptr()) };
             let y = _mm256_mul_ps(_mm256_mul_ps(gv, sigmoid8(gv)), uv);
+            // SAFETY: `u` holds 8 floats and is borrowed mutably.
             unsafe { _mm256_storeu_ps(u.as_mut_ptr(), y) };
         }
         for (u, &g) in ups.into_remainder().iter_mut().zip(gates.remainder()) {

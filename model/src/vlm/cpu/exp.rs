@@ -46,6 +46,7 @@ pub mod avx2 {
         for c in &mut chunks {
             // SAFETY: `c` holds 8 floats.
             let e = exp8(_mm256_sub_ps(unsafe { _mm256_loadu_ps(c.as_ptr()) }, vm));
+            // SAFETY: `c` holds 8 floats and is borrowed mutably.
             unsafe { _mm256_storeu_ps(c.as_mut_ptr(), e) };
             vsum = _mm256_add_ps(vsum, e);
         }

@@ -30,13 +30,54 @@ use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::{empty_device_dtype, zeros_client};
 use cubecl::prelude::*;
 
-/// Floats per projected Gaussian: mx, my, conic a, b, c, depth, opacity, radius.
-const PROJ: u32 = 8;
-/// Per-Gaussian screen-space gradient slots: mean2d (2), conic (3), opacity, depth.
-const G2D: u32 = 7;
-/// Camera parameter block: rotation (9, row-major), translation (3), fx, fy, cx, cy, lim_x, lim_y,
-/// near, far, extent, alpha_max, alpha_min, t_min.
+// The packed buffers the kernels share, by named offset.
+
+/// Floats per projected Gaussian (`proj`): the fields `P_*`.
+const PROJ: usize = 8;
+/// Projected screen-space centre x, y.
+const P_MX: usize = 0;
+const P_MY: usize = 1;
+/// Projected conic (inverse 2D covariance) a, b, c.
+const P_CA: usize = 2;
+const P_CB: usize = 3;
+const P_CC: usize = 4;
+const P_DEPTH: usize = 5;
+const P_OPACITY: usize = 6;
+const P_RADIUS: usize = 7;
+/// Floats per Gaussian staged in shared memory by the raster kernels: `proj`'s first fields, up
+/// to the opacity (the radius stays behind).
+const STAGED: usize = 7;
+
+/// Per-Gaussian screen-space gradient slots (`g2d`): the fields `G_*`.
+const G2D: usize = 7;
+const G_MX: usize = 0;
+const G_MY: usize = 1;
+const G_CA: usize = 2;
+const G_CB: usize = 3;
+const G_CC: usize = 4;
+const G_OPACITY: usize = 5;
+const G_DEPTH: usize = 6;
+
+/// Camera parameter block (`cam`), built by `cam_block`: the fields `C_*`.
 const CAM: usize = 24;
+/// World-to-camera rotation, 9 floats row-major (`C_R + 3 * row + col`).
+const C_R: usize = 0;
+/// World-to-camera translation, 3 floats.
+const C_T: usize = 9;
+const C_FX: usize = 12;
+const C_FY: usize = 13;
+const C_CX: usize = 14;
+const C_CY: usize = 15;
+/// The clamp limits of the normalised image coordinates x/z and y/z (`Camera::clamp_limits`).
+const C_LIM_X: usize = 16;
+const C_LIM_Y: usize = 17;
+const C_NEAR: usize = 18;
+const C_FAR: usize = 19;
+/// The Gaussian extent in standard deviations (`RasterConfig::extent`).
+const C_EXTENT: usize = 20;
+const C_ALPHA_MAX: usize = 21;
+const C_ALPHA_MIN: usize = 22;
+const C_T_MIN: usize = 23;
 
 #[cube]
 fn sigmoid(x: f32) -> f32 {
@@ -106,11 +147,11 @@ fn covar(means: &[f32], log_scales: &[f32], quats: &[f32], cam: &[f32], iu: usiz
     let mx = means[iu * 3];
     let my = means[iu * 3 + 1];
     let mz = means[iu * 3 + 2];
-    let p0 = cam[0] * mx + cam[1] * my + cam[2] * mz + cam[9];
-    let p1 = cam[3] * mx + cam[4] * my + cam[5] * mz + cam[10];
-    let z = cam[6] * mx + cam[7] * my + cam[8] * mz + cam[11];
-    let fx = cam[12];
-    let fy = cam[13];
+    let p0 = cam[C_R] * mx + cam[C_R + 1] * my + cam[C_R + 2] * mz + cam[C_T];
+    let p1 = cam[C_R + 3] * mx + cam[C_R + 4] * my + cam[C_R + 5] * mz + cam[C_T + 1];
+    let z = cam[C_R + 6] * mx + cam[C_R + 7] * my + cam[C_R + 8] * mz + cam[C_T + 2];
+    let fx = cam[C_FX];
+    let fy = cam[C_FY];
     // Quaternion (w, x, y, z) -> rotation, identity policy for tiny norms.
     let q0 = quats[iu * 4];
     let q1 = quats[iu * 4 + 1];
@@ -148,19 +189,19 @@ fn covar(means: &[f32], log_scales: &[f32], quats: &[f32], cam: &[f32], iu: usiz
     let s0 = f32::exp(f32::clamp(log_scales[iu * 3], LOG_SCALE_MIN, LOG_SCALE_MAX));
     let s1 = f32::exp(f32::clamp(log_scales[iu * 3 + 1], LOG_SCALE_MIN, LOG_SCALE_MAX));
     let s2 = f32::exp(f32::clamp(log_scales[iu * 3 + 2], LOG_SCALE_MIN, LOG_SCALE_MAX));
-    let c00 = cam[0] * r00 * s0 + cam[1] * r10 * s0 + cam[2] * r20 * s0;
-    let c01 = cam[0] * r01 * s1 + cam[1] * r11 * s1 + cam[2] * r21 * s1;
-    let c02 = cam[0] * r02 * s2 + cam[1] * r12 * s2 + cam[2] * r22 * s2;
-    let c10 = cam[3] * r00 * s0 + cam[4] * r10 * s0 + cam[5] * r20 * s0;
-    let c11 = cam[3] * r01 * s1 + cam[4] * r11 * s1 + cam[5] * r21 * s1;
-    let c12 = cam[3] * r02 * s2 + cam[4] * r12 * s2 + cam[5] * r22 * s2;
-    let c20 = cam[6] * r00 * s0 + cam[7] * r10 * s0 + cam[8] * r20 * s0;
-    let c21 = cam[6] * r01 * s1 + cam[7] * r11 * s1 + cam[8] * r21 * s1;
-    let c22 = cam[6] * r02 * s2 + cam[7] * r12 * s2 + cam[8] * r22 * s2;
+    let c00 = cam[C_R] * r00 * s0 + cam[C_R + 1] * r10 * s0 + cam[C_R + 2] * r20 * s0;
+    let c01 = cam[C_R] * r01 * s1 + cam[C_R + 1] * r11 * s1 + cam[C_R + 2] * r21 * s1;
+    let c02 = cam[C_R] * r02 * s2 + cam[C_R + 1] * r12 * s2 + cam[C_R + 2] * r22 * s2;
+    let c10 = cam[C_R + 3] * r00 * s0 + cam[C_R + 4] * r10 * s0 + cam[C_R + 5] * r20 * s0;
+    let c11 = cam[C_R + 3] * r01 * s1 + cam[C_R + 4] * r11 * s1 + cam[C_R + 5] * r21 * s1;
+    let c12 = cam[C_R + 3] * r02 * s2 + cam[C_R + 4] * r12 * s2 + cam[C_R + 5] * r22 * s2;
+    let c20 = cam[C_R + 6] * r00 * s0 + cam[C_R + 7] * r10 * s0 + cam[C_R + 8] * r20 * s0;
+    let c21 = cam[C_R + 6] * r01 * s1 + cam[C_R + 7] * r11 * s1 + cam[C_R + 8] * r21 * s1;
+    let c22 = cam[C_R + 6] * r02 * s2 + cam[C_R + 7] * r12 * s2 + cam[C_R + 8] * r22 * s2;
     let u = p0 / z;
     let v = p1 / z;
-    let uc = f32::clamp(u, 0.0f32 - cam[16], cam[16]);
-    let vc = f32::clamp(v, 0.0f32 - cam[17], cam[17]);
+    let uc = f32::clamp(u, 0.0f32 - cam[C_LIM_X], cam[C_LIM_X]);
+    let vc = f32::clamp(v, 0.0f32 - cam[C_LIM_Y], cam[C_LIM_Y]);
     let j00 = fx / z;
     let j02 = 0.0f32 - fx * uc / z;
     let j11 = fy / z;
@@ -238,11 +279,11 @@ fn project_kernel(
     let iu = i as usize;
     let k = covar(means, log_scales, quats, cam, iu);
     let z = k.z;
-    let fx = cam[12];
-    let fy = cam[13];
+    let fx = cam[C_FX];
+    let fy = cam[C_FY];
     let u = k.u;
     let v = k.v;
-    let mut visible = z >= cam[18] && z <= cam[19];
+    let mut visible = z >= cam[C_NEAR] && z <= cam[C_FAR];
     let t00 = k.t00;
     let t01 = k.t01;
     let t02 = k.t02;
@@ -263,9 +304,9 @@ fn project_kernel(
     visible = visible && finite && det > 0.0;
     let hd = 0.5 * (a - c);
     let lambda_max = 0.5 * (a + c) + f32::sqrt(hd * hd + b * b);
-    let radius = f32::ceil(cam[20] * f32::sqrt(lambda_max));
-    let cx2 = fx * u + cam[14] + offsets[iu * 2];
-    let cy2 = fy * v + cam[15] + offsets[iu * 2 + 1];
+    let radius = f32::ceil(cam[C_EXTENT] * f32::sqrt(lambda_max));
+    let cx2 = fx * u + cam[C_CX] + offsets[iu * 2];
+    let cy2 = fy * v + cam[C_CY] + offsets[iu * 2 + 1];
     visible = visible && cx2 - cx2 == 0.0 && cy2 - cy2 == 0.0 && radius - radius == 0.0;
     let ts = f32::cast_from(TILE_SIZE);
     let tx0 = f32::clamp(f32::floor((cx2 - radius) / ts), 0.0, f32::cast_from(tiles_x));
@@ -282,14 +323,14 @@ fn project_kernel(
         rects[iu * 4 + 1] = y0;
         rects[iu * 4 + 2] = x1;
         rects[iu * 4 + 3] = y1;
-        proj[iu * 8] = cx2;
-        proj[iu * 8 + 1] = cy2;
-        proj[iu * 8 + 2] = c / det;
-        proj[iu * 8 + 3] = -b / det;
-        proj[iu * 8 + 4] = a / det;
-        proj[iu * 8 + 5] = z;
-        proj[iu * 8 + 6] = sigmoid(logits[iu]);
-        proj[iu * 8 + 7] = radius;
+        proj[iu * PROJ + P_MX] = cx2;
+        proj[iu * PROJ + P_MY] = cy2;
+        proj[iu * PROJ + P_CA] = c / det;
+        proj[iu * PROJ + P_CB] = -b / det;
+        proj[iu * PROJ + P_CC] = a / det;
+        proj[iu * PROJ + P_DEPTH] = z;
+        proj[iu * PROJ + P_OPACITY] = sigmoid(logits[iu]);
+        proj[iu * PROJ + P_RADIUS] = radius;
         for ty in y0..y1 {
             for tx in x0..x1 {
                 tile_counts[(ty * tiles_x + tx) as usize].fetch_add(1u32);
@@ -345,7 +386,7 @@ fn emit_kernel(
         terminate!();
     }
     let iu = i as usize;
-    let depth = proj[iu * 8 + 5];
+    let depth = proj[iu * PROJ + P_DEPTH];
     for ty in rects[iu * 4 + 1]..rects[iu * 4 + 3] {
         for tx in rects[iu * 4]..rects[iu * 4 + 2] {
             let t = (ty * tiles_x + tx) as usize;
@@ -426,9 +467,36 @@ fn stage_batch(gids: &[u32], proj: &[f32], s_gid: &mut Shared<[u32]>, s_p: &mut 
         let g = gids[(first + UNIT_POS) as usize];
         let gu = g as usize;
         s_gid[u] = g;
-        for k in 0usize..7usize {
-            s_p[u * 7 + k] = proj[gu * 8 + k];
+        for k in 0usize..STAGED {
+            s_p[u * STAGED + k] = proj[gu * PROJ + k];
         }
+    }
+}
+
+/// Where a raster kernel's thread is: its tile (one workgroup), its pixel (one thread) and
+/// whether that pixel is inside the image. The forward and backward kernels start alike.
+#[derive(CubeType)]
+struct TilePixel {
+    /// The tile's index, row-major over `tiles_x` columns.
+    tile: usize,
+    /// The pixel's row-major index in the image (meaningful when `inside`).
+    pix: usize,
+    inside: bool,
+    /// The pixel's centre.
+    pxf: f32,
+    pyf: f32,
+}
+
+#[cube]
+fn tile_pixel(width: u32, height: u32, tiles_x: u32) -> TilePixel {
+    let px = CUBE_POS_X * TILE_SIZE + UNIT_POS % TILE_SIZE;
+    let py = CUBE_POS_Y * TILE_SIZE + UNIT_POS / TILE_SIZE;
+    TilePixel {
+        tile: (CUBE_POS_Y * tiles_x + CUBE_POS_X) as usize,
+        pix: (py * width + px) as usize,
+        inside: px < width && py < height,
+        pxf: f32::cast_from(px) + 0.5,
+        pyf: f32::cast_from(py) + 0.5,
     }
 }
 
@@ -451,23 +519,22 @@ fn raster_fwd_kernel(
     tiles_x: u32,
     channels: u32,
 ) {
-    // Shared staging for one batch: TILE_PIXELS ids and 7 floats each (sizes must be literals).
+    // Shared staging for one batch: TILE_PIXELS ids and STAGED floats each (256 x 7: sizes must be literals).
     let mut s_gid = Shared::<[u32]>::new_slice(256usize);
     let mut s_p = Shared::<[f32]>::new_slice(1792usize);
-    let tile = (CUBE_POS_Y * tiles_x + CUBE_POS_X) as usize;
-    let px = CUBE_POS_X * TILE_SIZE + UNIT_POS % TILE_SIZE;
-    let py = CUBE_POS_Y * TILE_SIZE + UNIT_POS / TILE_SIZE;
-    let inside = px < width && py < height;
-    let pix = (py * width + px) as usize;
+    let at = tile_pixel(width, height, tiles_x);
+    let tile = at.tile;
+    let pix = at.pix;
+    let inside = at.inside;
+    let pxf = at.pxf;
+    let pyf = at.pyf;
     let c2 = (channels + 2) as usize;
     let ch_n = channels as usize;
-    let alpha_max = cam[21];
-    let alpha_min = cam[22];
-    let t_min = cam[23];
+    let alpha_max = cam[C_ALPHA_MAX];
+    let alpha_min = cam[C_ALPHA_MIN];
+    let t_min = cam[C_T_MIN];
     let start = offsets[tile];
     let count = counts[tile];
-    let pxf = f32::cast_from(px) + 0.5;
-    let pyf = f32::cast_from(py) + 0.5;
     let mut t = 1.0f32;
     let mut done = !inside;
     let mut depth_acc = 0.0f32;
@@ -487,13 +554,13 @@ fn raster_fwd_kernel(
         for j in 0u32..batch {
             if !done {
                 let ju = j as usize;
-                let dx = pxf - s_p[ju * 7];
-                let dy = pyf - s_p[ju * 7 + 1];
+                let dx = pxf - s_p[ju * STAGED + P_MX];
+                let dy = pyf - s_p[ju * STAGED + P_MY];
                 let power = 0.0f32
-                    - 0.5f32 * (s_p[ju * 7 + 2] * dx * dx + s_p[ju * 7 + 4] * dy * dy)
-                    - s_p[ju * 7 + 3] * dx * dy;
+                    - 0.5f32 * (s_p[ju * STAGED + P_CA] * dx * dx + s_p[ju * STAGED + P_CC] * dy * dy)
+                    - s_p[ju * STAGED + P_CB] * dx * dy;
                 if power <= 0.0 {
-                    let alpha = f32::min(alpha_max, s_p[ju * 7 + 6] * f32::exp(power));
+                    let alpha = f32::min(alpha_max, s_p[ju * STAGED + P_OPACITY] * f32::exp(power));
                     if alpha >= alpha_min {
                         let next_t = t * (1.0 - alpha);
                         if next_t < t_min {
@@ -505,7 +572,7 @@ fn raster_fwd_kernel(
                             for ch in 0usize..ch_n {
                                 packed[pix * c2 + ch] += w * features[fo + ch];
                             }
-                            depth_acc += w * s_p[ju * 7 + 5];
+                            depth_acc += w * s_p[ju * STAGED + P_DEPTH];
                             if w > best {
                                 best = w;
                                 top = i32::cast_from(g);
@@ -567,22 +634,21 @@ fn raster_bwd_kernel(
     tiles_x: u32,
     channels: u32,
 ) {
-    // Shared staging for one batch: TILE_PIXELS ids and 7 floats each (sizes must be literals).
+    // Shared staging for one batch: TILE_PIXELS ids and STAGED floats each (256 x 7: sizes must be literals).
     let mut s_gid = Shared::<[u32]>::new_slice(256usize);
     let mut s_p = Shared::<[f32]>::new_slice(1792usize);
     let mut s_max = Shared::<[u32]>::new_slice(256usize);
-    let tile = (CUBE_POS_Y * tiles_x + CUBE_POS_X) as usize;
-    let px = CUBE_POS_X * TILE_SIZE + UNIT_POS % TILE_SIZE;
-    let py = CUBE_POS_Y * TILE_SIZE + UNIT_POS / TILE_SIZE;
-    let inside = px < width && py < height;
-    let pix = (py * width + px) as usize;
+    let at = tile_pixel(width, height, tiles_x);
+    let tile = at.tile;
+    let pix = at.pix;
+    let inside = at.inside;
+    let pxf = at.pxf;
+    let pyf = at.pyf;
     let c2 = (channels + 2) as usize;
     let ch_n = channels as usize;
-    let alpha_max = cam[21];
-    let alpha_min = cam[22];
+    let alpha_max = cam[C_ALPHA_MAX];
+    let alpha_min = cam[C_ALPHA_MIN];
     let start = offsets[tile];
-    let pxf = f32::cast_from(px) + 0.5;
-    let pyf = f32::cast_from(py) + 0.5;
     let mut tt = 1.0f32;
     let mut tf = 1.0f32;
     let mut last = 0u32;
@@ -621,21 +687,21 @@ fn raster_bwd_kernel(
             let k = begin + j;
             if inside && k < last {
                 let ju = j as usize;
-                let dx = pxf - s_p[ju * 7];
-                let dy = pyf - s_p[ju * 7 + 1];
-                let ca = s_p[ju * 7 + 2];
-                let cb = s_p[ju * 7 + 3];
-                let cc = s_p[ju * 7 + 4];
+                let dx = pxf - s_p[ju * STAGED + P_MX];
+                let dy = pyf - s_p[ju * STAGED + P_MY];
+                let ca = s_p[ju * STAGED + P_CA];
+                let cb = s_p[ju * STAGED + P_CB];
+                let cc = s_p[ju * STAGED + P_CC];
                 let power = 0.0f32 - 0.5f32 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy;
                 if power <= 0.0 {
                     let gexp = f32::exp(power);
-                    let op = s_p[ju * 7 + 6];
+                    let op = s_p[ju * STAGED + P_OPACITY];
                     let raw = op * gexp;
                     let alpha = f32::min(alpha_max, raw);
                     if alpha >= alpha_min {
                         let g = s_gid[ju];
                         let fo = (g * channels) as usize;
-                        let depth = s_p[ju * 7 + 5];
+                        let depth = s_p[ju * STAGED + P_DEPTH];
                         let t_k = tt / (1.0 - alpha);
                         let w = alpha * t_k;
                         let mut d_alpha = 0.0f32;
@@ -650,18 +716,18 @@ fn raster_bwd_kernel(
                         d_alpha += g_z * (depth - rec_z);
                         d_alpha *= t_k;
                         d_alpha += g_a * tf / (1.0 - alpha);
-                        let go = (g * 7) as usize;
-                        atomic_add_f32(g2d, go + 6, w * g_z);
+                        let go = g as usize * G2D;
+                        atomic_add_f32(g2d, go + G_DEPTH, w * g_z);
                         rec_z = alpha * depth + (1.0 - alpha) * rec_z;
                         tt = t_k;
                         if raw < alpha_max {
-                            atomic_add_f32(g2d, go + 5, d_alpha * gexp);
+                            atomic_add_f32(g2d, go + G_OPACITY, d_alpha * gexp);
                             let d_power = d_alpha * op * gexp;
-                            atomic_add_f32(g2d, go, d_power * (ca * dx + cb * dy));
-                            atomic_add_f32(g2d, go + 1, d_power * (cc * dy + cb * dx));
-                            atomic_add_f32(g2d, go + 2, d_power * (0.0f32 - 0.5f32 * dx * dx));
-                            atomic_add_f32(g2d, go + 3, d_power * (0.0f32 - dx * dy));
-                            atomic_add_f32(g2d, go + 4, d_power * (0.0f32 - 0.5f32 * dy * dy));
+                            atomic_add_f32(g2d, go + G_MX, d_power * (ca * dx + cb * dy));
+                            atomic_add_f32(g2d, go + G_MY, d_power * (cc * dy + cb * dx));
+                            atomic_add_f32(g2d, go + G_CA, d_power * (0.0f32 - 0.5f32 * dx * dx));
+                            atomic_add_f32(g2d, go + G_CB, d_power * (0.0f32 - dx * dy));
+                            atomic_add_f32(g2d, go + G_CC, d_power * (0.0f32 - 0.5f32 * dy * dy));
                         }
                     }
                 }
@@ -708,22 +774,22 @@ fn project_bwd_kernel(
     g_offsets[iu * 2 + 1] = 0.0;
     // Culled Gaussians have an empty rectangle and keep zero gradients.
     if rects[iu * 4] < rects[iu * 4 + 2] {
-        let gm0 = g2d[iu * 7];
-        let gm1 = g2d[iu * 7 + 1];
-        let gca = g2d[iu * 7 + 2];
-        let gcb = g2d[iu * 7 + 3];
-        let gcc = g2d[iu * 7 + 4];
-        let gop = g2d[iu * 7 + 5];
-        let gdepth = g2d[iu * 7 + 6];
-        let opacity = proj[iu * 8 + 6];
+        let gm0 = g2d[iu * G2D + G_MX];
+        let gm1 = g2d[iu * G2D + G_MY];
+        let gca = g2d[iu * G2D + G_CA];
+        let gcb = g2d[iu * G2D + G_CB];
+        let gcc = g2d[iu * G2D + G_CC];
+        let gop = g2d[iu * G2D + G_OPACITY];
+        let gdepth = g2d[iu * G2D + G_DEPTH];
+        let opacity = proj[iu * PROJ + P_OPACITY];
         g_logits[iu] = gop * opacity * (1.0 - opacity);
         g_offsets[iu * 2] = gm0;
         g_offsets[iu * 2 + 1] = gm1;
         // Recompute the forward intermediates.
         let k = covar(means, log_scales, quats, cam, iu);
         let (p0, p1, z) = (k.p0, k.p1, k.z);
-        let fx = cam[12];
-        let fy = cam[13];
+        let fx = cam[C_FX];
+        let fy = cam[C_FY];
         let (qw, qx, qy, qz, inv_norm) = (k.qw, k.qx, k.qy, k.qz, k.inv_norm);
         let (r00, r01, r02, r10, r11, r12, r20, r21, r22) =
             (k.r00, k.r01, k.r02, k.r10, k.r11, k.r12, k.r20, k.r21, k.r22);
@@ -737,9 +803,9 @@ fn project_bwd_kernel(
         let l1 = log_scales[iu * 3 + 1];
         let l2 = log_scales[iu * 3 + 2];
         // conic -> covariance
-        let ia = proj[iu * 8 + 2];
-        let ib = proj[iu * 8 + 3];
-        let ic = proj[iu * 8 + 4];
+        let ia = proj[iu * PROJ + P_CA];
+        let ib = proj[iu * PROJ + P_CB];
+        let ic = proj[iu * PROJ + P_CC];
         let ga = gca;
         let gb = 0.5 * gcb;
         let gc = gcc;
@@ -774,28 +840,28 @@ fn project_bwd_kernel(
         let mut dp1 = gm1 * fy / z;
         let mut dp2 =
             dj00 * (0.0f32 - fx / z2) + dj11 * (0.0f32 - fy / z2) + dj02 * (fx * uc / z2) + dj12 * (fy * vc / z2);
-        if f32::abs(u) <= cam[16] {
+        if f32::abs(u) <= cam[C_LIM_X] {
             dp0 += dj02 * (0.0f32 - fx / z2);
             dp2 += dj02 * (fx * p0 / (z2 * z));
         }
-        if f32::abs(v) <= cam[17] {
+        if f32::abs(v) <= cam[C_LIM_Y] {
             dp1 += dj12 * (0.0f32 - fy / z2);
             dp2 += dj12 * (fy * p1 / (z2 * z));
         }
         dp2 += 0.0f32 - gm0 * fx * p0 / z2 - gm1 * fy * p1 / z2 + gdepth;
-        g_means[iu * 3] = cam[0] * dp0 + cam[3] * dp1 + cam[6] * dp2;
-        g_means[iu * 3 + 1] = cam[1] * dp0 + cam[4] * dp1 + cam[7] * dp2;
-        g_means[iu * 3 + 2] = cam[2] * dp0 + cam[5] * dp1 + cam[8] * dp2;
+        g_means[iu * 3] = cam[C_R] * dp0 + cam[C_R + 3] * dp1 + cam[C_R + 6] * dp2;
+        g_means[iu * 3 + 1] = cam[C_R + 1] * dp0 + cam[C_R + 4] * dp1 + cam[C_R + 7] * dp2;
+        g_means[iu * 3 + 2] = cam[C_R + 2] * dp0 + cam[C_R + 5] * dp1 + cam[C_R + 8] * dp2;
         // dM = R_c^T dE
-        let dm00 = cam[0] * e00 + cam[3] * e10 + cam[6] * e20;
-        let dm01 = cam[0] * e01 + cam[3] * e11 + cam[6] * e21;
-        let dm02 = cam[0] * e02 + cam[3] * e12 + cam[6] * e22;
-        let dm10 = cam[1] * e00 + cam[4] * e10 + cam[7] * e20;
-        let dm11 = cam[1] * e01 + cam[4] * e11 + cam[7] * e21;
-        let dm12 = cam[1] * e02 + cam[4] * e12 + cam[7] * e22;
-        let dm20 = cam[2] * e00 + cam[5] * e10 + cam[8] * e20;
-        let dm21 = cam[2] * e01 + cam[5] * e11 + cam[8] * e21;
-        let dm22 = cam[2] * e02 + cam[5] * e12 + cam[8] * e22;
+        let dm00 = cam[C_R] * e00 + cam[C_R + 3] * e10 + cam[C_R + 6] * e20;
+        let dm01 = cam[C_R] * e01 + cam[C_R + 3] * e11 + cam[C_R + 6] * e21;
+        let dm02 = cam[C_R] * e02 + cam[C_R + 3] * e12 + cam[C_R + 6] * e22;
+        let dm10 = cam[C_R + 1] * e00 + cam[C_R + 4] * e10 + cam[C_R + 7] * e20;
+        let dm11 = cam[C_R + 1] * e01 + cam[C_R + 4] * e11 + cam[C_R + 7] * e21;
+        let dm12 = cam[C_R + 1] * e02 + cam[C_R + 4] * e12 + cam[C_R + 7] * e22;
+        let dm20 = cam[C_R + 2] * e00 + cam[C_R + 5] * e10 + cam[C_R + 8] * e20;
+        let dm21 = cam[C_R + 2] * e01 + cam[C_R + 5] * e11 + cam[C_R + 8] * e21;
+        let dm22 = cam[C_R + 2] * e02 + cam[C_R + 5] * e12 + cam[C_R + 8] * e22;
         if l0 >= LOG_SCALE_MIN && l0 <= LOG_SCALE_MAX {
             g_scales[iu * 3] = (dm00 * r00 + dm10 * r10 + dm20 * r20) * s0;
         }
@@ -910,7 +976,7 @@ fn bin(p: &SplatPrims<CubeBackend>, camera: &Camera, config: &RasterConfig) -> D
     let [tx, ty] = camera.tiles();
     let num_tiles = (tx * ty) as usize;
     let cam = cam_block(like, camera, config);
-    let proj = zeros(like, vec![n.max(1), PROJ as usize], DType::F32);
+    let proj = zeros(like, vec![n.max(1), PROJ], DType::F32);
     let rects = zeros(like, vec![n.max(1), 4], DType::I32);
     let counts = zeros(like, vec![num_tiles], DType::I32);
     let dim = CubeDim::new_1d(TILE_PIXELS);
@@ -1043,7 +1109,7 @@ impl SplatBackend for CubeBackend {
         let n_visited = into_contiguous(saved.n_visited);
         let grad_packed = into_contiguous(saved.grad_packed);
         let rec = alloc(&p.means, vec![h * w * c], DType::F32);
-        let g2d = zeros(&p.means, vec![n.max(1), G2D as usize], DType::F32);
+        let g2d = zeros(&p.means, vec![n.max(1), G2D], DType::F32);
         let gfeat = zeros(&p.means, vec![n.max(1), c], DType::F32);
         let client = p.means.client.clone();
         raster_bwd_kernel::launch(

@@ -1,0 +1,324 @@
+//! The op as CubeCL kernels (the wgpu backend; any CubeCL runtime works).
+//!
+//! Pipeline, all on the device; the only host read is the number of tile intersections, which
+//! sizes the intersection buffers:
+//!
+//! 1. `project_kernel` (thread per Gaussian): screen-space centre, conic, depth, opacity, tile
+//!    rectangle; atomically counts Gaussians per tile.
+//! 2. `scan_kernel` (one workgroup): exclusive prefix sum of the tile counts -> tile offsets, total.
+//! 3. `emit_kernel` (thread per Gaussian): writes (depth, id) into each touched tile's segment.
+//! 4. `tile_sort_kernel` (workgroup per tile): bitonic sort of the segment by (depth, id), so the
+//!    order is the same total order as on the CPU.
+//! 5. `raster_fwd_kernel` (workgroup per 16x16 tile, thread per pixel): front-to-back compositing
+//!    with Gaussians staged through shared memory in batches of 256.
+//!
+//! Backward: steps 1-4 again, then (6) `raster_bwd_kernel` walks each pixel's list back to front
+//! and adds per-Gaussian screen-space gradients with atomic float adds (compare-and-swap on the
+//! bits), then (7) `project_bwd_kernel` maps them to the 3D parameters. Float atomics make the wgpu
+//! gradients order-dependent in the last bits (the CPU path is bitwise deterministic).
+//!
+//! The math mirrors [`crate::project`] and [`crate::cpu`] line for line; see there for derivations.
+//! Files by pipeline stage: `project` (1, 7), `sort` (2-4), `raster` (5, 6), `layout` (the packed
+//! buffers' named offsets); this module launches them (host side).
+
+mod layout;
+mod project;
+mod raster;
+mod sort;
+
+use crate::camera::Camera;
+use crate::constants::{RasterConfig, TILE_PIXELS};
+use crate::ext::{SplatBackend, SplatFwdPrims, SplatPrims, SplatSaved};
+use burn::backend::ops::FloatTensorOps;
+use burn::backend::try_read_sync;
+use burn::backend::wgpu::{CubeBackend, CubeTensor};
+use burn::tensor::{DType, Shape, TensorData};
+use burn_cubecl::kernel::into_contiguous;
+use burn_cubecl::ops::numeric::{empty_device_dtype, zeros_client};
+use cubecl::prelude::*;
+use layout::{CAM, G2D, PROJ};
+use project::{project_bwd_kernel, project_kernel};
+use raster::{raster_bwd_kernel, raster_fwd_kernel};
+use sort::{emit_kernel, scan_kernel, tile_sort_kernel};
+
+// ---------------------------------------------------------------------------------------------
+// Host-side orchestration.
+
+fn buf(t: &CubeTensor) -> BufferArg {
+    let len = t.meta.shape().num_elements().max(1);
+    // SAFETY: every tensor handed to a kernel is contiguous and holds `len` 4-byte elements.
+    unsafe { BufferArg::from_raw_parts(t.handle.clone(), len) }
+}
+
+fn alloc(like: &CubeTensor, shape: Vec<usize>, dtype: DType) -> CubeTensor {
+    empty_device_dtype(like.client.clone(), like.device.clone(), Shape::from(shape), dtype)
+}
+
+fn zeros(like: &CubeTensor, shape: Vec<usize>, dtype: DType) -> CubeTensor {
+    zeros_client(like.client.clone(), like.device.clone(), Shape::from(shape), dtype)
+}
+
+/// A 1-element placeholder for empty inputs (wgpu does not bind zero-sized buffers).
+fn non_empty(t: CubeTensor) -> CubeTensor {
+    if t.meta.shape().num_elements() == 0 { zeros(&t, vec![1], DType::F32) } else { into_contiguous(t) }
+}
+
+fn cam_block(like: &CubeTensor, camera: &Camera, config: &RasterConfig) -> CubeTensor {
+    let r = camera.rotation_rows();
+    let t = camera.translation();
+    let [lx, ly] = camera.clamp_limits();
+    let mut v = Vec::with_capacity(CAM);
+    for row in r {
+        v.extend_from_slice(&row);
+    }
+    v.extend_from_slice(&t);
+    v.extend_from_slice(&[
+        camera.fx,
+        camera.fy,
+        camera.cx,
+        camera.cy,
+        lx,
+        ly,
+        camera.near,
+        camera.far,
+        config.extent,
+        config.alpha_max,
+        config.alpha_min,
+        config.t_min,
+    ]);
+    CubeBackend::float_from_data(TensorData::new(v, [CAM]), &like.device)
+}
+
+fn groups(n: usize) -> CubeCount {
+    let g = n.div_ceil(TILE_PIXELS as usize).max(1) as u32;
+    if g <= 65535 {
+        CubeCount::Static(g, 1, 1)
+    } else {
+        // ABSOLUTE_POS linearises a 2D grid as well.
+        CubeCount::Static(65535, g.div_ceil(65535), 1)
+    }
+}
+
+/// Projected and binned Gaussians on the device.
+struct DeviceBins {
+    proj: CubeTensor,
+    rects: CubeTensor,
+    offsets: CubeTensor,
+    counts: CubeTensor,
+    gids: CubeTensor,
+    cam: CubeTensor,
+}
+
+fn bin(p: &SplatPrims<CubeBackend>, camera: &Camera, config: &RasterConfig) -> DeviceBins {
+    let like = &p.means;
+    let client = &like.client;
+    let n = p.opacity_logits.meta.shape().num_elements();
+    let [tx, ty] = camera.tiles();
+    let num_tiles = (tx * ty) as usize;
+    let cam = cam_block(like, camera, config);
+    let proj = zeros(like, vec![n.max(1), PROJ], DType::F32);
+    let rects = zeros(like, vec![n.max(1), 4], DType::I32);
+    let counts = zeros(like, vec![num_tiles], DType::I32);
+    let dim = CubeDim::new_1d(TILE_PIXELS);
+    if n > 0 {
+        project_kernel::launch(
+            client,
+            groups(n),
+            dim,
+            buf(&p.means),
+            buf(&p.log_scales),
+            buf(&p.quats),
+            buf(&p.opacity_logits),
+            buf(&p.screen_offsets),
+            buf(&cam),
+            buf(&proj),
+            buf(&rects),
+            buf(&counts),
+            n as u32,
+            tx,
+            ty,
+        );
+    }
+    let offsets = alloc(like, vec![num_tiles], DType::I32);
+    let total = alloc(like, vec![1], DType::I32);
+    scan_kernel::launch(
+        client,
+        CubeCount::Static(1, 1, 1),
+        dim,
+        buf(&counts),
+        buf(&offsets),
+        buf(&total),
+        num_tiles as u32,
+    );
+    // The one host read of the pipeline: how many intersections to allocate.
+    let total_data =
+        try_read_sync(<CubeBackend as burn::backend::ops::IntTensorOps<CubeBackend>>::int_into_data(total))
+            .expect("synchronous read is supported")
+            .expect("tensor read succeeds");
+    let n_isect = total_data.convert::<i64>().into_vec::<i64>().expect("int data")[0] as usize;
+    let keys = alloc(like, vec![n_isect.max(1)], DType::F32);
+    let gids = zeros(like, vec![n_isect.max(1)], DType::I32);
+    if n > 0 && n_isect > 0 {
+        let cursors = zeros(like, vec![num_tiles], DType::I32);
+        emit_kernel::launch(
+            client,
+            groups(n),
+            dim,
+            buf(&proj),
+            buf(&rects),
+            buf(&offsets),
+            buf(&cursors),
+            buf(&keys),
+            buf(&gids),
+            n as u32,
+            tx,
+        );
+        tile_sort_kernel::launch(
+            client,
+            CubeCount::Static(tx, ty, 1),
+            dim,
+            buf(&keys),
+            buf(&gids),
+            buf(&offsets),
+            buf(&counts),
+            tx,
+        );
+    }
+    DeviceBins { proj, rects, offsets, counts, gids, cam }
+}
+
+fn contiguous_inputs(p: SplatPrims<CubeBackend>) -> SplatPrims<CubeBackend> {
+    SplatPrims {
+        means: non_empty(p.means),
+        log_scales: non_empty(p.log_scales),
+        quats: non_empty(p.quats),
+        opacity_logits: into_contiguous(p.opacity_logits),
+        features: non_empty(p.features),
+        background: into_contiguous(p.background),
+        screen_offsets: non_empty(p.screen_offsets),
+    }
+}
+
+impl SplatBackend for CubeBackend {
+    fn splat_forward(inputs: SplatPrims<Self>, camera: Camera, config: RasterConfig) -> SplatFwdPrims<Self> {
+        let c = inputs.background.meta.shape().num_elements();
+        let p = contiguous_inputs(inputs);
+        let b = bin(&p, &camera, &config);
+        let (w, h) = (camera.width as usize, camera.height as usize);
+        let [tx, ty] = camera.tiles();
+        let packed = alloc(&p.means, vec![h, w, c + 2], DType::F32);
+        let top_id = alloc(&p.means, vec![h, w], DType::I32);
+        let final_t = alloc(&p.means, vec![h, w], DType::F32);
+        let n_visited = alloc(&p.means, vec![h, w], DType::I32);
+        raster_fwd_kernel::launch(
+            &p.means.client,
+            CubeCount::Static(tx, ty, 1),
+            CubeDim::new_1d(TILE_PIXELS),
+            buf(&b.proj),
+            buf(&p.features),
+            buf(&p.background),
+            buf(&b.offsets),
+            buf(&b.counts),
+            buf(&b.gids),
+            buf(&b.cam),
+            buf(&packed),
+            buf(&top_id),
+            buf(&final_t),
+            buf(&n_visited),
+            camera.width,
+            camera.height,
+            tx,
+            c as u32,
+        );
+        SplatFwdPrims { packed, top_id, final_t, n_visited }
+    }
+
+    fn splat_backward(
+        inputs: SplatPrims<Self>,
+        saved: SplatSaved<Self>,
+        camera: Camera,
+        config: RasterConfig,
+    ) -> SplatPrims<Self> {
+        let c = inputs.background.meta.shape().num_elements();
+        let n = inputs.opacity_logits.meta.shape().num_elements();
+        let p = contiguous_inputs(inputs);
+        let b = bin(&p, &camera, &config);
+        let (w, h) = (camera.width as usize, camera.height as usize);
+        let [tx, ty] = camera.tiles();
+        let final_t = into_contiguous(saved.final_t);
+        let n_visited = into_contiguous(saved.n_visited);
+        let grad_packed = into_contiguous(saved.grad_packed);
+        let rec = alloc(&p.means, vec![h * w * c], DType::F32);
+        let g2d = zeros(&p.means, vec![n.max(1), G2D], DType::F32);
+        let gfeat = zeros(&p.means, vec![n.max(1), c], DType::F32);
+        let client = p.means.client.clone();
+        raster_bwd_kernel::launch(
+            &client,
+            CubeCount::Static(tx, ty, 1),
+            CubeDim::new_1d(TILE_PIXELS),
+            buf(&b.proj),
+            buf(&p.features),
+            buf(&p.background),
+            buf(&b.offsets),
+            buf(&b.gids),
+            buf(&b.cam),
+            buf(&final_t),
+            buf(&n_visited),
+            buf(&grad_packed),
+            buf(&rec),
+            buf(&g2d),
+            buf(&gfeat),
+            camera.width,
+            camera.height,
+            tx,
+            c as u32,
+        );
+        let g_means = alloc(&p.means, vec![n.max(1), 3], DType::F32);
+        let g_scales = alloc(&p.means, vec![n.max(1), 3], DType::F32);
+        let g_quats = alloc(&p.means, vec![n.max(1), 4], DType::F32);
+        let g_logits = alloc(&p.means, vec![n.max(1)], DType::F32);
+        let g_offsets = alloc(&p.means, vec![n.max(1), 2], DType::F32);
+        if n > 0 {
+            project_bwd_kernel::launch(
+                &client,
+                groups(n),
+                CubeDim::new_1d(TILE_PIXELS),
+                buf(&p.means),
+                buf(&p.log_scales),
+                buf(&p.quats),
+                buf(&b.proj),
+                buf(&b.rects),
+                buf(&g2d),
+                buf(&b.cam),
+                buf(&g_means),
+                buf(&g_scales),
+                buf(&g_quats),
+                buf(&g_logits),
+                buf(&g_offsets),
+                n as u32,
+            );
+        }
+        // Background: sum over pixels of grad_image * final_t (plain tensor ops on the device).
+        let gi = CubeBackend::float_reshape(grad_packed, Shape::from(vec![h * w, c + 2]));
+        let gi = CubeBackend::float_slice(gi, &[burn::tensor::Slice::from(0..h * w), burn::tensor::Slice::from(0..c)]);
+        let ft = CubeBackend::float_reshape(final_t, Shape::from(vec![h * w, 1]));
+        let g_bg = CubeBackend::float_sum_dim(CubeBackend::float_mul(gi, ft), 0);
+        let g_bg = CubeBackend::float_reshape(g_bg, Shape::from(vec![c]));
+        let shape_n = |t: CubeTensor, cols: Option<usize>| -> CubeTensor {
+            let shape = match cols {
+                Some(k) => vec![n, k],
+                None => vec![n],
+            };
+            if n == 0 { zeros(&t, shape, DType::F32) } else { t }
+        };
+        SplatPrims {
+            means: shape_n(g_means, Some(3)),
+            log_scales: shape_n(g_scales, Some(3)),
+            quats: shape_n(g_quats, Some(4)),
+            opacity_logits: shape_n(g_logits, None),
+            features: shape_n(gfeat, Some(c)),
+            background: g_bg,
+            screen_offsets: shape_n(g_offsets, Some(2)),
+        }
+    }
+}

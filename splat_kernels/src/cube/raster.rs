@@ -1,0 +1,286 @@
+//! Steps 5 and 6: compositing (workgroup per 16x16 tile, thread per pixel), forward front to back
+//! and backward back to front with atomic float adds.
+
+use super::layout::*;
+use crate::constants::{TILE_PIXELS, TILE_SIZE};
+use cubecl::prelude::*;
+
+/// Each thread of the workgroup copies one tile-list entry (`first + UNIT_POS`, if below
+/// `first + len`) into shared memory: its id and the first 7 projected floats.
+#[cube]
+fn stage_batch(gids: &[u32], proj: &[f32], s_gid: &mut Shared<[u32]>, s_p: &mut Shared<[f32]>, first: u32, len: u32) {
+    if UNIT_POS < len {
+        let u = UNIT_POS as usize;
+        let g = gids[(first + UNIT_POS) as usize];
+        let gu = g as usize;
+        s_gid[u] = g;
+        for k in 0usize..STAGED {
+            s_p[u * STAGED + k] = proj[gu * PROJ + k];
+        }
+    }
+}
+
+/// Where a raster kernel's thread is: its tile (one workgroup), its pixel (one thread) and
+/// whether that pixel is inside the image. The forward and backward kernels start alike.
+#[derive(CubeType)]
+struct TilePixel {
+    /// The tile's index, row-major over `tiles_x` columns.
+    tile: usize,
+    /// The pixel's row-major index in the image (meaningful when `inside`).
+    pix: usize,
+    inside: bool,
+    /// The pixel's centre.
+    pxf: f32,
+    pyf: f32,
+}
+
+#[cube]
+fn tile_pixel(width: u32, height: u32, tiles_x: u32) -> TilePixel {
+    let px = CUBE_POS_X * TILE_SIZE + UNIT_POS % TILE_SIZE;
+    let py = CUBE_POS_Y * TILE_SIZE + UNIT_POS / TILE_SIZE;
+    TilePixel {
+        tile: (CUBE_POS_Y * tiles_x + CUBE_POS_X) as usize,
+        pix: (py * width + px) as usize,
+        inside: px < width && py < height,
+        pxf: f32::cast_from(px) + 0.5,
+        pyf: f32::cast_from(py) + 0.5,
+    }
+}
+
+/// Workgroup per tile, thread per pixel: front-to-back compositing.
+#[cube(launch)]
+pub(super) fn raster_fwd_kernel(
+    proj: &[f32],
+    features: &[f32],
+    background: &[f32],
+    offsets: &[u32],
+    counts: &[u32],
+    gids: &[u32],
+    cam: &[f32],
+    packed: &mut [f32],
+    top_id: &mut [i32],
+    final_t: &mut [f32],
+    n_visited: &mut [i32],
+    width: u32,
+    height: u32,
+    tiles_x: u32,
+    channels: u32,
+) {
+    // Shared staging for one batch: TILE_PIXELS ids and STAGED floats each (256 x 7: sizes must be literals).
+    let mut s_gid = Shared::<[u32]>::new_slice(256usize);
+    let mut s_p = Shared::<[f32]>::new_slice(1792usize);
+    let at = tile_pixel(width, height, tiles_x);
+    let tile = at.tile;
+    let pix = at.pix;
+    let inside = at.inside;
+    let pxf = at.pxf;
+    let pyf = at.pyf;
+    let c2 = (channels + 2) as usize;
+    let ch_n = channels as usize;
+    let alpha_max = cam[C_ALPHA_MAX];
+    let alpha_min = cam[C_ALPHA_MIN];
+    let t_min = cam[C_T_MIN];
+    let start = offsets[tile];
+    let count = counts[tile];
+    let mut t = 1.0f32;
+    let mut done = !inside;
+    let mut depth_acc = 0.0f32;
+    let mut best = 0.0f32;
+    let mut top = i32::new(-1);
+    let mut nv = 0i32;
+    if inside {
+        for ch in 0usize..ch_n {
+            packed[pix * c2 + ch] = 0.0;
+        }
+    }
+    let mut base = 0u32;
+    while base < count {
+        stage_batch(gids, proj, &mut s_gid, &mut s_p, start + base, count - base);
+        sync_cube();
+        let batch = u32::min(TILE_PIXELS, count - base);
+        for j in 0u32..batch {
+            if !done {
+                let ju = j as usize;
+                let dx = pxf - s_p[ju * STAGED + P_MX];
+                let dy = pyf - s_p[ju * STAGED + P_MY];
+                let power = 0.0f32
+                    - 0.5f32 * (s_p[ju * STAGED + P_CA] * dx * dx + s_p[ju * STAGED + P_CC] * dy * dy)
+                    - s_p[ju * STAGED + P_CB] * dx * dy;
+                if power <= 0.0 {
+                    let alpha = f32::min(alpha_max, s_p[ju * STAGED + P_OPACITY] * f32::exp(power));
+                    if alpha >= alpha_min {
+                        let next_t = t * (1.0 - alpha);
+                        if next_t < t_min {
+                            done = true;
+                        } else {
+                            let w = alpha * t;
+                            let g = s_gid[ju];
+                            let fo = (g * channels) as usize;
+                            for ch in 0usize..ch_n {
+                                packed[pix * c2 + ch] += w * features[fo + ch];
+                            }
+                            depth_acc += w * s_p[ju * STAGED + P_DEPTH];
+                            if w > best {
+                                best = w;
+                                top = i32::cast_from(g);
+                            }
+                            t = next_t;
+                            nv = i32::cast_from(base + j) + 1;
+                        }
+                    }
+                }
+            }
+        }
+        sync_cube();
+        base += TILE_PIXELS;
+    }
+    if inside {
+        for ch in 0usize..ch_n {
+            packed[pix * c2 + ch] += t * background[ch];
+        }
+        packed[pix * c2 + ch_n] = 1.0 - t;
+        packed[pix * c2 + ch_n + 1] = depth_acc;
+        top_id[pix] = top;
+        final_t[pix] = t;
+        n_visited[pix] = nv;
+    }
+}
+
+/// `buf[idx] += val` on f32 bits stored in u32 atomics (compare-and-swap loop).
+#[cube]
+fn atomic_add_f32(buf: &[Atomic<u32>], idx: usize, val: f32) {
+    let mut old = buf[idx].load();
+    loop {
+        let new_bits = u32::reinterpret(f32::reinterpret(old) + val);
+        let prev = buf[idx].compare_exchange_weak(old, new_bits);
+        if prev == old {
+            break;
+        }
+        old = prev;
+    }
+}
+
+/// Workgroup per tile, thread per pixel: back-to-front walk, atomic accumulation of screen-space
+/// and feature gradients per Gaussian.
+#[cube(launch)]
+pub(super) fn raster_bwd_kernel(
+    proj: &[f32],
+    features: &[f32],
+    background: &[f32],
+    offsets: &[u32],
+    gids: &[u32],
+    cam: &[f32],
+    final_t: &[f32],
+    n_visited: &[i32],
+    grad_packed: &[f32],
+    rec: &mut [f32],
+    g2d: &[Atomic<u32>],
+    gfeat: &[Atomic<u32>],
+    width: u32,
+    height: u32,
+    tiles_x: u32,
+    channels: u32,
+) {
+    // Shared staging for one batch: TILE_PIXELS ids and STAGED floats each (256 x 7: sizes must be literals).
+    let mut s_gid = Shared::<[u32]>::new_slice(256usize);
+    let mut s_p = Shared::<[f32]>::new_slice(1792usize);
+    let mut s_max = Shared::<[u32]>::new_slice(256usize);
+    let at = tile_pixel(width, height, tiles_x);
+    let tile = at.tile;
+    let pix = at.pix;
+    let inside = at.inside;
+    let pxf = at.pxf;
+    let pyf = at.pyf;
+    let c2 = (channels + 2) as usize;
+    let ch_n = channels as usize;
+    let alpha_max = cam[C_ALPHA_MAX];
+    let alpha_min = cam[C_ALPHA_MIN];
+    let start = offsets[tile];
+    let mut tt = 1.0f32;
+    let mut tf = 1.0f32;
+    let mut last = 0u32;
+    let mut rec_z = 0.0f32;
+    let mut g_a = 0.0f32;
+    let mut g_z = 0.0f32;
+    if inside {
+        tt = final_t[pix];
+        tf = tt;
+        last = u32::cast_from(n_visited[pix]);
+        g_a = grad_packed[pix * c2 + ch_n];
+        g_z = grad_packed[pix * c2 + ch_n + 1];
+        for ch in 0usize..ch_n {
+            rec[pix * ch_n + ch] = background[ch];
+        }
+    }
+    s_max[UNIT_POS as usize] = last;
+    sync_cube();
+    if UNIT_POS == 0 {
+        let mut mx = 0u32;
+        for k in 0..TILE_PIXELS {
+            mx = u32::max(mx, s_max[k as usize]);
+        }
+        s_max[0] = mx;
+    }
+    sync_cube();
+    let max_last = s_max[0];
+    let mut end = max_last;
+    while end > 0 {
+        let begin = end - u32::min(TILE_PIXELS, end);
+        stage_batch(gids, proj, &mut s_gid, &mut s_p, start + begin, end - begin);
+        sync_cube();
+        let batch = end - begin;
+        for jj in 0u32..batch {
+            let j = batch - 1 - jj;
+            let k = begin + j;
+            if inside && k < last {
+                let ju = j as usize;
+                let dx = pxf - s_p[ju * STAGED + P_MX];
+                let dy = pyf - s_p[ju * STAGED + P_MY];
+                let ca = s_p[ju * STAGED + P_CA];
+                let cb = s_p[ju * STAGED + P_CB];
+                let cc = s_p[ju * STAGED + P_CC];
+                let power = 0.0f32 - 0.5f32 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy;
+                if power <= 0.0 {
+                    let gexp = f32::exp(power);
+                    let op = s_p[ju * STAGED + P_OPACITY];
+                    let raw = op * gexp;
+                    let alpha = f32::min(alpha_max, raw);
+                    if alpha >= alpha_min {
+                        let g = s_gid[ju];
+                        let fo = (g * channels) as usize;
+                        let depth = s_p[ju * STAGED + P_DEPTH];
+                        let t_k = tt / (1.0 - alpha);
+                        let w = alpha * t_k;
+                        let mut d_alpha = 0.0f32;
+                        for ch in 0usize..ch_n {
+                            let gf = grad_packed[pix * c2 + ch];
+                            let f = features[fo + ch];
+                            let r = rec[pix * ch_n + ch];
+                            d_alpha += gf * (f - r);
+                            atomic_add_f32(gfeat, fo + ch, w * gf);
+                            rec[pix * ch_n + ch] = alpha * f + (1.0 - alpha) * r;
+                        }
+                        d_alpha += g_z * (depth - rec_z);
+                        d_alpha *= t_k;
+                        d_alpha += g_a * tf / (1.0 - alpha);
+                        let go = g as usize * G2D;
+                        atomic_add_f32(g2d, go + G_DEPTH, w * g_z);
+                        rec_z = alpha * depth + (1.0 - alpha) * rec_z;
+                        tt = t_k;
+                        if raw < alpha_max {
+                            atomic_add_f32(g2d, go + G_OPACITY, d_alpha * gexp);
+                            let d_power = d_alpha * op * gexp;
+                            atomic_add_f32(g2d, go + G_MX, d_power * (ca * dx + cb * dy));
+                            atomic_add_f32(g2d, go + G_MY, d_power * (cc * dy + cb * dx));
+                            atomic_add_f32(g2d, go + G_CA, d_power * (0.0f32 - 0.5f32 * dx * dx));
+                            atomic_add_f32(g2d, go + G_CB, d_power * (0.0f32 - dx * dy));
+                            atomic_add_f32(g2d, go + G_CC, d_power * (0.0f32 - 0.5f32 * dy * dy));
+                        }
+                    }
+                }
+            }
+        }
+        sync_cube();
+        end = begin;
+    }
+}

@@ -407,7 +407,9 @@ fn twenty_clients_at_once_are_answered_in_order_or_refused_and_a_gone_client_fre
         }
     }
     assert_eq!(answered.len() + refused, 20, "none lost");
-    assert!(answered.len() >= 9, "the one answered and the 8 queued at least: {} answered", answered.len());
+    // the 8 the queue holds at least, and the one in progress when the model took it off the queue
+    // before the last arrived (under load the model may not have started yet: then 8)
+    assert!(answered.len() >= 8, "the 8 queued at least: {} answered", answered.len());
     // in order: answers finish in the order their questions were queued
     answered.sort_by_key(|a| a.0);
     let tickets: Vec<u64> = answered.iter().map(|a| a.1).collect();

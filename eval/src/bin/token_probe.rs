@@ -18,10 +18,11 @@ use burn::tensor::{Device, Tensor, TensorData};
 use clap::Parser;
 use eval::compare::{exact, greedy};
 use model::chat::{ChatSession, Target, answer};
-use model::data::synth::questions::ViewFacts;
+use model::data::synth::FIRST_OBJECT_ID;
+use model::data::synth::questions::{Kind, ViewFacts, view_questions};
 use model::data::synth::scene::Scene;
-use model::data::synth::{FIRST_OBJECT_ID, scene::Color};
 use model::data::{LoadOptions, load_any};
+use model::rng::Rng;
 use model::run::GeometryRun;
 use model::splats::host;
 use model::vlm::{LlavaOnevision, RgbImage};
@@ -184,15 +185,10 @@ fn probe(a: &Args) -> Result<()> {
             views_seen += 1;
             held_views += held_out as usize;
             let truth_count = facts.seen.len();
-            let mut colors: Vec<Color> =
-                facts.seen.iter().filter_map(|s| scene.object(s.id)).map(|o| o.color).collect();
-            colors.sort();
-            colors.dedup();
-            let truth_colors = if colors.is_empty() {
-                "none".to_string()
-            } else {
-                colors.iter().map(|c| c.word()).collect::<Vec<_>>().join(" ")
-            };
+            // the colours answer as the question files write it (one rule: `view_questions`)
+            let qas = view_questions(&scene, &facts, &mut Rng::new(0));
+            let truth_colors =
+                qas.iter().find(|q| q.kind == Kind::Colors).map(|q| q.answer.clone()).unwrap_or_default();
             let gt = host(vlm.teacher_tokens(&RgbImage::from_f32(w, h, &v.rgb)));
             let cam = *session.camera(index)?;
             let cs = host(session.tokens(&Target::View(cam))?.remove(0));

@@ -2,6 +2,8 @@
 //! into the few numbers the port needs; anything we do not implement is refused by name.
 
 use super::VlmError;
+use serde::Deserialize;
+use serde::de::DeserializeOwned;
 use serde_json::Value;
 use std::path::Path;
 
@@ -210,74 +212,114 @@ pub fn read_json(path: &Path) -> Result<Value, VlmError> {
     serde_json::from_str(&text).map_err(|e| VlmError::config(path, format!("not valid JSON: {e}")))
 }
 
-struct Obj<'a> {
-    v: &'a Value,
-    file: &'a Path,
-    prefix: &'a str,
+/// Reads `v` (found at `at` in `file`, "" for the top) into `T`; a key of the wrong type is named
+/// with its whole path, e.g. `text_config.hidden_size: invalid type: string "x", expected usize`.
+fn from_json<T: DeserializeOwned>(file: &Path, at: &str, v: &Value) -> Result<T, VlmError> {
+    serde_path_to_error::deserialize(v).map_err(|e| {
+        let inner = e.inner().to_string();
+        let path = match (at, e.path().to_string()) {
+            ("", p) => p,
+            (at, p) if p == "." => at.to_string(),
+            (at, p) => format!("{at}.{p}"),
+        };
+        VlmError::config(file, if path == "." { inner } else { format!("{path}: {inner}") })
+    })
 }
 
-impl<'a> Obj<'a> {
-    fn get(&self, key: &str) -> Option<&'a Value> {
-        self.v.get(key).filter(|v| !v.is_null())
-    }
-    fn name(&self, key: &str) -> String {
-        if self.prefix.is_empty() { key.to_string() } else { format!("{}.{key}", self.prefix) }
-    }
-    fn usize(&self, key: &str, default: Option<usize>) -> Result<usize, VlmError> {
-        match self.get(key) {
-            Some(v) => v.as_u64().map(|x| x as usize).ok_or_else(|| {
-                VlmError::config(self.file, format!("{} must be a non-negative integer, got {v}", self.name(key)))
-            }),
-            None => default.ok_or_else(|| VlmError::config(self.file, format!("{} is missing", self.name(key)))),
-        }
-    }
-    fn f64(&self, key: &str, default: Option<f64>) -> Result<f64, VlmError> {
-        match self.get(key) {
-            Some(v) => v
-                .as_f64()
-                .ok_or_else(|| VlmError::config(self.file, format!("{} must be a number, got {v}", self.name(key)))),
-            None => default.ok_or_else(|| VlmError::config(self.file, format!("{} is missing", self.name(key)))),
-        }
-    }
-    fn str(&self, key: &str, default: Option<&'a str>) -> Result<&'a str, VlmError> {
-        match self.get(key) {
-            Some(v) => v
-                .as_str()
-                .ok_or_else(|| VlmError::config(self.file, format!("{} must be a string, got {v}", self.name(key)))),
-            None => default.ok_or_else(|| VlmError::config(self.file, format!("{} is missing", self.name(key)))),
-        }
-    }
-    fn bool(&self, key: &str, default: bool) -> Result<bool, VlmError> {
-        match self.get(key) {
-            Some(v) => v.as_bool().ok_or_else(|| {
-                VlmError::config(self.file, format!("{} must be true or false, got {v}", self.name(key)))
-            }),
-            None => Ok(default),
-        }
-    }
-    fn pinpoints(&self, key: &str) -> Result<Option<Vec<(usize, usize)>>, VlmError> {
-        let Some(v) = self.get(key) else { return Ok(None) };
-        let bad = || VlmError::config(self.file, format!("{} must be a list of [height, width] pairs", self.name(key)));
-        let list = v.as_array().ok_or_else(bad)?;
-        let mut out = Vec::with_capacity(list.len());
-        for p in list {
-            let p = p.as_array().filter(|p| p.len() == 2).ok_or_else(bad)?;
-            let h = p[0].as_u64().ok_or_else(bad)? as usize;
-            let w = p[1].as_u64().ok_or_else(bad)? as usize;
-            out.push((h, w));
-        }
-        if out.is_empty() {
-            return Err(bad());
-        }
-        Ok(Some(out))
-    }
+/// `config.json` of `LlavaOnevisionForConditionalGeneration` as Hugging Face writes it: the keys
+/// this port reads. Every key may be absent or `null`; [`parse_llava_config`] puts in
+/// transformers' defaults and checks what the port supports.
+#[derive(Deserialize)]
+#[serde(expecting = "an object")]
+struct HfLlava {
+    vision_config: Option<HfVision>,
+    text_config: Option<HfText>,
+    rope_scaling: Option<Value>,
+    tie_word_embeddings: Option<bool>,
+    eos_token_id: Option<TokenIds>,
+    vision_feature_layer: Option<OneOrMany<i64>>,
+    vision_feature_select_strategy: Option<String>,
+    vision_aspect_ratio: Option<String>,
+    image_grid_pinpoints: Option<Vec<[usize; 2]>>,
+    image_token_index: Option<usize>,
+    image_token_id: Option<usize>,
+    projector_hidden_act: Option<String>,
+    multimodal_projector_bias: Option<bool>,
 }
 
-fn token_ids(v: Option<&Value>) -> Vec<u32> {
-    match v {
-        Some(Value::Number(n)) => n.as_u64().map(|x| vec![x as u32]).unwrap_or_default(),
-        Some(Value::Array(a)) => a.iter().filter_map(|x| x.as_u64().map(|x| x as u32)).collect(),
-        _ => Vec::new(),
+/// `vision_config` (SigLIP).
+#[derive(Deserialize)]
+#[serde(expecting = "an object")]
+struct HfVision {
+    model_type: Option<String>,
+    hidden_size: Option<usize>,
+    intermediate_size: Option<usize>,
+    num_hidden_layers: Option<usize>,
+    num_attention_heads: Option<usize>,
+    image_size: Option<usize>,
+    patch_size: Option<usize>,
+    num_channels: Option<usize>,
+    layer_norm_eps: Option<f64>,
+    hidden_act: Option<String>,
+}
+
+/// `text_config` (Qwen2).
+#[derive(Deserialize)]
+#[serde(expecting = "an object")]
+struct HfText {
+    model_type: Option<String>,
+    use_sliding_window: Option<bool>,
+    vocab_size: Option<usize>,
+    hidden_size: Option<usize>,
+    intermediate_size: Option<usize>,
+    num_hidden_layers: Option<usize>,
+    num_attention_heads: Option<usize>,
+    num_key_value_heads: Option<usize>,
+    head_dim: Option<usize>,
+    rms_norm_eps: Option<f64>,
+    rope_theta: Option<f64>,
+    rope_scaling: Option<Value>,
+    rope_parameters: Option<Value>,
+    max_position_embeddings: Option<usize>,
+    tie_word_embeddings: Option<bool>,
+    eos_token_id: Option<TokenIds>,
+    hidden_act: Option<String>,
+}
+
+/// `rope_scaling` / `rope_parameters`.
+#[derive(Deserialize)]
+#[serde(expecting = "an object")]
+struct HfRope {
+    rope_type: Option<String>,
+    #[serde(rename = "type")]
+    kind: Option<String>,
+    factor: Option<f64>,
+    rope_theta: Option<f64>,
+}
+
+/// One value or a list of them (`eos_token_id`, `vision_feature_layer`).
+#[derive(Deserialize)]
+#[serde(untagged)]
+enum OneOrMany<T> {
+    One(T),
+    Many(Vec<T>),
+}
+
+/// End-of-sequence ids: a number, a list, or entries transformers leaves `null`.
+#[derive(Deserialize)]
+#[serde(untagged)]
+enum TokenIds {
+    Ids(OneOrMany<u32>),
+    Other(serde::de::IgnoredAny),
+}
+
+impl TokenIds {
+    fn ids(&self) -> Vec<u32> {
+        match self {
+            TokenIds::Ids(OneOrMany::One(x)) => vec![*x],
+            TokenIds::Ids(OneOrMany::Many(v)) => v.clone(),
+            TokenIds::Other(_) => Vec::new(),
+        }
     }
 }
 
@@ -287,21 +329,21 @@ fn token_ids(v: Option<&Value>) -> Vec<u32> {
 /// `rope_parameters` (`{"rope_type", "rope_theta", ...}`). This port rotates by unscaled positions,
 /// so any type but `"default"` (or a `factor` other than 1 without a type) is refused, naming the
 /// key: a checkpoint with a scaled rope would otherwise answer with the wrong positions.
-fn rope_theta(top: &Obj, to: &Obj, file: &Path) -> Result<f64, VlmError> {
-    let mut theta = to.f64("rope_theta", Some(10_000.0))?;
-    let places = [(top, "rope_scaling"), (to, "rope_scaling"), (to, "rope_parameters")];
-    for (obj, key) in places {
-        let Some(v) = obj.get(key) else { continue };
-        let name = obj.name(key);
+fn rope_theta(top: &HfLlava, text: &HfText, file: &Path) -> Result<f64, VlmError> {
+    let mut theta = text.rope_theta.unwrap_or(10_000.0);
+    let places = [
+        ("rope_scaling", &top.rope_scaling),
+        ("text_config.rope_scaling", &text.rope_scaling),
+        ("text_config.rope_parameters", &text.rope_parameters),
+    ];
+    for (name, v) in places {
+        let Some(v) = v.as_ref().filter(|v| !v.is_null()) else { continue };
         if !v.is_object() {
             return Err(VlmError::config(file, format!("{name} must be an object, got {v}")));
         }
-        let ro = Obj { v, file, prefix: &name };
-        let mut typed = false;
-        for k in ["rope_type", "type"] {
-            let t = ro.str(k, Some("default"))?;
-            typed |= ro.get(k).is_some();
-            if t != "default" {
+        let rope: HfRope = from_json(file, name, v)?;
+        for (k, t) in [("rope_type", &rope.rope_type), ("type", &rope.kind)] {
+            if let Some(t) = t.as_deref().filter(|t| *t != "default") {
                 return Err(VlmError::config(
                     file,
                     format!(
@@ -311,16 +353,15 @@ fn rope_theta(top: &Obj, to: &Obj, file: &Path) -> Result<f64, VlmError> {
                 ));
             }
         }
-        let factor = ro.f64("factor", Some(1.0))?;
+        let typed = rope.rope_type.is_some() || rope.kind.is_some();
+        let factor = rope.factor.unwrap_or(1.0);
         if !typed && factor != 1.0 {
             return Err(VlmError::config(
                 file,
                 format!("{name}.factor is {factor} without a type: a scaled rope is not supported"),
             ));
         }
-        if ro.get("rope_theta").is_some() {
-            theta = ro.f64("rope_theta", None)?;
-        }
+        theta = rope.rope_theta.unwrap_or(theta);
     }
     if !(theta.is_finite() && theta > 1.0) {
         return Err(VlmError::config(file, format!("text_config rope_theta must be a number above 1, got {theta}")));
@@ -328,15 +369,33 @@ fn rope_theta(top: &Obj, to: &Obj, file: &Path) -> Result<f64, VlmError> {
     Ok(theta)
 }
 
+/// An activation named by `key`, `default` when absent.
+fn act(name: &Option<String>, default: &str, file: &Path, key: &str) -> Result<Act, VlmError> {
+    Act::parse(name.as_deref().unwrap_or(default), file, key)
+}
+
+/// `image_grid_pinpoints`: a non-empty list of [height, width] pairs, `None` when absent.
+fn pinpoints(v: Option<Vec<[usize; 2]>>, file: &Path) -> Result<Option<Vec<(usize, usize)>>, VlmError> {
+    match v {
+        Some(list) if list.is_empty() => {
+            Err(VlmError::config(file, "image_grid_pinpoints must be a list of [height, width] pairs"))
+        }
+        list => Ok(list.map(|l| l.into_iter().map(|[h, w]| (h, w)).collect())),
+    }
+}
+
 /// Parses `config.json` of a LLaVA-OneVision model directory.
 pub fn parse_llava_config(file: &Path, root: &Value) -> Result<LlavaConfig, VlmError> {
-    let top = Obj { v: root, file, prefix: "" };
+    if !root.is_object() {
+        return Err(VlmError::config(file, format!("must be a JSON object, got {root}")));
+    }
+    // The architecture first, so that another model's config is named as such, not by a key.
     let archs: Vec<&str> = root
         .get("architectures")
         .and_then(|a| a.as_array())
         .map(|a| a.iter().filter_map(|x| x.as_str()).collect())
         .unwrap_or_default();
-    let model_type = top.str("model_type", Some(""))?;
+    let model_type = root.get("model_type").and_then(|t| t.as_str()).unwrap_or("");
     if model_type != "llava_onevision" && !archs.contains(&"LlavaOnevisionForConditionalGeneration") {
         return Err(VlmError::config(
             file,
@@ -346,30 +405,28 @@ pub fn parse_llava_config(file: &Path, root: &Value) -> Result<LlavaConfig, VlmE
             ),
         ));
     }
-    let vision_v = top.get("vision_config").ok_or_else(|| VlmError::config(file, "vision_config is missing"))?;
-    let text_v = top.get("text_config").ok_or_else(|| VlmError::config(file, "text_config is missing"))?;
-    let vo = Obj { v: vision_v, file, prefix: "vision_config" };
-    let vt = vo.str("model_type", Some("siglip_vision_model"))?;
+    let top: HfLlava = from_json(file, "", root)?;
+    let vo = top.vision_config.as_ref().ok_or_else(|| VlmError::config(file, "vision_config is missing"))?;
+    let to = top.text_config.as_ref().ok_or_else(|| VlmError::config(file, "text_config is missing"))?;
+
+    let vt = vo.model_type.as_deref().unwrap_or("siglip_vision_model");
     if vt != "siglip_vision_model" {
         return Err(VlmError::config(
             file,
             format!("vision_config.model_type \"{vt}\" is not supported (siglip_vision_model)"),
         ));
     }
-    if vo.bool("vision_use_head", false)? {
-        // The pooling head is unused by LLaVA; its weights are simply ignored.
-    }
     let vision = VisionConfig {
-        hidden_size: vo.usize("hidden_size", Some(768))?,
-        intermediate_size: vo.usize("intermediate_size", Some(3072))?,
-        num_layers: vo.usize("num_hidden_layers", Some(12))?,
-        num_heads: vo.usize("num_attention_heads", Some(12))?,
-        image_size: vo.usize("image_size", Some(224))?,
-        patch_size: vo.usize("patch_size", Some(16))?,
-        layer_norm_eps: vo.f64("layer_norm_eps", Some(1e-6))?,
-        act: Act::parse(vo.str("hidden_act", Some("gelu_pytorch_tanh"))?, file, "vision_config.hidden_act")?,
+        hidden_size: vo.hidden_size.unwrap_or(768),
+        intermediate_size: vo.intermediate_size.unwrap_or(3072),
+        num_layers: vo.num_hidden_layers.unwrap_or(12),
+        num_heads: vo.num_attention_heads.unwrap_or(12),
+        image_size: vo.image_size.unwrap_or(224),
+        patch_size: vo.patch_size.unwrap_or(16),
+        layer_norm_eps: vo.layer_norm_eps.unwrap_or(1e-6),
+        act: act(&vo.hidden_act, "gelu_pytorch_tanh", file, "vision_config.hidden_act")?,
     };
-    if vo.usize("num_channels", Some(3))? != 3 {
+    if vo.num_channels.unwrap_or(3) != 3 {
         return Err(VlmError::config(file, "vision_config.num_channels must be 3"));
     }
     if vision.patch_size == 0
@@ -383,55 +440,57 @@ pub fn parse_llava_config(file: &Path, root: &Value) -> Result<LlavaConfig, VlmE
         ));
     }
 
-    let to = Obj { v: text_v, file, prefix: "text_config" };
-    let tt = to.str("model_type", Some("qwen2"))?;
+    let tt = to.model_type.as_deref().unwrap_or("qwen2");
     if tt != "qwen2" {
         return Err(VlmError::config(file, format!("text_config.model_type \"{tt}\" is not supported (qwen2)")));
     }
-    if to.bool("use_sliding_window", false)? {
+    if to.use_sliding_window.unwrap_or(false) {
         return Err(VlmError::config(file, "text_config.use_sliding_window = true is not supported"));
     }
-    let rope_theta = rope_theta(&top, &to, file)?;
-    let hidden = to.usize("hidden_size", Some(4096))?;
-    let heads = to.usize("num_attention_heads", Some(32))?;
+    let rope_theta = rope_theta(&top, to, file)?;
+    let hidden = to.hidden_size.unwrap_or(4096);
+    let heads = to.num_attention_heads.unwrap_or(32);
     if heads == 0 {
         return Err(VlmError::config(file, "text_config.num_attention_heads must be positive"));
     }
-    let kv_heads = to.usize("num_key_value_heads", Some(heads))?;
+    let kv_heads = to.num_key_value_heads.unwrap_or(heads);
     if kv_heads == 0 || heads % kv_heads != 0 {
         return Err(VlmError::config(
             file,
             "text_config.num_attention_heads must be a multiple of num_key_value_heads",
         ));
     }
-    let head_dim = to.usize("head_dim", Some(hidden / heads))?;
+    let head_dim = to.head_dim.unwrap_or(hidden / heads);
     if head_dim % 2 != 0 {
         return Err(VlmError::config(file, "text_config head_dim must be even for rotary embeddings"));
     }
-    let tie_text = to.bool("tie_word_embeddings", false)?;
-    let mut eos = token_ids(to.get("eos_token_id"));
-    eos.extend(token_ids(top.get("eos_token_id")));
+    let mut eos = to.eos_token_id.as_ref().map(TokenIds::ids).unwrap_or_default();
+    eos.extend(top.eos_token_id.as_ref().map(TokenIds::ids).unwrap_or_default());
     let text = TextConfig {
-        vocab_size: to.usize("vocab_size", Some(151_936))?,
+        vocab_size: to.vocab_size.unwrap_or(151_936),
         hidden_size: hidden,
-        intermediate_size: to.usize("intermediate_size", Some(22_016))?,
-        num_layers: to.usize("num_hidden_layers", Some(32))?,
+        intermediate_size: to.intermediate_size.unwrap_or(22_016),
+        num_layers: to.num_hidden_layers.unwrap_or(32),
         num_heads: heads,
         num_kv_heads: kv_heads,
         head_dim,
-        rms_norm_eps: to.f64("rms_norm_eps", Some(1e-6))?,
+        rms_norm_eps: to.rms_norm_eps.unwrap_or(1e-6),
         rope_theta,
-        max_positions: to.usize("max_position_embeddings", Some(32_768))?,
-        tie_word_embeddings: tie_text || top.bool("tie_word_embeddings", false)?,
+        max_positions: to.max_position_embeddings.unwrap_or(32_768),
+        tie_word_embeddings: to.tie_word_embeddings.unwrap_or(false) || top.tie_word_embeddings.unwrap_or(false),
         eos_token_ids: eos,
-        act: Act::parse(to.str("hidden_act", Some("silu"))?, file, "text_config.hidden_act")?,
+        act: act(&to.hidden_act, "silu", file, "text_config.hidden_act")?,
     };
 
-    let layer = match top.get("vision_feature_layer") {
+    let layer = match &top.vision_feature_layer {
         None => -1,
-        Some(v) => v.as_i64().ok_or_else(|| {
-            VlmError::config(file, format!("vision_feature_layer = {v}: only a single layer index is supported"))
-        })?,
+        Some(OneOrMany::One(i)) => *i,
+        Some(OneOrMany::Many(l)) => {
+            return Err(VlmError::config(
+                file,
+                format!("vision_feature_layer = {l:?}: only a single layer index is supported"),
+            ));
+        }
     };
     let n = vision.num_layers as i64;
     if layer > n || layer < -(n + 1) {
@@ -440,7 +499,7 @@ pub fn parse_llava_config(file: &Path, root: &Value) -> Result<LlavaConfig, VlmE
             format!("vision_feature_layer {layer} is outside the {n}-layer vision tower"),
         ));
     }
-    let strategy = top.str("vision_feature_select_strategy", Some("full"))?;
+    let strategy = top.vision_feature_select_strategy.as_deref().unwrap_or("full");
     if strategy != "full" {
         // "default" drops a CLS token, which SigLIP does not have; LLaVA-OneVision uses "full".
         return Err(VlmError::config(
@@ -448,23 +507,54 @@ pub fn parse_llava_config(file: &Path, root: &Value) -> Result<LlavaConfig, VlmE
             format!("vision_feature_select_strategy \"{strategy}\" is not supported (full)"),
         ));
     }
-    let aspect = top.str("vision_aspect_ratio", Some("anyres_max_9"))?;
+    let aspect = top.vision_aspect_ratio.as_deref().unwrap_or("anyres_max_9");
     let max_num_patches =
         aspect.strip_prefix("anyres_max_").and_then(|n| n.parse::<usize>().ok()).filter(|n| *n > 0).ok_or_else(
             || VlmError::config(file, format!("vision_aspect_ratio \"{aspect}\" is not supported (anyres_max_N)")),
         )?;
-    let pinpoints = top.pinpoints("image_grid_pinpoints")?.unwrap_or_else(|| LlavaConfig::onevision_0_5b().pinpoints);
+    let pinpoints =
+        pinpoints(top.image_grid_pinpoints.clone(), file)?.unwrap_or_else(|| LlavaConfig::onevision_0_5b().pinpoints);
     Ok(LlavaConfig {
         vision,
         text,
-        image_token_id: top.usize("image_token_index", None).or_else(|_| top.usize("image_token_id", Some(151_646)))?
-            as u32,
+        image_token_id: top.image_token_index.or(top.image_token_id).unwrap_or(151_646) as u32,
         vision_feature_layer: layer,
-        projector_act: Act::parse(top.str("projector_hidden_act", Some("gelu"))?, file, "projector_hidden_act")?,
-        projector_bias: top.bool("multimodal_projector_bias", true)?,
+        projector_act: act(&top.projector_hidden_act, "gelu", file, "projector_hidden_act")?,
+        projector_bias: top.multimodal_projector_bias.unwrap_or(true),
         pinpoints,
         max_num_patches,
     })
+}
+
+/// The image processor entry: the keys this port reads.
+#[derive(Deserialize)]
+#[serde(expecting = "an object")]
+struct HfProcessor {
+    image_mean: Option<OneOrMany<f32>>,
+    image_std: Option<OneOrMany<f32>>,
+    rescale_factor: Option<f64>,
+    size: Option<HfSize>,
+    resample: Option<u32>,
+    image_grid_pinpoints: Option<Vec<[usize; 2]>>,
+}
+
+/// `size`: `{"shortest_edge": n}` or `{"height": h, "width": w}`.
+#[derive(Deserialize)]
+#[serde(expecting = "an object")]
+struct HfSize {
+    shortest_edge: Option<usize>,
+    height: Option<usize>,
+    width: Option<usize>,
+}
+
+/// A per-channel triple written as one number or three.
+fn triple(v: Option<OneOrMany<f32>>, default: f32, file: &Path, key: &str) -> Result<[f32; 3], VlmError> {
+    match v {
+        None => Ok([default; 3]),
+        Some(OneOrMany::One(x)) => Ok([x; 3]),
+        Some(OneOrMany::Many(l)) => <[f32; 3]>::try_from(l.as_slice())
+            .map_err(|_| VlmError::config(file, format!("{key} must be 3 numbers, got {}", l.len()))),
+    }
 }
 
 /// Reads the image processor settings from `preprocessor_config.json`, or from the
@@ -472,38 +562,24 @@ pub fn parse_llava_config(file: &Path, root: &Value) -> Result<LlavaConfig, VlmE
 pub fn load_processor_config(dir: &Path, model: &LlavaConfig) -> Result<ProcessorConfig, VlmError> {
     let pre = dir.join("preprocessor_config.json");
     let proc = dir.join("processor_config.json");
-    let (file, root) = if pre.exists() {
-        (pre.clone(), read_json(&pre)?)
+    let (file, at, root) = if pre.exists() {
+        (pre.clone(), "", read_json(&pre)?)
     } else if proc.exists() {
         let v = read_json(&proc)?;
-        let inner =
-            v.get("image_processor").cloned().ok_or_else(|| VlmError::config(&proc, "has no image_processor entry"))?;
-        (proc.clone(), inner)
+        let inner = v
+            .get("image_processor")
+            .filter(|v| !v.is_null())
+            .cloned()
+            .ok_or_else(|| VlmError::config(&proc, "has no image_processor entry"))?;
+        (proc.clone(), "image_processor", inner)
     } else {
         return Err(VlmError::config(dir, "neither preprocessor_config.json nor processor_config.json is present"));
     };
-    let o = Obj { v: &root, file: &file, prefix: "" };
-    let triple = |key: &str, default: f32| -> Result<[f32; 3], VlmError> {
-        match o.get(key) {
-            None => Ok([default; 3]),
-            Some(Value::Number(n)) => Ok([n.as_f64().unwrap_or(default as f64) as f32; 3]),
-            Some(Value::Array(a)) if a.len() == 3 && a.iter().all(|x| x.is_number()) => {
-                Ok([a[0].as_f64().unwrap() as f32, a[1].as_f64().unwrap() as f32, a[2].as_f64().unwrap() as f32])
-            }
-            Some(v) => Err(VlmError::config(&file, format!("{key} must be 3 numbers, got {v}"))),
-        }
-    };
-    let size = match o.get("size") {
-        Some(s) => {
-            let so = Obj { v: s, file: &file, prefix: "size" };
-            match so.get("shortest_edge") {
-                Some(_) => {
-                    let e = so.usize("shortest_edge", None)?;
-                    (e, e)
-                }
-                None => (so.usize("height", None)?, so.usize("width", None)?),
-            }
-        }
+    let o: HfProcessor = from_json(&file, at, &root)?;
+    let size = match o.size {
+        Some(HfSize { shortest_edge: Some(e), .. }) => (e, e),
+        Some(HfSize { height: Some(h), width: Some(w), .. }) => (h, w),
+        Some(_) => return Err(VlmError::config(&file, "size needs shortest_edge, or height and width")),
         None => (model.vision.image_size, model.vision.image_size),
     };
     if size != (model.vision.image_size, model.vision.image_size) {
@@ -512,21 +588,21 @@ pub fn load_processor_config(dir: &Path, model: &LlavaConfig) -> Result<Processo
             format!("size {size:?} differs from the vision tower's {0}x{0}", model.vision.image_size),
         ));
     }
-    let resample = o.usize("resample", Some(3))? as u32;
+    let resample = o.resample.unwrap_or(3);
     if resample != 2 && resample != 3 {
         return Err(VlmError::config(&file, format!("resample = {resample} is not supported (2 bilinear, 3 bicubic)")));
     }
-    let std = triple("image_std", 0.5)?;
+    let std = triple(o.image_std, 0.5, &file, "image_std")?;
     if std.contains(&0.0) {
         return Err(VlmError::config(&file, "image_std must not contain 0"));
     }
     Ok(ProcessorConfig {
-        mean: triple("image_mean", 0.5)?,
+        mean: triple(o.image_mean, 0.5, &file, "image_mean")?,
         std,
-        rescale_factor: o.f64("rescale_factor", Some(1.0 / 255.0))?,
+        rescale_factor: o.rescale_factor.unwrap_or(1.0 / 255.0),
         size,
         resample,
-        pinpoints: o.pinpoints("image_grid_pinpoints")?.unwrap_or_else(|| model.pinpoints.clone()),
+        pinpoints: pinpoints(o.image_grid_pinpoints, &file)?.unwrap_or_else(|| model.pinpoints.clone()),
     })
 }
 
@@ -622,5 +698,61 @@ impl ProcessorConfig {
             "vision_aspect_ratio": format!("anyres_max_{}", model.max_num_patches),
             "vision_feature_select_strategy": "full",
         })
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use serde_json::json;
+
+    fn parse(v: &Value) -> Result<LlavaConfig, String> {
+        parse_llava_config(Path::new("m/config.json"), v).map_err(|e| e.to_string())
+    }
+
+    #[test]
+    fn written_configs_read_back_the_same() {
+        for cfg in [LlavaConfig::onevision_0_5b(), LlavaConfig::onevision_7b()] {
+            assert_eq!(parse(&cfg.to_hf_json()).unwrap(), cfg);
+            let dir =
+                std::env::temp_dir().join(format!("chatsplat-proc-{}-{}", std::process::id(), cfg.text.num_layers));
+            std::fs::create_dir_all(&dir).unwrap();
+            let proc = ProcessorConfig {
+                mean: [0.1, 0.2, 0.3],
+                std: [0.5, 0.25, 0.125],
+                rescale_factor: 1.0 / 255.0,
+                size: (cfg.vision.image_size, cfg.vision.image_size),
+                resample: 2,
+                pinpoints: vec![(384, 768)],
+            };
+            std::fs::write(dir.join("processor_config.json"), proc.to_hf_json(&cfg).to_string()).unwrap();
+            assert_eq!(load_processor_config(&dir, &cfg).unwrap(), proc);
+            std::fs::remove_dir_all(&dir).unwrap();
+        }
+    }
+
+    #[test]
+    fn a_key_of_the_wrong_type_is_named_by_its_path_and_null_takes_the_default() {
+        let base = LlavaConfig::onevision_0_5b().to_hf_json();
+        let mut c = base.clone();
+        c["text_config"]["hidden_size"] = json!("896");
+        let e = parse(&c).unwrap_err();
+        assert!(e.starts_with("m/config.json: text_config.hidden_size: invalid type"), "{e}");
+        let mut c = base.clone();
+        c["image_grid_pinpoints"] = json!([[384, 384], [384]]);
+        let e = parse(&c).unwrap_err();
+        assert!(e.contains("image_grid_pinpoints[1]"), "{e}");
+        let mut c = base.clone();
+        c["vision_config"] = json!("siglip");
+        let e = parse(&c).unwrap_err();
+        assert!(e.contains("vision_config: invalid type: string \"siglip\", expected an object"), "{e}");
+        let mut c = base.clone();
+        c["text_config"]["num_key_value_heads"] = Value::Null;
+        c["image_grid_pinpoints"] = Value::Null;
+        let cfg = parse(&c).unwrap();
+        assert_eq!(cfg.text.num_kv_heads, cfg.text.num_heads, "null is absent: kv heads default to the heads");
+        let mut c = base;
+        c["vision_feature_layer"] = json!([-2, -1]);
+        assert!(parse(&c).unwrap_err().contains("only a single layer index is supported"));
     }
 }

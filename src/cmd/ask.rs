@@ -4,8 +4,8 @@
 use super::{SamplingArgs, SceneArgs, print_piece};
 use anyhow::bail;
 use model::Backend;
-use model::chat::{DEFAULT_SCENE_VIEWS, Target};
-use model::vlm::{LlavaOnevision, RgbImage};
+use model::chat::{ChatSession, DEFAULT_SCENE_VIEWS, Target};
+use model::vlm::{GenerateOptions, LlavaOnevision, RgbImage};
 use std::path::PathBuf;
 
 #[derive(clap::Args)]
@@ -108,8 +108,20 @@ fn ask_scene(a: &Args, run: PathBuf) -> anyhow::Result<()> {
         (None, true) => s.scene_target(a.views)?,
         (None, false) => Target::View(camera),
     };
+    answer(&s, a.view, &target, &a.question, &opts)
+}
+
+/// Asks `question` about `target` (seen from view `view`) of the opened scene `s`, streaming the
+/// answer to stdout; an object's highlighted view is written to the language run.
+pub fn answer(
+    s: &ChatSession,
+    view: usize,
+    target: &Target,
+    question: &str,
+    opts: &GenerateOptions,
+) -> anyhow::Result<()> {
     let t1 = std::time::Instant::now();
-    let out = model::catch_backend("generation", || s.ask(&target, &a.question, &opts, print_piece))??;
+    let out = model::catch_backend("generation", || s.ask(target, question, opts, print_piece))??;
     println!();
     eprintln!(
         "{} prompt tokens, {} new tokens in {:.2} s",
@@ -117,9 +129,9 @@ fn ask_scene(a: &Args, run: PathBuf) -> anyhow::Result<()> {
         out.ids.len(),
         t1.elapsed().as_secs_f64()
     );
-    if let Target::Object(p) = &target {
-        let path = s.language.picked(a.view, p.id);
-        s.show(&camera, Some(p), &path)?;
+    if let Target::Object(p) = target {
+        let path = s.language.picked(view, p.id);
+        s.show(s.camera(view)?, Some(p), &path)?;
         eprintln!("picked object {}; highlighted view -> {}", p.id, path.display());
     }
     Ok(())

@@ -6,14 +6,18 @@
 //! scene and `OUT/report.json`, every scene of the manifest merged (done or pending).
 
 use super::SceneArgs;
+use super::vqa::Scoring;
+use crate::ranks::Ranks;
 use anyhow::{Context, bail};
 use model::Backend;
-use model::run::{GeometryRun, LanguageRun};
+use model::data::LoadOptions;
+use model::run::{GeometryRun, LanguageRun, TeacherDir};
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
 use toml::Spanned;
 use train::geometry::GeometryConfig;
 use train::language::LanguageTrainConfig;
+use train::teacher::ExtractOptions;
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -193,13 +197,13 @@ fn shard(arg: Option<&str>) -> anyhow::Result<(usize, usize)> {
 struct SceneDirs {
     dir: PathBuf,
     run: GeometryRun,
-    teacher: PathBuf,
+    teacher: TeacherDir,
 }
 
 impl SceneDirs {
     fn new(out: &Path, name: &str) -> Self {
         let dir = out.join(name);
-        Self { run: GeometryRun::new(dir.join("run")), teacher: dir.join("teacher"), dir }
+        Self { run: GeometryRun::new(dir.join("run")), teacher: TeacherDir::new(dir.join("teacher")), dir }
     }
     fn summary(&self) -> PathBuf {
         self.dir.join("summary.json")
@@ -217,43 +221,23 @@ fn run_scene(plan: &Plan, s: &Scene, d: &SceneDirs, shard: &str) -> anyhow::Resu
     };
     let t0 = std::time::Instant::now();
     if !d.run.metrics().is_file() {
-        let cfg = d.dir.join("geometry_config.json");
         // a checkpoint every tenth of the run: a killed worker loses at most that
         let geometry = GeometryConfig {
             checkpoint_every: (s.geometry_iters / 10).max(1),
             ..GeometryConfig::short(s.geometry_iters)
         };
-        model::io::write_json(&cfg, &geometry)?;
         let resume = d.run.checkpoint().is_file() && d.run.state().is_file();
         if resume {
             resumed.insert("geometry".into(), d.run.read_state()?.iter.into());
         }
-        super::train::run(super::train::Args {
-            data: s.data.clone(),
-            out: d.run.dir.clone(),
-            iters: None,
-            backend: plan.backend,
-            downscale: 1,
-            masks: None,
-            resume,
-            config: Some(cfg),
-            background: "white".into(),
-        })?;
+        super::train::fit(&s.data, &LoadOptions::default(), &d.run, geometry, plan.backend, resume)?;
     }
     time("geometry", t0);
     let t0 = std::time::Instant::now();
     if !lang.metrics().is_file() {
         // resumable: views already extracted are kept
-        super::extract::run(super::extract::Args {
-            vlm: plan.vlm.clone(),
-            data: s.data.clone(),
-            out: Some(d.teacher.clone()),
-            masks: None,
-            downscale: 1,
-            margin: model::language::CROP_MARGIN,
-            shard: None,
-            backend: plan.backend,
-        })?;
+        let vlm = super::vlm_dir(plan.vlm.as_ref())?;
+        super::extract::teacher(&vlm, &s.data, &d.teacher, &ExtractOptions::default(), plan.backend)?;
         time("teacher", t0);
         let t0 = std::time::Instant::now();
         let mut cfg = LanguageTrainConfig {
@@ -263,24 +247,11 @@ fn run_scene(plan: &Plan, s: &Scene, d: &SceneDirs, shard: &str) -> anyhow::Resu
             ..Default::default()
         };
         cfg.field.patch = 0; // maps at the views' own resolution, as the demo
-        let cfg_path = d.dir.join("language_config.json");
-        model::io::write_json(&cfg_path, &cfg)?;
         let resume = lang.checkpoint().is_file() && lang.state().is_file();
         if resume {
             resumed.insert("language".into(), lang.read_state()?.iter.into());
         }
-        let args = super::train_language::Args {
-            run: d.run.dir.clone(),
-            teacher: d.teacher.clone(),
-            out: None,
-            iters: None,
-            channels: None,
-            backend: plan.backend,
-            resume,
-            config: Some(cfg_path),
-            no_compact: false,
-        };
-        super::train_language::run(args, &crate::ranks::Ranks::Solo)?;
+        super::train_language::fit(&d.run, &d.teacher.dir, &lang, cfg, plan.backend, resume, &Ranks::Solo)?;
         time("language", t0);
     }
     let t0 = std::time::Instant::now();
@@ -288,15 +259,12 @@ fn run_scene(plan: &Plan, s: &Scene, d: &SceneDirs, shard: &str) -> anyhow::Resu
         Some(q) => {
             let scene =
                 SceneArgs { run: d.run.dir.clone(), language: None, vlm: plan.vlm.clone(), backend: plan.backend };
-            let summary = super::vqa::run_scored(&super::vqa::Args {
-                scene,
-                questions: q.clone(),
-                out: Some(d.dir.join("vqa.json")),
-                views: model::chat::DEFAULT_SCENE_VIEWS,
-                max_new_tokens: 16,
-                show: false,
-                keep_going: true,
-            })?;
+            let scoring =
+                Scoring { views: model::chat::DEFAULT_SCENE_VIEWS, max_new_tokens: 16, show: false, keep_going: true };
+            let grader = eval::score::Grader::from_env()?;
+            let qf = model::vqa::load_questions(q)?;
+            let summary =
+                super::vqa::score(&scene.open()?, (q, &qf), &d.dir.join("vqa.json"), &scoring, grader.as_ref())?;
             time("vqa", t0);
             let level = |l: eval::score::LevelSummary| serde_json::json!({"mean": l.mean, "questions": l.count});
             serde_json::json!({

@@ -1,14 +1,22 @@
-//! `chatsplat demo`: the whole pipeline on the built-in scene, each step the subcommand a user
-//! would run: synth -> train -> extract -> train-language -> ask (view, object, scene) -> vqa ->
-//! export-encoder.
+//! `chatsplat demo`: the whole pipeline on the built-in scene, each step what the subcommand a
+//! user would run does (synth -> train -> extract -> train-language -> ask at view, object and
+//! scene level -> vqa -> export-encoder), called with typed settings; the scene and the model
+//! are loaded once for the questions and the question file.
 
-use super::{SamplingArgs, SceneArgs};
+use super::SceneArgs;
+use super::vqa::Scoring;
+use crate::ranks::Ranks;
 use model::Backend;
-use model::run::GeometryRun;
+use model::chat::Target;
+use model::data::LoadOptions;
+use model::data::synth::SynthOptions;
+use model::run::{GeometryRun, TeacherDir};
+use model::vlm::GenerateOptions;
 use model::vqa::{Level, load_questions};
 use std::path::PathBuf;
 use train::geometry::GeometryConfig;
 use train::language::LanguageTrainConfig;
+use train::teacher::ExtractOptions;
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -36,83 +44,39 @@ fn step(n: usize, what: &str) {
 pub fn run(a: Args) -> anyhow::Result<()> {
     let vlm = super::vlm_dir(a.vlm.as_ref())?;
     let (data, run) = (a.out.join("data"), GeometryRun::new(a.out.join("run")));
-    let lang = run.language();
+    let (lang, teacher) = (run.language(), TeacherDir::new(data.join("teacher")));
     model::io::create_dir(&a.out)?;
     step(1, "synthetic tabletop (32 views, 96x96)");
-    super::synth::run(super::synth::Args {
-        seed: model::data::synth::DEFAULT_SEED,
-        out: data.clone(),
-        views: 32,
-        width: 96,
-        height: 96,
-    })?;
+    let scene = SynthOptions { views: 32, width: 96, height: 96, ..Default::default() };
+    super::synth::write(&data, &scene)?;
 
     step(2, "geometry stage: 3DGS + identity field");
     let geometry = GeometryConfig::short(a.iters);
-    let geometry_cfg = a.out.join("geometry_config.json");
-    model::io::write_json(&geometry_cfg, &geometry)?;
-    super::train::run(super::train::Args {
-        data: data.clone(),
-        out: run.dir.clone(),
-        iters: None,
-        backend: a.backend,
-        downscale: 1,
-        masks: None,
-        resume: false,
-        config: Some(geometry_cfg),
-        background: "white".into(),
-    })?;
+    // the demo's settings, as files a user can give to `--config`
+    model::io::write_json(&a.out.join("geometry_config.json"), &geometry)?;
+    super::train::fit(&data, &LoadOptions::default(), &run, geometry, a.backend, false)?;
 
     step(3, "teacher tokens (SigLIP features of every training view and masked object)");
-    super::extract::run(super::extract::Args {
-        vlm: Some(vlm.clone()),
-        data: data.clone(),
-        out: Some(data.join("teacher")),
-        downscale: 1,
-        masks: None,
-        margin: model::language::CROP_MARGIN,
-        shard: None,
-        backend: a.backend,
-    })?;
+    super::extract::teacher(&vlm, &data, &teacher, &ExtractOptions::default(), a.backend)?;
 
     step(4, "language field, encoder and scaling adjustment");
-    let mut language = LanguageTrainConfig { warmup_iters: (a.language_iters / 10).max(1), ..Default::default() };
+    let mut language = LanguageTrainConfig {
+        iters: a.language_iters,
+        warmup_iters: (a.language_iters / 10).max(1),
+        ..Default::default()
+    };
     language.field.patch = 0; // render maps at the views' own resolution
-    let language_cfg = a.out.join("language_config.json");
-    model::io::write_json(&language_cfg, &language)?;
-    super::train_language::run(
-        super::train_language::Args {
-            run: run.dir.clone(),
-            teacher: data.join("teacher"),
-            out: None,
-            iters: Some(a.language_iters),
-            channels: None,
-            backend: a.backend,
-            resume: false,
-            config: Some(language_cfg),
-            no_compact: false,
-        },
-        &crate::ranks::Ranks::Solo,
-    )?;
+    model::io::write_json(&a.out.join("language_config.json"), &language)?;
+    super::train_language::fit(&run, &teacher.dir, &lang, language, a.backend, false, &Ranks::Solo)?;
 
     step(5, "chat: view, object (click) and scene level");
-    let ask = |view: usize, object: Option<Vec<usize>>, scene: bool, q: &str| super::ask::Args {
-        vlm: Some(vlm.clone()),
-        image: vec![],
-        run: Some(run.dir.clone()),
-        language: None,
-        view,
-        object,
-        scene,
-        views: 3,
-        question: q.into(),
-        sampling: SamplingArgs { max_new_tokens: 16, temperature: 0.0, top_p: 1.0, seed: 0 },
-        backend: a.backend,
-        half: false,
-    };
+    let scene = SceneArgs { run: run.dir.clone(), language: None, vlm: Some(vlm), backend: a.backend };
+    let s = scene.open()?;
+    let opts = GenerateOptions { max_new_tokens: 16, ..Default::default() };
     // the questions the built-in model knows, on the first view the question file asks about
     // and at the first object it clicks (a held-out view: what the user sees from a new angle)
-    let qf = load_questions(&data.join("questions.json"))?;
+    let questions = data.join("questions.json");
+    let qf = load_questions(&questions)?;
     let images = run.read_cameras()?.image_names();
     let in_run = |v: Option<usize>| model::vqa::scene_view(&qf, &images, v.unwrap_or(0));
     let view = in_run(qf.questions.iter().find(|q| q.level == Level::View).and_then(|q| q.view))?;
@@ -121,32 +85,25 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         None => None,
     };
     eprintln!("[view {view}] What objects are there?");
-    super::ask::run(ask(view, None, false, "What objects are there?"))?;
+    super::ask::answer(&s, view, &Target::View(*s.camera(view)?), "What objects are there?", &opts)?;
     if let Some((v, [x, y])) = click {
         eprintln!("[view {v}, click ({x}, {y})] What is this?");
-        super::ask::run(ask(v, Some(vec![x as usize, y as usize]), false, "What is this?"))?;
+        match s.click(s.camera(v)?, x as usize, y as usize)? {
+            Some(p) => super::ask::answer(&s, v, &Target::Object(p), "What is this?", &opts)?,
+            None => eprintln!("pixel ({x}, {y}) of view {v} shows no object in the reconstruction"),
+        }
     }
     eprintln!("[scene, 3 views] What objects are in the scene?");
-    super::ask::run(ask(0, None, true, "What objects are in the scene?"))?;
+    super::ask::answer(&s, 0, &s.scene_target(3)?, "What objects are in the scene?", &opts)?;
 
     step(6, "VQA on the generated question file (offline scorer)");
-    let scene = SceneArgs { run: run.dir.clone(), language: None, vlm: Some(vlm.clone()), backend: a.backend };
-    super::vqa::run(super::vqa::Args {
-        scene,
-        questions: data.join("questions.json"),
-        out: None,
-        views: 3,
-        max_new_tokens: 16,
-        show: true,
-        keep_going: true, // a click the reconstruction misses is scored 0 and listed, not fatal
-    })?;
+    // a click the reconstruction misses is scored 0 and listed, not fatal
+    let scoring = Scoring { views: 3, max_new_tokens: 16, show: true, keep_going: true };
+    let grader = eval::score::Grader::from_env()?;
+    super::vqa::score(&s, (&questions, &qf), &lang.vqa(), &scoring, grader.as_ref())?;
 
     step(7, "encoder export");
-    super::export_encoder::run(super::export_encoder::Args {
-        run: run.dir.clone(),
-        language: None,
-        out: lang.dir.join("encoder.safetensors"),
-    })?;
+    super::export_encoder::export(&lang, &lang.dir.join("encoder.safetensors"))?;
     println!(
         "\ndemo done: renders in {}, language run in {}, highlighted pick in {}",
         run.renders().display(),

@@ -1,7 +1,7 @@
 //! `chatsplat export-encoder`: the encoder and scaling adjustment in PyTorch Conv2d layout.
 
 use model::run::{GeometryRun, LanguageRun};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -18,14 +18,19 @@ pub struct Args {
 
 pub fn run(a: Args) -> anyhow::Result<()> {
     let lang = a.language.as_ref().map(LanguageRun::new).unwrap_or_else(|| GeometryRun::new(&a.run).language());
+    export(&lang, &a.out)
+}
+
+/// Writes the encoder of the language run `lang` to `out`.
+pub fn export(lang: &LanguageRun, out: &Path) -> anyhow::Result<()> {
     let (field, state) = lang.load_field(&burn::tensor::Device::ndarray())?;
     let enc = &field.encoder;
-    let n = model::language::export::write_encoder(&a.out, enc, &state.field, &state.teacher_model)?;
+    let n = model::language::export::write_encoder(out, enc, &state.field, &state.teacher_model)?;
     println!(
         "encoder ({n} parameters, {} lifting layers, scale/shift {}) -> {}",
         enc.lift_weights.len(),
         enc.scale.is_some(),
-        a.out.display()
+        out.display()
     );
     Ok(())
 }

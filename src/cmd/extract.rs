@@ -5,7 +5,7 @@ use eval::progress::Progress;
 use model::Backend;
 use model::data::LoadOptions;
 use model::run::TeacherDir;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use train::teacher::{ExtractOptions, extract};
 
 #[derive(clap::Args)]
@@ -42,9 +42,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         bail!("--downscale must be >= 1 and --margin in [0, 2]");
     }
     let out = TeacherDir::new(a.out.clone().unwrap_or_else(|| a.data.join("teacher")));
-    let device = a.backend.device();
     let vlm_dir = super::vlm_dir(a.vlm.as_ref())?;
-    let m = model::catch_backend("loading the model", || model::vlm::LlavaOnevision::load(&vlm_dir, &device))??;
     let shard = a.shard.as_deref().map(super::parse_shard).transpose()?.unwrap_or((0, 1));
     let opts = ExtractOptions {
         margin: a.margin,
@@ -52,14 +50,28 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         shard,
         ..Default::default()
     };
+    teacher(&vlm_dir, &a.data, &out, &opts, a.backend)
+}
+
+/// Writes the teacher tokens of the capture in `data` (the model in `vlm_dir` as teacher) to
+/// `out`, keeping views already done, with a progress bar and a summary line.
+pub fn teacher(
+    vlm_dir: &Path,
+    data: &Path,
+    out: &TeacherDir,
+    opts: &ExtractOptions,
+    backend: Backend,
+) -> anyhow::Result<()> {
+    let device = backend.device();
+    let m = model::catch_backend("loading the model", || model::vlm::LlavaOnevision::load(vlm_dir, &device))??;
     let bar = Progress::new("extract", "views");
     let t0 = std::time::Instant::now();
     let summary = model::catch_backend("extraction", || {
         extract(
             &m,
-            &a.data,
-            &out,
-            &opts,
+            data,
+            out,
+            opts,
             |plan| {
                 let objects: usize = plan.views.iter().map(|v| v.objects.len()).sum();
                 eprintln!(

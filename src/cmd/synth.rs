@@ -2,7 +2,7 @@
 
 use eval::progress::Progress;
 use model::data::synth::{SynthOptions, write_dataset};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -23,17 +23,22 @@ pub struct Args {
 
 pub fn run(a: Args) -> anyhow::Result<()> {
     let opts = SynthOptions { seed: a.seed, views: a.views, width: a.width, height: a.height, ..Default::default() };
+    write(&a.out, &opts)
+}
+
+/// Writes the tabletop of `opts` to `out` with a progress bar and a summary line.
+pub fn write(out: &Path, opts: &SynthOptions) -> anyhow::Result<()> {
     let t0 = std::time::Instant::now();
     let bar = Progress::new("synth", "views");
-    write_dataset(&a.out, &opts, |done, total| bar.update(done, total))?;
+    write_dataset(out, opts, |done, total| bar.update(done, total))?;
     println!(
         "wrote {} views of seed {} ({}x{}) with masks, depth, transforms.json, scene.json and questions.json \
             to {} in {:.1} s",
-        a.views,
-        a.seed,
-        a.width,
-        a.height,
-        a.out.display(),
+        opts.views,
+        opts.seed,
+        opts.width,
+        opts.height,
+        out.display(),
         t0.elapsed().as_secs_f64()
     );
     Ok(())

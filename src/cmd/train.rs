@@ -5,7 +5,7 @@ use eval::progress::Progress;
 use model::Backend;
 use model::data::{Background, LoadOptions, colmap, load_any};
 use model::run::GeometryRun;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use train::geometry::{GeometryConfig, run as train_geometry};
 
 #[derive(clap::Args)]
@@ -64,28 +64,41 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     }
     super::check_config(a.config.as_deref(), cfg.validate())?;
     let load = LoadOptions { downscale: a.downscale, background: bg, masks: a.masks.clone(), ..Default::default() };
+    fit(&a.data, &load, &GeometryRun::new(&a.out), cfg, a.backend, a.resume)
+}
+
+/// Fits the geometry of the capture in `data` into `out`, with a progress bar and a summary line;
+/// `resume` goes on from the run's checkpoint.
+pub fn fit(
+    data: &Path,
+    load: &LoadOptions,
+    out: &GeometryRun,
+    cfg: GeometryConfig,
+    backend: Backend,
+    resume: bool,
+) -> anyhow::Result<()> {
+    cfg.validate()?;
     // COLMAP projects initialise from their sparse points.
-    let (ds, points) = if a.data.join("sparse").is_dir() && !a.data.join("poses_bounds.npy").is_file() {
-        let (ds, p) = colmap::load(&a.data, &load)?;
+    let (ds, points) = if data.join("sparse").is_dir() && !data.join("poses_bounds.npy").is_file() {
+        let (ds, p) = colmap::load(data, load)?;
         (ds, Some(p))
     } else {
-        (load_any(&a.data, &load)?, None)
+        (load_any(data, load)?, None)
     };
     let cam = &ds.train[0].camera;
     eprintln!(
         "{}: {} training / {} held-out views of {}x{}",
-        a.data.display(),
+        data.display(),
         ds.train.len(),
         ds.test.len(),
         cam.width,
         cam.height
     );
-    let device = a.backend.device();
-    let out = GeometryRun::new(&a.out);
+    let device = backend.device();
     let bar = Progress::new("train", "it");
     let mut last = std::time::Instant::now();
     let s = model::catch_backend("training", || {
-        train_geometry(&ds, points.as_ref(), &a.data, &load, &out, cfg, &device, a.resume, |p| {
+        train_geometry(&ds, points.as_ref(), data, load, out, cfg, &device, resume, |p| {
             if last.elapsed().as_millis() > 250 || p.iter == p.iters {
                 bar.update_with(p.iter, p.iters, &format!("loss {:.4} psnr {:.2} N {}", p.loss, p.psnr, p.gaussians));
                 last = std::time::Instant::now();
@@ -103,8 +116,8 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         s.eval.ssim,
         s.eval.miou.map(|m| format!(", identity mIoU {m:.3}")).unwrap_or_default(),
         s.seconds_per_iter,
-        a.backend,
-        a.out.display()
+        backend,
+        out.dir.display()
     );
     Ok(())
 }

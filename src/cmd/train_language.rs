@@ -4,7 +4,7 @@ use anyhow::bail;
 use eval::progress::Progress;
 use model::Backend;
 use model::run::{GeometryRun, LanguageRun};
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 use train::language::{LanguageTrainConfig, run as train_field};
 
 #[derive(clap::Args)]
@@ -68,8 +68,23 @@ pub fn run(a: Args, ranks: &crate::ranks::Ranks) -> anyhow::Result<()> {
     if a.no_compact {
         cfg.compact_tolerance = 0.0;
     }
+    fit(&geometry, &a.teacher, &out, cfg, a.backend, a.resume, ranks)
+}
+
+/// Trains the language field of the geometry run `geometry` against the teacher tokens in
+/// `teacher` into `out` (data-parallel over `ranks`), with a progress bar and summary lines.
+pub fn fit(
+    geometry: &GeometryRun,
+    teacher: &Path,
+    out: &LanguageRun,
+    cfg: LanguageTrainConfig,
+    backend: Backend,
+    resume: bool,
+    ranks: &crate::ranks::Ranks,
+) -> anyhow::Result<()> {
+    cfg.validate()?;
     let cfg_tolerance = cfg.compact_tolerance;
-    let device = a.backend.device();
+    let device = backend.device();
     let c = ranks.collective();
     if c.size() > 1 && c.is_root() {
         eprintln!(
@@ -81,7 +96,7 @@ pub fn run(a: Args, ranks: &crate::ranks::Ranks) -> anyhow::Result<()> {
     let bar = Progress::new("language", "it");
     let t0 = std::time::Instant::now();
     let s = model::catch_backend("language training", || {
-        train_field(&geometry, &a.teacher, &out, cfg, &device, a.resume, c, |p| {
+        train_field(geometry, teacher, out, cfg, &device, resume, c, |p| {
             if p.iter % 5 == 0 || p.iter == p.iters {
                 let s = p.step;
                 let msg = format!("loss {:.4} view {:.4} obj {:.4} ({})", s.loss, s.view_l1, s.object_l1, s.objects);

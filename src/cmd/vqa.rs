@@ -3,9 +3,10 @@
 use super::SceneArgs;
 use eval::progress::Progress;
 use eval::score::{Grader, Summary, offline_score, summarize};
-use model::vqa::{Level, answer_all, load_questions};
+use model::chat::ChatSession;
+use model::vqa::{Level, QuestionFile, answer_all, load_questions};
 use serde::Serialize;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -17,6 +18,13 @@ pub struct Args {
     /// Answers and scores as JSON (default: LANGUAGE/vqa.json).
     #[arg(long)]
     pub out: Option<PathBuf>,
+    #[command(flatten)]
+    pub scoring: Scoring,
+}
+
+/// How a question file is asked and reported.
+#[derive(clap::Args)]
+pub struct Scoring {
     /// Scene-level questions without their own views use this many views spread around the scene.
     #[arg(long, default_value_t = model::chat::DEFAULT_SCENE_VIEWS)]
     pub views: usize,
@@ -47,15 +55,28 @@ struct Row {
 }
 
 /// Answers and scores; returns the offline summary (exact match or keyword, 0-100 per level).
-pub fn run_scored(a: &Args) -> anyhow::Result<Summary> {
+pub fn run(a: Args) -> anyhow::Result<()> {
     let qf = load_questions(&a.questions)?;
     let grader = Grader::from_env()?;
-    let s = a.scene.open()?;
+    let out = a.out.clone().unwrap_or_else(|| a.scene.language().vqa());
+    score(&a.scene.open()?, (&a.questions, &qf), &out, &a.scoring, grader.as_ref()).map(|_| ())
+}
+
+/// Asks every question of the question file `qf` (read from `questions`) about the opened scene
+/// `s`, scores the answers (offline, and with `grader` when one is set), prints the table and
+/// writes the answers to `out`.
+pub fn score(
+    s: &ChatSession,
+    (questions, qf): (&Path, &QuestionFile),
+    out: &Path,
+    a: &Scoring,
+    grader: Option<&Grader>,
+) -> anyhow::Result<Summary> {
     let opts = model::vlm::GenerateOptions { max_new_tokens: a.max_new_tokens, ..Default::default() };
     let bar = Progress::new("vqa", "questions");
     let total = qf.questions.len();
     let answers =
-        model::catch_backend("answering", || answer_all(&s, &qf, &opts, a.views, |i, _, _| bar.update(i + 1, total)))??;
+        model::catch_backend("answering", || answer_all(s, qf, &opts, a.views, |i, _, _| bar.update(i + 1, total)))??;
     let (mut offline, mut graded, mut rows, mut invalid) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
     for (q, ans) in qf.questions.iter().zip(&answers) {
         let (text, error) = match &ans.text {
@@ -67,7 +88,7 @@ pub fn run_scored(a: &Args) -> anyhow::Result<Summary> {
         }
         let off = offline_score(&text, &q.answer, &q.keywords);
         offline.push((q.level, off.score));
-        let grade = match (&grader, &error) {
+        let grade = match (grader, &error) {
             (Some(g), None) => match g.grade(&q.question, &q.answer, &text) {
                 Ok(v) => {
                     graded.push((q.level, v));
@@ -96,12 +117,11 @@ pub fn run_scored(a: &Args) -> anyhow::Result<Summary> {
             grader: grade,
         });
     }
-    let out = a.out.clone().unwrap_or_else(|| a.scene.language().vqa());
     let so = summarize(&offline);
     println!("| scorer | view | object | scene | overall | questions |\n|---|---|---|---|---|---|");
     println!("{}", table_row("offline (exact / keyword, 0-100)", &so));
     if !graded.is_empty() {
-        let name = grader.as_ref().map(|g| g.model.as_str()).unwrap_or("");
+        let name = grader.map(|g| g.model.as_str()).unwrap_or("");
         println!("{}", table_row(&format!("grader {name} (0-100)"), &summarize(&graded)));
     } else if grader.is_none() {
         eprintln!(
@@ -109,13 +129,13 @@ pub fn run_scored(a: &Args) -> anyhow::Result<Summary> {
                 GPT-4o-style 0-100 grades)"
         );
     }
-    let json = serde_json::json!({"questions": a.questions.display().to_string(), "answers": rows});
-    model::io::write_json(&out, &json)?;
+    let json = serde_json::json!({"questions": questions.display().to_string(), "answers": rows});
+    model::io::write_json(out, &json)?;
     println!("answers -> {}", out.display());
     if !invalid.is_empty() && !a.keep_going {
         anyhow::bail!(
             "{}: {} question(s) could not be asked (scored 0; --keep-going accepts this): {}",
-            a.questions.display(),
+            questions.display(),
             invalid.len(),
             invalid.join("; ")
         );
@@ -131,8 +151,4 @@ fn table_row(name: &str, s: &Summary) -> String {
     let fmt = |x: Option<f32>| x.map(|v| format!("{v:.1}")).unwrap_or_else(|| "-".into());
     let means = [s.view.mean, s.object.mean, s.scene.mean, s.overall.mean].map(fmt);
     format!("| {name} | {} | {} |", means.join(" | "), s.overall.count)
-}
-
-pub fn run(a: Args) -> anyhow::Result<()> {
-    run_scored(&a).map(|_| ())
 }

@@ -47,6 +47,16 @@ pub fn read_png8(path: &Path) -> Result<(u32, u32, usize, Vec<u8>)> {
     Ok((info.width, info.height, info.color_type.samples(), buf))
 }
 
+/// Reads an 8-bit PNG as the port's RGB image (gray and alpha converted like PIL's
+/// `convert("RGB")`, alpha dropped).
+pub fn read_rgb_image(path: &Path) -> Result<crate::vlm::RgbImage> {
+    let (w, h, c, bytes) = read_png8(path)?;
+    if !(1..=4).contains(&c) {
+        return Err(Error::invalid(path, format!("{c} channels per pixel: expected gray, RGB or RGBA")));
+    }
+    Ok(crate::vlm::RgbImage::from_channels(w as usize, h as usize, c, &bytes))
+}
+
 /// Reads a 16-bit grayscale PNG (e.g. depth in millimetres) as (width, height, values).
 pub fn read_gray16(path: &Path) -> Result<(u32, u32, Vec<u16>)> {
     let err = |e: png::DecodingError| Error::invalid(path, format!("cannot read PNG: {e}"));

@@ -6,14 +6,15 @@
 //! 2. [`splats`] — the 3D Gaussians (`SplatModel`, a burn `Module`), [`cloud`] and [`ply`].
 //! 3. [`language`] — per-Gaussian language features, the encoder that turns a rendered feature
 //!    map into tokens, and the token cameras (one crop rule for teacher and field).
-//! 4. [`vlm`] — LLaVA-OneVision (SigLIP, projector, Qwen2, tokenizer, generation).
+//! 4. [`vlm`] — LLaVA-OneVision (SigLIP, projector, Qwen2, tokenizer, generation): the
+//!    `llava-onevision` crate (model/llava), re-exported.
 //! 5. [`scene`] and [`chat`] — a trained scene answering questions at view, object and scene
 //!    level: frozen Gaussians + language field -> tokens -> prompt -> LLM; [`vqa`] runs a
 //!    question file through it.
 //!
 //! Around them: [`run`] (the files of a run directory, typed), [`io`] (atomic writes, JSON,
 //! safetensors), [`error`], [`backend`] (ndarray / wgpu, backend panics as errors), [`images`]
-//! (PNG) and [`rng`]. Nothing here depends on training (`train` depends on this crate).
+//! (PNG) and [`rng`] (from the `base` crate, model/base, which the port shares). Nothing here depends on training (`train` depends on this crate).
 #![allow(deprecated)] // burn-ndarray is deprecated in burn 0.22 in favour of burn-flex.
 
 pub mod alloc;
@@ -21,7 +22,7 @@ pub mod backend;
 pub mod error;
 pub mod images;
 pub mod io;
-pub mod rng;
+pub use base::rng;
 
 pub mod data;
 pub mod question_file;
@@ -32,7 +33,7 @@ pub mod splats;
 
 pub mod language;
 
-pub mod vlm;
+pub use llava_onevision as vlm;
 
 pub mod chat;
 pub mod run;

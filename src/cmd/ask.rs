@@ -5,7 +5,7 @@ use super::{SamplingArgs, SceneArgs, print_piece};
 use anyhow::bail;
 use model::Backend;
 use model::chat::{ChatSession, DEFAULT_SCENE_VIEWS, Target};
-use model::vlm::{GenerateOptions, LlavaOnevision, RgbImage};
+use model::vlm::{GenerateOptions, LlavaOnevision};
 use std::path::PathBuf;
 
 #[derive(clap::Args)]
@@ -68,7 +68,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
 }
 
 fn ask_images(a: &Args) -> anyhow::Result<()> {
-    let imgs = a.image.iter().map(|p| RgbImage::read_png(p)).collect::<Result<Vec<_>, _>>()?;
+    let imgs = a.image.iter().map(|p| model::images::read_rgb_image(p)).collect::<Result<Vec<_>, _>>()?;
     let opts = a.sampling.options()?;
     let device = a.backend.device();
     let vlm_dir = super::vlm_dir(a.vlm.as_ref())?;

@@ -242,7 +242,7 @@ fn main() -> std::process::ExitCode {
             if let Some(gib) = eval::progress::peak_rss_gib() {
                 eprintln!("{backend}: model ready, peak resident memory so far {gib:.2} GiB");
             }
-            let img = RgbImage::read_png(&dir.join("image_wide.png")).unwrap_or_else(|_| {
+            let img = model::images::read_rgb_image(&dir.join("image_wide.png")).unwrap_or_else(|_| {
                 let (w, h) = (700, 300);
                 RgbImage::new(w, h, (0..w * h * 3).map(|i| (i * 37 % 256) as u8).collect())
             });

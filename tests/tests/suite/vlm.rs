@@ -66,7 +66,7 @@ fn bytes<'a>(r: &'a HashMap<String, Ref>, k: &str) -> &'a [u8] {
 }
 
 fn image(name: &str) -> RgbImage {
-    RgbImage::read_png(&fixture().join(name)).expect("fixture image")
+    model::images::read_rgb_image(&fixture().join(name)).expect("fixture image")
 }
 
 /// Views as HF lays out pixel_values: [views, 3, H, W] u8.

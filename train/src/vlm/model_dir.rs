@@ -40,6 +40,7 @@ pub fn save_model_as(vlm: &LlavaOnevision, dir: &Path, bf16: bool) -> Result<usi
     let gen_cfg = serde_json::json!({"eos_token_id": vlm.cfg.text.eos_token_ids, "pad_token_id": 0});
     io::write_json(&dir.join("generation_config.json"), &gen_cfg)?;
     let tensors = vlm.export();
-    tensors.write(&dir.join("model.safetensors"), bf16)?;
+    let weights = dir.join("model.safetensors");
+    io::write_atomic(&weights, &tensors.to_bytes(&weights, bf16)?)?;
     Ok(tensors.count())
 }

@@ -20,10 +20,10 @@ impl RgbImage {
         Self { width, height, data }
     }
 
-    /// Reads an 8-bit PNG; gray and alpha channels are converted like PIL's `convert("RGB")` (alpha dropped).
-    pub fn read_png(path: &std::path::Path) -> crate::Result<Self> {
-        let (w, h, c, bytes) = crate::images::read_png8(path)?;
-        let (w, h) = (w as usize, h as usize);
+    /// From 8-bit pixels of `c` channels (gray, gray+alpha, RGB or RGBA, as a PNG decodes them),
+    /// converted like PIL's `convert("RGB")` (alpha dropped).
+    pub fn from_channels(w: usize, h: usize, c: usize, bytes: &[u8]) -> Self {
+        assert!((1..=4).contains(&c) && bytes.len() == w * h * c, "RgbImage: {c} channels of {w}x{h}");
         let mut data = Vec::with_capacity(w * h * 3);
         for px in bytes.chunks_exact(c) {
             match c {
@@ -31,7 +31,7 @@ impl RgbImage {
                 _ => data.extend_from_slice(&px[..3]),
             }
         }
-        Ok(Self::new(w, h, data))
+        Self::new(w, h, data)
     }
 
     /// From linear `[0, 1]` floats (HWC), rounded to 8 bits.

@@ -4,7 +4,7 @@
 use super::VlmError;
 use super::llava::LlavaOnevision;
 use super::qwen2::KvCache;
-use crate::rng::Rng;
+use base::Rng;
 use burn::tensor::Tensor;
 use std::ops::ControlFlow;
 

@@ -9,7 +9,7 @@ use super::qwen2::{KvCache, Qwen2};
 use super::siglip::VisionTower;
 use super::tokenizer::{ChatTokenizer, Turn};
 use super::weights::{HfTensors, WeightStore};
-use crate::rng::Rng;
+use base::Rng;
 use burn::module::{Module, Param};
 use burn::nn::Linear;
 use burn::tensor::{Device, Tensor, TensorData};

@@ -9,7 +9,7 @@ use super::layers::{
     Mask, act, attention, half_linear, init_layer_norm, init_linear, linear, load_layer_norm, load_linear,
 };
 use super::weights::{HfTensors, WeightStore};
-use crate::rng::Rng;
+use base::Rng;
 use burn::module::{Module, Param};
 use burn::nn::{LayerNorm, Linear};
 use burn::tensor::{Device, Tensor, TensorData};

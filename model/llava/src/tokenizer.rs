@@ -136,7 +136,7 @@ impl ChatTokenizer {
         }
         // the tokenizers library panics on some malformed files (found by fuzzing): caught, and
         // reported as a bad file like its errors
-        let inner = crate::backend::quietly(|| tokenizers::Tokenizer::from_file(&path))
+        let inner = base::panic::quietly(|| tokenizers::Tokenizer::from_file(&path))
             .map_err(|m| {
                 VlmError::config(&path, format!("cannot load tokenizer: the tokenizers library failed on it ({m})"))
             })?

@@ -214,7 +214,11 @@ pub struct HfTensors {
 impl HfTensors {
     pub fn tensor<const D: usize>(&mut self, name: &str, t: Tensor<D>) {
         let shape = t.dims().to_vec();
-        self.tensors.push((name.to_string(), shape, crate::splats::host(t)));
+        self.tensors.push((
+            name.to_string(),
+            shape,
+            t.into_data().convert::<f32>().to_vec::<f32>().expect("f32 tensor"),
+        ));
     }
 
     pub fn vector(&mut self, name: &str, t: Tensor<1>) {
@@ -245,8 +249,9 @@ impl HfTensors {
         self.tensors.iter().map(|(_, _, v)| v.len()).sum()
     }
 
-    /// Writes `path` (atomically) as bf16 (how llava-hf checkpoints are stored) or f32 safetensors.
-    pub fn write(&self, path: &Path, as_bf16: bool) -> crate::Result<()> {
+    /// The safetensors file (`path` names it in errors), bf16 (how llava-hf checkpoints are
+    /// stored) or f32.
+    pub fn to_bytes(&self, path: &Path, as_bf16: bool) -> Result<Vec<u8>, VlmError> {
         let bytes: Vec<(String, Vec<usize>, Vec<u8>)> = self
             .tensors
             .iter()
@@ -263,12 +268,11 @@ impl HfTensors {
         let mut views = Vec::with_capacity(bytes.len());
         for (n, s, b) in &bytes {
             let view = safetensors::tensor::TensorView::new(dtype, s.clone(), b)
-                .map_err(|e| crate::Error::invalid(path, format!("tensor {n} of shape {s:?}: {e}")))?;
+                .map_err(|e| VlmError::weights(path, format!("tensor {n} of shape {s:?}: {e}")))?;
             views.push((n.clone(), view));
         }
         let mut meta = std::collections::HashMap::new();
         meta.insert("format".to_string(), "pt".to_string());
-        let out = safetensors::serialize(views, Some(meta)).map_err(|e| crate::Error::invalid(path, e.to_string()))?;
-        crate::io::write_atomic(path, &out)
+        safetensors::serialize(views, Some(meta)).map_err(|e| VlmError::weights(path, e.to_string()))
     }
 }

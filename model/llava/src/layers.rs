@@ -8,7 +8,7 @@ use super::cpu::convert::widened;
 pub use super::host::in_dtype;
 use super::host::{HostTensor, HostValues};
 use super::weights::WeightStore;
-use crate::rng::Rng;
+use base::Rng;
 use burn::module::Param;
 use burn::nn::{LayerNorm, LayerNormConfig, Linear, RmsNorm};
 use burn::tensor::{DType, Device, Tensor, TensorData, activation};

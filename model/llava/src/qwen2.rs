@@ -11,7 +11,7 @@ use super::layers::{
     init_rms_norm, linear, load_linear, load_rms_norm, normal,
 };
 use super::weights::{HfTensors, WeightStore};
-use crate::rng::Rng;
+use base::Rng;
 use burn::module::{Module, Param};
 use burn::nn::{Embedding, Linear, RmsNorm};
 use burn::tensor::{DType, Device, Int, Tensor, TensorData};

@@ -8,6 +8,11 @@
 //! -> `[V, 729, 1152]` (the teacher tokens) -> [`llava::Projector`] -> `[V, 729, 896]` ->
 //! [`llava::LlavaOnevision::pack`] -> `[N, 896]` -> spliced at the `<image>` placeholders ->
 //! [`qwen2::Qwen2`] -> logits `[T, vocab]`.
+//!
+//! Its own crate below `model`: it needs only the seeded generator and the panic guard of
+//! `base`, so the language field and chat depend on it and never the other way (`model`
+//! re-exports it as `model::vlm`).
+#![allow(deprecated)] // burn-ndarray is deprecated in burn 0.22 in favour of burn-flex.
 
 pub mod config;
 pub mod cpu;

@@ -111,7 +111,6 @@ impl LanguageScene {
             features: &[],
             background: &[],
             screen_offsets: &screen_offsets,
-            channels: 0,
         };
         Ok(BlendWeights::of(&inp, cam, &SplatOptions::default().config))
     }

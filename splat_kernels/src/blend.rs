@@ -174,7 +174,6 @@ mod tests {
             features: &feats,
             background: &bg,
             screen_offsets: &offs,
-            channels: c,
         };
         let cam = Camera::look_at(glam::Vec3::ZERO, glam::Vec3::Z, glam::Vec3::Y, 60.0, 40, 37);
         let cfg = RasterConfig::default();

@@ -9,35 +9,78 @@ use crate::constants::{EMPTY_ID, RasterConfig, TILE_SIZE};
 use crate::project::{self, GaussianGrad, Projected, ProjectedGrad};
 use rayon::prelude::*;
 
-/// Borrowed, flat inputs of the op (row-major, `N` Gaussians, `C` channels).
-#[derive(Clone, Copy, Debug)]
-pub struct SplatInputsRef<'a> {
+/// The seven inputs of the op, one `T` each, flat and row-major (`N` Gaussians, `C` channels):
+/// borrowed slices ([`SplatInputsRef`]), owned host copies and gradients (`Vec<f32>`:
+/// [`GradOut`], `ext::HostInputs`). The backend primitives are `ext::SplatPrims`, which burn's
+/// extension derive needs spelled out.
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct SplatInputs<T> {
     /// `[N, 3]`
-    pub means: &'a [f32],
+    pub means: T,
     /// `[N, 3]`
-    pub log_scales: &'a [f32],
+    pub log_scales: T,
     /// `[N, 4]` as (w, x, y, z), not necessarily normalised.
-    pub quats: &'a [f32],
+    pub quats: T,
     /// `[N]`
-    pub opacity_logits: &'a [f32],
+    pub opacity_logits: T,
     /// `[N, C]`
-    pub features: &'a [f32],
+    pub features: T,
     /// `[C]`
-    pub background: &'a [f32],
+    pub background: T,
     /// `[N, 2]` offsets added to the projected centres (zeros in normal use; its gradient is the
     /// screen-space mean gradient that densification accumulates).
-    pub screen_offsets: &'a [f32],
-    /// `C`
-    pub channels: usize,
+    pub screen_offsets: T,
 }
 
-impl SplatInputsRef<'_> {
+/// Borrowed inputs: what the rasterizers read.
+pub type SplatInputsRef<'a> = SplatInputs<&'a [f32]>;
+
+/// Gradients with respect to every input, in the inputs' shapes (`screen_offsets`: the
+/// screen-space centres' gradient, the densification signal).
+pub type GradOut = SplatInputs<Vec<f32>>;
+
+impl<T> SplatInputs<T> {
+    /// Each of the seven through `f`, in declaration order.
+    pub fn map<U>(self, mut f: impl FnMut(T) -> U) -> SplatInputs<U> {
+        SplatInputs {
+            means: f(self.means),
+            log_scales: f(self.log_scales),
+            quats: f(self.quats),
+            opacity_logits: f(self.opacity_logits),
+            features: f(self.features),
+            background: f(self.background),
+            screen_offsets: f(self.screen_offsets),
+        }
+    }
+}
+
+impl<T: AsRef<[f32]>> SplatInputs<T> {
+    /// Borrowed slices of owned (or already borrowed) values.
+    pub fn as_slices(&self) -> SplatInputsRef<'_> {
+        SplatInputs {
+            means: self.means.as_ref(),
+            log_scales: self.log_scales.as_ref(),
+            quats: self.quats.as_ref(),
+            opacity_logits: self.opacity_logits.as_ref(),
+            features: self.features.as_ref(),
+            background: self.background.as_ref(),
+            screen_offsets: self.screen_offsets.as_ref(),
+        }
+    }
+    /// `N`
     pub fn len(&self) -> usize {
-        self.opacity_logits.len()
+        self.opacity_logits.as_ref().len()
     }
     pub fn is_empty(&self) -> bool {
         self.len() == 0
     }
+    /// `C`: the background's length.
+    pub fn channels(&self) -> usize {
+        self.background.as_ref().len()
+    }
+}
+
+impl SplatInputsRef<'_> {
     fn mean(&self, i: usize) -> [f32; 3] {
         [self.means[3 * i], self.means[3 * i + 1], self.means[3 * i + 2]]
     }
@@ -52,7 +95,7 @@ impl SplatInputsRef<'_> {
     /// Checks lengths against `N` and `C` and that every value is finite.
     pub fn validate(&self) -> Result<(), crate::error::SplatError> {
         let n = self.len();
-        let c = self.channels;
+        let c = self.channels();
         if c == 0 {
             return Err(crate::error::SplatError::Shape("features must have at least one channel".into()));
         }
@@ -100,19 +143,6 @@ pub struct ForwardOut {
     pub final_t: Vec<f32>,
     /// `[H, W]` number of tile-list entries visited (saved for the backward pass).
     pub n_visited: Vec<i32>,
-}
-
-/// Gradients with respect to every input.
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct GradOut {
-    pub means: Vec<f32>,
-    pub log_scales: Vec<f32>,
-    pub quats: Vec<f32>,
-    pub opacity_logits: Vec<f32>,
-    pub features: Vec<f32>,
-    pub background: Vec<f32>,
-    /// `[N, 2]` gradient of the screen-space centres (the densification signal).
-    pub screen_offsets: Vec<f32>,
 }
 
 /// Projected Gaussians binned into tiles and depth-sorted per tile.
@@ -328,7 +358,7 @@ pub fn forward(inp: &SplatInputsRef, cam: &Camera, cfg: &RasterConfig) -> Forwar
 
 /// Forward pass on already binned Gaussians.
 pub fn forward_binned(inp: &SplatInputsRef, cam: &Camera, cfg: &RasterConfig, b: &Binned) -> ForwardOut {
-    let c = inp.channels;
+    let c = inp.channels();
     let num_tiles = b.tile_offsets.len() - 1;
     let tiles: Vec<TileFwd> = (0..num_tiles)
         .into_par_iter()
@@ -417,7 +447,7 @@ pub fn backward(
     g_depth: &[f32],
 ) -> GradOut {
     let n = inp.len();
-    let c = inp.channels;
+    let c = inp.channels();
     let stride = ISECT_FIXED + c;
     let b = bin(inp, cam, cfg);
     let num_tiles = b.tile_offsets.len() - 1;

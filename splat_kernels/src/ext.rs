@@ -17,7 +17,7 @@
 
 use crate::camera::Camera;
 use crate::constants::RasterConfig;
-use crate::cpu::{self, SplatInputsRef};
+use crate::cpu::{self, SplatInputs};
 use burn::backend::autodiff::{
     Autodiff,
     checkpoint::{base::Checkpointer, strategy::CheckpointStrategy},
@@ -118,52 +118,47 @@ fn int_prim<B: Backend>(v: Vec<i32>, shape: Vec<usize>, device: &B::Device) -> I
 }
 
 /// Host copies of the seven inputs.
-#[derive(Clone, Debug, Default, PartialEq)]
-pub struct HostInputs {
-    pub means: Vec<f32>,
-    pub log_scales: Vec<f32>,
-    pub quats: Vec<f32>,
-    pub opacity_logits: Vec<f32>,
-    pub features: Vec<f32>,
-    pub background: Vec<f32>,
-    pub screen_offsets: Vec<f32>,
-    pub channels: usize,
-}
+pub type HostInputs = SplatInputs<Vec<f32>>;
 
-impl HostInputs {
-    pub fn read<B: Backend>(p: SplatPrims<B>) -> Self {
-        let channels = p.background.shape().num_elements();
-        Self {
-            means: read_floats::<B>(p.means),
-            log_scales: read_floats::<B>(p.log_scales),
-            quats: read_floats::<B>(p.quats),
-            opacity_logits: read_floats::<B>(p.opacity_logits),
-            features: read_floats::<B>(p.features),
-            background: read_floats::<B>(p.background),
-            screen_offsets: read_floats::<B>(p.screen_offsets),
-            channels,
+impl<B: Backend> SplatPrims<B> {
+    /// The seven primitives as [`SplatInputs`].
+    pub fn into_inputs(self) -> SplatInputs<FloatTensor<B>> {
+        SplatInputs {
+            means: self.means,
+            log_scales: self.log_scales,
+            quats: self.quats,
+            opacity_logits: self.opacity_logits,
+            features: self.features,
+            background: self.background,
+            screen_offsets: self.screen_offsets,
         }
     }
-    pub fn as_ref(&self) -> SplatInputsRef<'_> {
-        SplatInputsRef {
-            means: &self.means,
-            log_scales: &self.log_scales,
-            quats: &self.quats,
-            opacity_logits: &self.opacity_logits,
-            features: &self.features,
-            background: &self.background,
-            screen_offsets: &self.screen_offsets,
-            channels: self.channels,
+
+    /// The seven primitives of [`SplatInputs`].
+    pub fn from_inputs(i: SplatInputs<FloatTensor<B>>) -> Self {
+        Self {
+            means: i.means,
+            log_scales: i.log_scales,
+            quats: i.quats,
+            opacity_logits: i.opacity_logits,
+            features: i.features,
+            background: i.background,
+            screen_offsets: i.screen_offsets,
         }
+    }
+
+    /// Host copies of the seven (synchronous reads).
+    pub fn read(self) -> HostInputs {
+        self.into_inputs().map(read_floats::<B>)
     }
 }
 
 /// Forward on any backend through the CPU rasterizer (host round trip).
 pub fn cpu_forward<B: Backend>(inputs: SplatPrims<B>, camera: &Camera, config: &RasterConfig) -> SplatFwdPrims<B> {
     let device = inputs.means.device();
-    let host = HostInputs::read::<B>(inputs);
-    let c = host.channels;
-    let out = cpu::forward(&host.as_ref(), camera, config);
+    let host = inputs.read();
+    let c = host.channels();
+    let out = cpu::forward(&host.as_slices(), camera, config);
     let (h, w) = (camera.height as usize, camera.width as usize);
     let mut packed = Vec::with_capacity(h * w * (c + 2));
     for o in 0..h * w {
@@ -187,8 +182,8 @@ pub fn cpu_backward<B: Backend>(
     config: &RasterConfig,
 ) -> SplatPrims<B> {
     let device = inputs.means.device();
-    let host = HostInputs::read::<B>(inputs);
-    let (n, c) = (host.opacity_logits.len(), host.channels);
+    let host = inputs.read();
+    let (n, c) = (host.len(), host.channels());
     let final_t = read_floats::<B>(saved.final_t);
     let n_visited = read_ints::<B>(saved.n_visited);
     let gp = read_floats::<B>(saved.grad_packed);
@@ -201,7 +196,7 @@ pub fn cpu_backward<B: Backend>(
         g_alpha.push(gp[o * (c + 2) + c]);
         g_depth.push(gp[o * (c + 2) + c + 1]);
     }
-    let g = cpu::backward(&host.as_ref(), camera, config, &final_t, &n_visited, &g_image, &g_alpha, &g_depth);
+    let g = cpu::backward(&host.as_slices(), camera, config, &final_t, &n_visited, &g_image, &g_alpha, &g_depth);
     SplatPrims {
         means: float_prim::<B>(g.means, vec![n, 3], &device),
         log_scales: float_prim::<B>(g.log_scales, vec![n, 3], &device),
@@ -280,15 +275,7 @@ impl<B: Backend + SplatBackend> Backward<B, 7> for SplatBackwardOp {
 }
 
 fn strip<B: Backend, C: CheckpointStrategy>(p: SplatPrims<Autodiff<B, C>>) -> SplatPrims<B> {
-    SplatPrims {
-        means: p.means.into_primitive(),
-        log_scales: p.log_scales.into_primitive(),
-        quats: p.quats.into_primitive(),
-        opacity_logits: p.opacity_logits.into_primitive(),
-        features: p.features.into_primitive(),
-        background: p.background.into_primitive(),
-        screen_offsets: p.screen_offsets.into_primitive(),
-    }
+    SplatPrims::from_inputs(p.into_inputs().map(|t| t.into_primitive()))
 }
 
 fn untracked<B: Backend, C: CheckpointStrategy>(t: FloatTensor<B>) -> FloatTensor<Autodiff<B, C>> {
@@ -353,14 +340,6 @@ impl<B: Backend + SplatBackend, C: CheckpointStrategy> SplatBackend for Autodiff
             camera,
             config,
         );
-        SplatPrims {
-            means: untracked::<B, C>(g.means),
-            log_scales: untracked::<B, C>(g.log_scales),
-            quats: untracked::<B, C>(g.quats),
-            opacity_logits: untracked::<B, C>(g.opacity_logits),
-            features: untracked::<B, C>(g.features),
-            background: untracked::<B, C>(g.background),
-            screen_offsets: untracked::<B, C>(g.screen_offsets),
-        }
+        SplatPrims::from_inputs(g.into_inputs().map(untracked::<B, C>))
     }
 }

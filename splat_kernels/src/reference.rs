@@ -133,7 +133,7 @@ impl RefOut {
 
 /// Dense f64 forward pass.
 pub fn render(inp: &SplatInputsRef, cam: &Camera, cfg: &RasterConfig) -> RefOut {
-    let c = inp.channels;
+    let c = inp.channels();
     let mut gs: Vec<RefGaussian> = (0..inp.len()).filter_map(|i| project_one(inp, cam, cfg, i)).collect();
     gs.sort_by(|a, b| (a.depth as f32).total_cmp(&(b.depth as f32)).then(a.id.cmp(&b.id)));
     let (w, h) = (cam.width as usize, cam.height as usize);

@@ -15,9 +15,7 @@ pub mod http;
 pub type Scene = splat_kernels::ext::HostInputs;
 
 /// Test conveniences on [`Scene`].
-#[allow(clippy::len_without_is_empty)]
 pub trait SceneExt {
-    fn len(&self) -> usize;
     fn inputs(&self) -> SplatInputsRef<'_>;
     fn empty(channels: usize) -> Self;
     fn push(&mut self, mean: [f32; 3], log_scale: [f32; 3], quat: [f32; 4], logit: f32, feat: &[f32]);
@@ -28,17 +26,14 @@ pub trait SceneExt {
 }
 
 impl SceneExt for Scene {
-    fn len(&self) -> usize {
-        self.opacity_logits.len()
-    }
     fn inputs(&self) -> SplatInputsRef<'_> {
-        self.as_ref()
+        self.as_slices()
     }
     fn empty(channels: usize) -> Self {
-        Self { background: vec![0.25; channels], channels, ..Default::default() }
+        Self { background: vec![0.25; channels], ..Default::default() }
     }
     fn push(&mut self, mean: [f32; 3], log_scale: [f32; 3], quat: [f32; 4], logit: f32, feat: &[f32]) {
-        assert_eq!(feat.len(), self.channels);
+        assert_eq!(feat.len(), self.channels());
         self.means.extend_from_slice(&mean);
         self.log_scales.extend_from_slice(&log_scale);
         self.quats.extend_from_slice(&quat);
@@ -47,7 +42,7 @@ impl SceneExt for Scene {
         self.screen_offsets.extend_from_slice(&[0.0, 0.0]);
     }
     fn permuted(&self, order: &[usize]) -> Self {
-        let c = self.channels;
+        let c = self.channels();
         let mut p = Self::empty(c);
         p.background = self.background.clone();
         for &i in order {
@@ -63,7 +58,7 @@ impl SceneExt for Scene {
     }
     fn gaussians(&self, device: &Device) -> (Gaussians, Tensor<1>) {
         let n = self.len();
-        let c = self.channels;
+        let c = self.channels();
         let t2 = |v: &Vec<f32>, w: usize| Tensor::<2>::from_data(TensorData::new(v.clone(), [n, w]), device);
         (
             Gaussians {

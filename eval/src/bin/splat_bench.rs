@@ -60,7 +60,6 @@ fn accuracy() {
             features: &host[4],
             background: &bg,
             screen_offsets: &zeros,
-            channels: c,
         };
         let cfg = RasterConfig::default();
         let r = reference::render(&inp, &cam, &cfg);

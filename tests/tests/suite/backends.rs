@@ -45,7 +45,7 @@ fn render_and_grad_with(
     let offsets = Tensor::<2>::zeros([n, 2], device).require_grad();
     let opts = SplatOptions { config: cfg, validate: true, screen_offsets: Some(offsets.clone()), max_pass_bytes };
     let out = splat(&g, cam, bg.clone(), &opts).expect("valid inputs");
-    let (h, w, c) = (cam.height as usize, cam.width as usize, scene.channels);
+    let (h, w, c) = (cam.height as usize, cam.width as usize, scene.channels());
     let mut r = Rng::new(seed);
     let wf: Vec<f32> = (0..h * w * c).map(|_| r.range(-1.0, 1.0)).collect();
     let wa: Vec<f32> = (0..h * w).map(|_| r.range(-1.0, 1.0)).collect();

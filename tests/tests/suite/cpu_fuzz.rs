@@ -14,7 +14,7 @@ fn mixed_extreme_finite_inputs_give_finite_outputs_and_gradients() {
     let mut grads_seen = 0;
     for seed in 0..300u64 {
         let s = fuzz_scene(seed);
-        let c = s.channels;
+        let c = s.channels();
         let mut r = Rng::new(seed + 1000);
         if s.means.iter().any(|v| !v.is_finite()) {
             continue;

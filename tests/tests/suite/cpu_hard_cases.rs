@@ -13,7 +13,7 @@ fn run(scene: &Scene, cam: &Camera) -> (ForwardOut, GradOut) {
     let f = cpu::forward(&scene.inputs(), cam, &cfg);
     let hw = (cam.width * cam.height) as usize;
     let mut r = Rng::new(4);
-    let gi: Vec<f32> = (0..hw * scene.channels).map(|_| r.range(-1.0, 1.0)).collect();
+    let gi: Vec<f32> = (0..hw * scene.channels()).map(|_| r.range(-1.0, 1.0)).collect();
     let ga: Vec<f32> = (0..hw).map(|_| r.range(-1.0, 1.0)).collect();
     let gd: Vec<f32> = (0..hw).map(|_| r.range(-1.0, 1.0)).collect();
     let g = cpu::backward(&scene.inputs(), cam, &cfg, &f.final_t, &f.n_visited, &gi, &ga, &gd);

@@ -11,12 +11,12 @@ use splat_kernels::reference;
 fn assert_forward_matches(scene: &Scene, cam: &splat_kernels::Camera, cfg: &RasterConfig, tol: f32) {
     let fast = cpu::forward(&scene.inputs(), cam, cfg);
     let r = reference::render(&scene.inputs(), cam, cfg);
-    let slow = masked_reference(&r, &fast, scene.channels);
+    let slow = masked_reference(&r, &fast, scene.channels());
     let e_img = max_abs_diff(&fast.image, &slow.image);
     let e_alpha = max_abs_diff(&fast.alpha, &slow.alpha);
     let max_depth = slow.depth.iter().fold(1.0f32, |a, &b| a.max(b.abs()));
     let e_depth = max_abs_diff(&fast.depth, &slow.depth) / max_depth;
-    assert!(e_img <= tol, "C={} image error {e_img} > {tol}", scene.channels);
+    assert!(e_img <= tol, "C={} image error {e_img} > {tol}", scene.channels());
     assert!(e_alpha <= tol, "alpha error {e_alpha} > {tol}");
     assert!(e_depth <= tol, "relative depth error {e_depth} > {tol}");
     let same = fast.top_id.iter().zip(&slow.top_id).filter(|(a, b)| a == b).count();
@@ -75,7 +75,7 @@ fn loss(r: &reference::RefOut, g: &Upstream) -> f64 {
 fn check_gradients(scene: &Scene, cam: &splat_kernels::Camera, seed: u64) {
     let cfg = RasterConfig::smooth();
     let hw = (cam.width * cam.height) as usize;
-    let c = scene.channels;
+    let c = scene.channels();
     let mut rng = Rng::new(seed);
     let g = Upstream {
         image: (0..hw * c).map(|_| rng.range(-1.0, 1.0)).collect(),

@@ -20,8 +20,9 @@ fn stage_batch(gids: &[u32], proj: &[f32], s_gid: &mut Shared<[u32]>, s_p: &mut 
     }
 }
 
-/// Where a raster kernel's thread is: its tile (one workgroup), its pixel (one thread) and
-/// whether that pixel is inside the image. The forward and backward kernels start alike.
+/// Where a raster kernel's thread is and what it reads first: its tile (one workgroup), its pixel
+/// (one thread), whether that pixel is inside the image, the channel counts and the alpha limits.
+/// The forward and backward kernels start alike.
 #[derive(CubeType)]
 struct TilePixel {
     /// The tile's index, row-major over `tiles_x` columns.
@@ -32,10 +33,15 @@ struct TilePixel {
     /// The pixel's centre.
     pxf: f32,
     pyf: f32,
+    /// `C` and `C + 2` (a pixel's stride in `packed`).
+    ch_n: usize,
+    c2: usize,
+    alpha_max: f32,
+    alpha_min: f32,
 }
 
 #[cube]
-fn tile_pixel(width: u32, height: u32, tiles_x: u32) -> TilePixel {
+fn tile_pixel(width: u32, height: u32, tiles_x: u32, channels: u32, cam: &[f32]) -> TilePixel {
     let px = CUBE_POS_X * TILE_SIZE + UNIT_POS % TILE_SIZE;
     let py = CUBE_POS_Y * TILE_SIZE + UNIT_POS / TILE_SIZE;
     TilePixel {
@@ -44,7 +50,34 @@ fn tile_pixel(width: u32, height: u32, tiles_x: u32) -> TilePixel {
         inside: px < width && py < height,
         pxf: f32::cast_from(px) + 0.5,
         pyf: f32::cast_from(py) + 0.5,
+        ch_n: channels as usize,
+        c2: (channels + 2) as usize,
+        alpha_max: cam[C_ALPHA_MAX],
+        alpha_min: cam[C_ALPHA_MIN],
     }
+}
+
+/// A staged Gaussian's falloff at a pixel centre: the offset from its centre, its conic
+/// (`ca`, `cb`, `cc`) and `power` = -(ca dx^2 + cc dy^2) / 2 - cb dx dy (`<= 0` inside).
+#[derive(CubeType)]
+struct Falloff {
+    dx: f32,
+    dy: f32,
+    ca: f32,
+    cb: f32,
+    cc: f32,
+    power: f32,
+}
+
+#[cube]
+fn falloff(s_p: &Shared<[f32]>, ju: usize, pxf: f32, pyf: f32) -> Falloff {
+    let dx = pxf - s_p[ju * STAGED + P_MX];
+    let dy = pyf - s_p[ju * STAGED + P_MY];
+    let ca = s_p[ju * STAGED + P_CA];
+    let cb = s_p[ju * STAGED + P_CB];
+    let cc = s_p[ju * STAGED + P_CC];
+    let power = 0.0f32 - 0.5f32 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy;
+    Falloff { dx, dy, ca, cb, cc, power }
 }
 
 /// Workgroup per tile, thread per pixel: front-to-back compositing.
@@ -69,26 +102,18 @@ pub(super) fn raster_fwd_kernel(
     // Shared staging for one batch: TILE_PIXELS ids and STAGED floats each (256 x 7: sizes must be literals).
     let mut s_gid = Shared::<[u32]>::new_slice(256usize);
     let mut s_p = Shared::<[f32]>::new_slice(1792usize);
-    let at = tile_pixel(width, height, tiles_x);
-    let tile = at.tile;
-    let pix = at.pix;
-    let inside = at.inside;
-    let pxf = at.pxf;
-    let pyf = at.pyf;
-    let c2 = (channels + 2) as usize;
-    let ch_n = channels as usize;
-    let alpha_max = cam[C_ALPHA_MAX];
-    let alpha_min = cam[C_ALPHA_MIN];
+    let at = tile_pixel(width, height, tiles_x, channels, cam);
+    let (pix, c2, ch_n) = (at.pix, at.c2, at.ch_n);
     let t_min = cam[C_T_MIN];
-    let start = offsets[tile];
-    let count = counts[tile];
+    let start = offsets[at.tile];
+    let count = counts[at.tile];
     let mut t = 1.0f32;
-    let mut done = !inside;
+    let mut done = !at.inside;
     let mut depth_acc = 0.0f32;
     let mut best = 0.0f32;
     let mut top = i32::new(-1);
     let mut nv = 0i32;
-    if inside {
+    if at.inside {
         for ch in 0usize..ch_n {
             packed[pix * c2 + ch] = 0.0;
         }
@@ -101,14 +126,10 @@ pub(super) fn raster_fwd_kernel(
         for j in 0u32..batch {
             if !done {
                 let ju = j as usize;
-                let dx = pxf - s_p[ju * STAGED + P_MX];
-                let dy = pyf - s_p[ju * STAGED + P_MY];
-                let power = 0.0f32
-                    - 0.5f32 * (s_p[ju * STAGED + P_CA] * dx * dx + s_p[ju * STAGED + P_CC] * dy * dy)
-                    - s_p[ju * STAGED + P_CB] * dx * dy;
+                let power = falloff(&s_p, ju, at.pxf, at.pyf).power;
                 if power <= 0.0 {
-                    let alpha = f32::min(alpha_max, s_p[ju * STAGED + P_OPACITY] * f32::exp(power));
-                    if alpha >= alpha_min {
+                    let alpha = f32::min(at.alpha_max, s_p[ju * STAGED + P_OPACITY] * f32::exp(power));
+                    if alpha >= at.alpha_min {
                         let next_t = t * (1.0 - alpha);
                         if next_t < t_min {
                             done = true;
@@ -134,7 +155,7 @@ pub(super) fn raster_fwd_kernel(
         sync_cube();
         base += TILE_PIXELS;
     }
-    if inside {
+    if at.inside {
         for ch in 0usize..ch_n {
             packed[pix * c2 + ch] += t * background[ch];
         }
@@ -185,17 +206,10 @@ pub(super) fn raster_bwd_kernel(
     let mut s_gid = Shared::<[u32]>::new_slice(256usize);
     let mut s_p = Shared::<[f32]>::new_slice(1792usize);
     let mut s_max = Shared::<[u32]>::new_slice(256usize);
-    let at = tile_pixel(width, height, tiles_x);
-    let tile = at.tile;
-    let pix = at.pix;
-    let inside = at.inside;
-    let pxf = at.pxf;
-    let pyf = at.pyf;
-    let c2 = (channels + 2) as usize;
-    let ch_n = channels as usize;
-    let alpha_max = cam[C_ALPHA_MAX];
-    let alpha_min = cam[C_ALPHA_MIN];
-    let start = offsets[tile];
+    let at = tile_pixel(width, height, tiles_x, channels, cam);
+    let (pix, c2, ch_n, inside) = (at.pix, at.c2, at.ch_n, at.inside);
+    let (alpha_max, alpha_min) = (at.alpha_max, at.alpha_min);
+    let start = offsets[at.tile];
     let mut tt = 1.0f32;
     let mut tf = 1.0f32;
     let mut last = 0u32;
@@ -234,14 +248,10 @@ pub(super) fn raster_bwd_kernel(
             let k = begin + j;
             if inside && k < last {
                 let ju = j as usize;
-                let dx = pxf - s_p[ju * STAGED + P_MX];
-                let dy = pyf - s_p[ju * STAGED + P_MY];
-                let ca = s_p[ju * STAGED + P_CA];
-                let cb = s_p[ju * STAGED + P_CB];
-                let cc = s_p[ju * STAGED + P_CC];
-                let power = 0.0f32 - 0.5f32 * (ca * dx * dx + cc * dy * dy) - cb * dx * dy;
-                if power <= 0.0 {
-                    let gexp = f32::exp(power);
+                let fall = falloff(&s_p, ju, at.pxf, at.pyf);
+                let (dx, dy, ca, cb, cc) = (fall.dx, fall.dy, fall.ca, fall.cb, fall.cc);
+                if fall.power <= 0.0 {
+                    let gexp = f32::exp(fall.power);
                     let op = s_p[ju * STAGED + P_OPACITY];
                     let raw = op * gexp;
                     let alpha = f32::min(alpha_max, raw);

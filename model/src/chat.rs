@@ -19,8 +19,9 @@ use std::ops::ControlFlow;
 use std::path::Path;
 use std::sync::{Arc, OnceLock};
 
-/// Views that scene-level chat spreads around the scene when the user does not say how many.
-pub const DEFAULT_SCENE_VIEWS: usize = 4;
+/// Views that scene-level chat spreads around the scene when the user does not say how many
+/// (the question files' number: see [`crate::question_file::SCENE_VIEWS`]).
+pub use crate::question_file::SCENE_VIEWS as DEFAULT_SCENE_VIEWS;
 
 /// An object picked by a click in a view: resolved once (one identity render of the view) and
 /// carried by [`Target::Object`]. Clones share the object's tokens once computed.

@@ -27,6 +27,11 @@ use serde::{Deserialize, Serialize};
 use std::collections::HashSet;
 use std::path::Path;
 
+/// Views a scene-level question is asked from: the views the synthetic question files name for
+/// each (chosen to see every object together), the views chat spreads around the scene when not
+/// told how many, and the images per scene the built-in model was trained with.
+pub const SCENE_VIEWS: usize = 4;
+
 /// The granularity a question asks about.
 #[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
 #[serde(rename_all = "lowercase")]

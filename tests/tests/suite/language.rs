@@ -433,7 +433,7 @@ pub(crate) fn scene_of(splats: model::splats::SplatModel, patch: usize, dev: &De
         background: [1.0; 3],
         field,
         display: None,
-        margin: 0.1,
+        margin: model::language::CROP_MARGIN,
         masks: true,
     }
 }

@@ -60,8 +60,7 @@ impl Default for SynthOptions {
 pub const DEFAULT_SEED: u64 = 46;
 /// Largest image side `synth` writes.
 pub const MAX_SIDE: u32 = 4096;
-/// Scene-level questions use this many views.
-pub const SCENE_VIEWS: usize = 4;
+pub use crate::question_file::SCENE_VIEWS;
 /// Where the cameras look.
 pub const LOOK_AT: Vec3 = Vec3::new(0.0, 0.25, 0.0);
 /// Vertical field of view of every synthetic camera (degrees): narrow enough that the objects

@@ -14,7 +14,8 @@
 //!
 //! Around them: [`run`] (the files of a run directory, typed), [`io`] (atomic writes, JSON,
 //! safetensors), [`error`], [`backend`] (ndarray / wgpu, backend panics as errors), [`images`]
-//! (PNG) and [`rng`] (from the `base` crate, model/base, which the port shares). Nothing here depends on training (`train` depends on this crate).
+//! (PNG) and [`rng`] (from the `base` crate, model/base, which the port shares). Nothing here
+//! depends on training (`train` depends on this crate).
 #![allow(deprecated)] // burn-ndarray is deprecated in burn 0.22 in favour of burn-flex.
 
 pub mod alloc;

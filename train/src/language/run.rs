@@ -145,17 +145,30 @@ pub fn run(
     let w = t.cfg.object_weight;
     guard.check_end(t.iter, before.0 + w * before.1, after.0 + w * after.1)?;
     t.save(out)?;
-    let metrics = LanguageMetrics {
-        iters: t.iter,
-        train_view_token_l1_before: before.0,
-        train_view_token_l1: after.0,
-        train_object_token_l1_before: before.1,
-        train_object_token_l1: after.1,
-        seconds_per_iter,
-        gaussians: t.contribution.len(),
-        gaussians_used: used,
+    // A resumed run with nothing left to train keeps the figures of the training that made its
+    // weights (its before-L1 and time per step), not before == after and no time at all.
+    let stored = if resumed_from.is_some() && t.iter == first && out.metrics().is_file() {
+        Some(io::read_json::<LanguageMetrics>(&out.metrics())?)
+    } else {
+        None
     };
-    io::write_json(&out.metrics(), &metrics)?;
+    let (before, seconds_per_iter) = match &stored {
+        Some(m) => ((m.train_view_token_l1_before, m.train_object_token_l1_before), m.seconds_per_iter),
+        None => (before, seconds_per_iter),
+    };
+    if stored.is_none() {
+        let metrics = LanguageMetrics {
+            iters: t.iter,
+            train_view_token_l1_before: before.0,
+            train_view_token_l1: after.0,
+            train_object_token_l1_before: before.1,
+            train_object_token_l1: after.1,
+            seconds_per_iter,
+            gaussians: t.contribution.len(),
+            gaussians_used: used,
+        };
+        io::write_json(&out.metrics(), &metrics)?;
+    }
     let compaction = if t.cfg.compact_tolerance > 0.0 { compact::choose(&mut t, after)? } else { None };
     if let Some(c) = &compaction {
         io::write_json(&out.compaction(), c)?;

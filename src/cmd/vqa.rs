@@ -54,7 +54,6 @@ struct Row {
     grader: Option<f32>,
 }
 
-/// Answers and scores; returns the offline summary (exact match or keyword, 0-100 per level).
 pub fn run(a: Args) -> anyhow::Result<()> {
     let qf = load_questions(&a.questions)?;
     let grader = Grader::from_env()?;
@@ -64,7 +63,8 @@ pub fn run(a: Args) -> anyhow::Result<()> {
 
 /// Asks every question of the question file `qf` (read from `questions`) about the opened scene
 /// `s`, scores the answers (offline, and with `grader` when one is set), prints the table and
-/// writes the answers to `out`.
+/// writes the answers to `out`; returns the offline summary (exact match or keyword, 0-100 per
+/// level).
 pub fn score(
     s: &ChatSession,
     (questions, qf): (&Path, &QuestionFile),

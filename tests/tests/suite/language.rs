@@ -282,19 +282,6 @@ fn end_to_end_language_field_chat_and_export() {
         assert_eq!(host(x), host(y), "{n} differs after resume");
     }
 
-    // --- object_smoothness pulls the features of each object's Gaussians together
-    let spread = |smoothness: f32| {
-        let cfg = LanguageTrainConfig { object_smoothness: smoothness, ..lang_cfg(20) };
-        let mut t = LanguageTrainer::new(&geometry, teacher.clone(), cfg, &dev).unwrap();
-        for &v in &order[..20] {
-            t.step(v).unwrap();
-        }
-        host(t.object_spread(&t.scene.field, &dev))[0]
-    };
-    let (off, on) = (spread(0.0), spread(5.0));
-    eprintln!("within-object feature spread after 20 steps: {off:.4} without the pull, {on:.4} with it");
-    assert!(on < 0.8 * off, "object_smoothness 5: spread {off} -> {on}");
-
     // --- object picking on held-out views: the rendered identity under GT-mask pixels
     let session = model::chat::ChatSession::open(&geometry, None, &fixture(), &dev).unwrap();
     let ds = teacher.dataset().unwrap();

@@ -95,12 +95,6 @@ pub struct LanguageTrainConfig {
     /// `compact.json` (inference then renders language maps from those alone; 0: keep all).
     /// Calibrated on five held-out scenes (BENCHMARKS.md).
     pub compact_tolerance: f32,
-    /// Weight of a pull of each Gaussian's language features toward the mean of its object's
-    /// (the object its identity feature classifies as): `mean |f - mean over the object|` of both
-    /// feature tensors, added to every step's loss (0: off, as in the paper). For the held-out
-    /// views' object edges, which per-Gaussian features fit to the training views' context miss
-    /// (BENCHMARKS.md, "Where the field's tokens lose count and colours").
-    pub object_smoothness: f32,
 }
 
 impl Default for LanguageTrainConfig {
@@ -121,7 +115,6 @@ impl Default for LanguageTrainConfig {
             views_per_step: 1,
             kept_weights_mb: 2048,
             compact_tolerance: DEFAULT_COMPACT_TOLERANCE,
-            object_smoothness: 0.0,
         }
     }
 }
@@ -143,9 +136,6 @@ impl LanguageTrainConfig {
         }
         if !(self.object_weight.is_finite() && self.object_weight >= 0.0) {
             return bad("object_weight", "must be a finite number >= 0");
-        }
-        if !(self.object_smoothness.is_finite() && self.object_smoothness >= 0.0) {
-            return bad("object_smoothness", "must be a finite number >= 0");
         }
         if !(self.lr_final.is_finite() && (0.0..=1.0).contains(&self.lr_final)) {
             return bad("lr_final", "must be a number in [0, 1]");
@@ -390,11 +380,7 @@ impl LanguageTrainer {
                 None => l,
             });
         }
-        let mut loss = loss.expect("at least one view");
-        if self.cfg.object_smoothness > 0.0 {
-            // the same on every rank: the ranks' mean gradient is its own
-            loss = loss + self.object_spread(&field, &ad) * self.cfg.object_smoothness;
-        }
+        let loss = loss.expect("at least one view");
         c.sum_f64("the step's losses", &mut stats)?;
         let grads = loss.backward();
         let grads: Vec<Option<Tensor<2>>> = params.iter().map(|(_, p)| p.grad(&grads)).collect();
@@ -471,30 +457,6 @@ impl LanguageTrainer {
             loss = loss + lo * self.cfg.object_weight;
         }
         Ok((loss, host(lv)[0], lo_v, objects.len()))
-    }
-
-    /// `mean |f - mean of f over the Gaussian's object|` over both feature tensors of `field`
-    /// (on `device`), the object of a Gaussian being its identity feature's class (the geometry's
-    /// classifier, per Gaussian): what `object_smoothness` weighs.
-    pub fn object_spread(&self, field: &LanguageField, device: &Device) -> Tensor<1> {
-        let m = &self.scene.splats;
-        let logits = m.identity.val().matmul(m.classifier_w.val()) + m.classifier_b.val();
-        let (n, k) = (logits.dims()[0], logits.dims()[1]);
-        let class = host(logits.argmax(1).float().reshape([n]));
-        let mut onehot = vec![0f32; n * k];
-        let mut count = vec![0f32; k];
-        for (i, c) in class.iter().enumerate() {
-            onehot[i * k + *c as usize] = 1.0;
-            count[*c as usize] += 1.0;
-        }
-        let inv: Vec<f32> = count.iter().map(|c| 1.0 / c.max(1.0)).collect();
-        let onehot = Tensor::<2>::from_data(TensorData::new(onehot, [n, k]), device);
-        let inv = Tensor::<2>::from_data(TensorData::new(inv, [k, 1]), device);
-        let spread = |f: Tensor<2>| {
-            let mean = onehot.clone().transpose().matmul(f.clone()) * inv.clone();
-            (f - onehot.clone().matmul(mean)).abs().mean()
-        };
-        spread(field.view_features.val()) + spread(field.object_features.val())
     }
 
     /// Fails when the ranks' fields differ (see [`dist::check_hash`]).

@@ -92,8 +92,20 @@ pub fn run(
         t.save(out)?;
     }
     t.check_in_step(c)?;
+    // A resumed run with nothing left to train keeps the figures of the training that made its
+    // weights (token L1 before and after, time per step): they are not measured again, and not
+    // rewritten as before == after and no time at all.
+    let stored = if root && resumed_from.is_some() && t.iter >= t.cfg.iters && out.metrics().is_file() {
+        Some(io::read_json::<LanguageMetrics>(&out.metrics())?)
+    } else {
+        None
+    };
     let all: Vec<usize> = (0..t.views.len()).collect();
-    let before = if root { t.token_l1(&all)? } else { (0.0, 0.0) };
+    let before = match &stored {
+        Some(m) => (m.train_view_token_l1_before, m.train_object_token_l1_before),
+        None if root => t.token_l1(&all)?,
+        None => (0.0, 0.0),
+    };
     let start = std::time::Instant::now();
     let mut saved_at = std::time::Instant::now();
     let first = t.iter;
@@ -141,21 +153,14 @@ pub fn run(
         });
     }
     // the last update was judged by no step: its token L1 against the one before the first step
-    let after = t.token_l1(&all)?;
+    let after = match &stored {
+        Some(m) => (m.train_view_token_l1, m.train_object_token_l1),
+        None => t.token_l1(&all)?,
+    };
     let w = t.cfg.object_weight;
     guard.check_end(t.iter, before.0 + w * before.1, after.0 + w * after.1)?;
     t.save(out)?;
-    // A resumed run with nothing left to train keeps the figures of the training that made its
-    // weights (its before-L1 and time per step), not before == after and no time at all.
-    let stored = if resumed_from.is_some() && t.iter == first && out.metrics().is_file() {
-        Some(io::read_json::<LanguageMetrics>(&out.metrics())?)
-    } else {
-        None
-    };
-    let (before, seconds_per_iter) = match &stored {
-        Some(m) => ((m.train_view_token_l1_before, m.train_object_token_l1_before), m.seconds_per_iter),
-        None => (before, seconds_per_iter),
-    };
+    let seconds_per_iter = stored.as_ref().map_or(seconds_per_iter, |m| m.seconds_per_iter);
     if stored.is_none() {
         let metrics = LanguageMetrics {
             iters: t.iter,

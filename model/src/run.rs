@@ -392,10 +392,29 @@ pub struct Compaction {
 pub struct TeacherViewEntry {
     /// The token file, relative to the teacher directory.
     pub file: String,
-    /// The view's image in the dataset.
+    /// The view's image in the dataset (a novel view: its name, `novel_K`).
     pub image: String,
     /// Object ids with tokens in this view, ascending.
     pub objects: Vec<u8>,
+    /// A novel view's camera: its image was rendered from the frozen geometry there
+    /// ([`NovelSource`]), not photographed. `None`: a training photo of the dataset.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub camera: Option<StoredCamera>,
+}
+
+/// Where a teacher's novel views came from: renders of a geometry run at cameras between the
+/// training cameras, taught as if they were photos.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct NovelSource {
+    /// The geometry run that rendered them.
+    pub run: StoredPath,
+    /// A hash of that run's Gaussians (16 hex digits): a language stage on other Gaussians refuses
+    /// the novel views, whose pictures would not be its scene's.
+    pub gaussians_hash: String,
+    /// How many, and the seed of their cameras.
+    pub count: usize,
+    pub seed: u64,
 }
 
 /// `teacher.json`: the index of a teacher directory (`chatsplat extract --out`).
@@ -424,7 +443,11 @@ pub struct TeacherIndex {
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub masks: Option<StoredPath>,
     pub min_object_pixels: usize,
+    /// Training photos first, then the novel views (entries with a camera), if any.
     pub views: Vec<TeacherViewEntry>,
+    /// The source of the novel views (`None`: photos only).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub novel: Option<NovelSource>,
 }
 
 /// A teacher directory: `teacher.json` and one token file per training view.

@@ -6,7 +6,7 @@ use model::Backend;
 use model::data::LoadOptions;
 use model::run::TeacherDir;
 use std::path::{Path, PathBuf};
-use train::teacher::{ExtractOptions, extract};
+use train::teacher::{ExtractOptions, NovelViews, extract};
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -35,6 +35,18 @@ pub struct Args {
     /// (workers on one shared OUT); the last to finish writes the index.
     #[arg(long)]
     pub shard: Option<String>,
+    /// Also teach this many novel views: the geometry run `--run` rendered at cameras between
+    /// the training cameras (its RGB and rendered identity taught like a photo and its masks), so
+    /// the language field is supervised where the capture has no photo.
+    #[arg(long, default_value_t = 0, requires = "run")]
+    pub novel_views: usize,
+    /// The geometry run (`chatsplat train --out`) that renders the novel views; train the language
+    /// stage on this run.
+    #[arg(long)]
+    pub run: Option<PathBuf>,
+    /// Seed of the novel views' cameras.
+    #[arg(long, default_value_t = 0)]
+    pub novel_seed: u64,
 }
 
 pub fn run(a: Args) -> anyhow::Result<()> {
@@ -48,6 +60,11 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         margin: a.margin,
         load: LoadOptions { downscale: a.downscale, masks: a.masks.clone(), ..Default::default() },
         shard,
+        novel: a.run.as_ref().map(|run| NovelViews {
+            run: model::run::GeometryRun::new(run),
+            count: a.novel_views,
+            seed: a.novel_seed,
+        }),
         ..Default::default()
     };
     teacher(&vlm_dir, &a.data, &out, &opts, a.backend)
@@ -74,10 +91,13 @@ pub fn teacher(
             opts,
             |plan| {
                 let objects: usize = plan.views.iter().map(|v| v.objects.len()).sum();
+                let novel = opts.novel.as_ref().map_or(0, |n| n.count);
+                let views = match novel {
+                    0 => format!("{} training views", plan.views.len()),
+                    n => format!("{} training views + {n} novel views", plan.views.len() - n),
+                };
                 eprintln!(
-                    "{} training views + {objects} object crops -> {} images of {}x{} tokens; about {:.1} MB \
-                        of f16 in {}",
-                    plan.views.len(),
+                    "{views} + {objects} object crops -> {} images of {}x{} tokens; about {:.1} MB of f16 in {}",
                     plan.views.len() + objects,
                     plan.tokens_per_image,
                     plan.dim,

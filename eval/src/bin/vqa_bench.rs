@@ -31,6 +31,7 @@ use std::path::PathBuf;
 use std::time::Instant;
 use train::geometry::GeometryConfig;
 use train::language::LanguageTrainConfig;
+use train::teacher::{ExtractOptions, NovelViews};
 
 #[derive(Parser)]
 #[command(name = "vqa-bench", about = "ChatSplat vs the VLM on ground-truth and rendered images, offline")]
@@ -57,6 +58,10 @@ struct Args {
     /// for the paper's constant rate); `--language-iters` sets its iterations.
     #[arg(long)]
     language_config: Option<PathBuf>,
+    /// Also teach the language stage this many novel views per scene: the scene's geometry
+    /// rendered between its training cameras (`chatsplat extract --novel-views`).
+    #[arg(long, default_value_t = 0)]
+    novel_views: usize,
     /// Work directory (datasets, runs) and bench.json.
     #[arg(long, default_value = "out/vqa-bench")]
     out: PathBuf,
@@ -343,7 +348,9 @@ fn bench(a: &Args) -> Result<()> {
             }
         })?;
         let teacher = TeacherDir::new(data.join("teacher"));
-        train::teacher::extract(&vlm, &data, &teacher, &Default::default(), |_| {}, |_, _| {})?;
+        let novel = (a.novel_views > 0).then(|| NovelViews { run: run.clone(), count: a.novel_views, seed });
+        let eo = ExtractOptions { novel, ..Default::default() };
+        train::teacher::extract(&vlm, &data, &teacher, &eo, |_| {}, |_, _| {})?;
         let lang = LanguageRun::new(run.dir.join("language"));
         let lcfg = language_config.clone();
         let bar = Progress::new(format!("seed {seed} language"), "it");
@@ -504,7 +511,7 @@ fn bench(a: &Args) -> Result<()> {
     }
     let settings = serde_json::json!({
         "seeds": [a.first_seed, a.first_seed + a.seeds], "views": a.views, "resolution": a.resolution,
-        "geometry_iters": a.geometry_iters, "language_iters": a.language_iters,
+        "geometry_iters": a.geometry_iters, "language_iters": a.language_iters, "novel_views": a.novel_views,
         "language_config": language_config, "backend": a.backend.to_string(),
     });
     report(&totals, &format!("{} views of {}px", a.views, a.resolution), settings, &a.out)

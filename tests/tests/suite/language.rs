@@ -263,7 +263,7 @@ fn end_to_end_language_field_chat_and_export() {
 
     // --- resume: 40 + 20 iterations == the state after 60 uninterrupted iterations
     let mut a = LanguageTrainer::new(&geometry, teacher.clone(), lang_cfg(60), &dev).unwrap();
-    let order: Vec<usize> = (0..60).map(|i| train::geometry::view_at(i, a.views.len(), 0)).collect();
+    let order: Vec<usize> = (0..60).map(|i| train::geometry::view_at(i, a.cameras.len(), 0)).collect();
     for &v in &order[..40] {
         a.step(v).unwrap();
     }
@@ -404,6 +404,74 @@ fn end_to_end_language_field_chat_and_export() {
         .render_map(session.scene.field.view_features.val(), &session.scene.cfg.view_camera(&ds.train[1].camera))
         .unwrap();
     assert_eq!(host(enc.forward(map.clone())), host(session.scene.field.encoder.forward(map)));
+}
+
+/// Novel views: the geometry rendered between the training cameras and taught like photos. The
+/// teacher file of a novel view holds the tokens of that render; a re-run keeps every file; the
+/// language stage trains on the novel views (their token L1 falls) and refuses them on other
+/// Gaussians.
+#[test]
+fn novel_views_teach_the_field_between_the_training_cameras() {
+    use train::teacher::{ExtractOptions, NovelViews, extract, gaussians_hash};
+    let dev = Device::ndarray();
+    let (data, run_dir, _, vlm) = scene_with_teacher("lang-novel");
+    let geometry = GeometryRun::new(&run_dir);
+    let teacher_dir = temp_dir("lang-novel-teacher2");
+    let eo =
+        ExtractOptions { novel: Some(NovelViews { run: geometry.clone(), count: 5, seed: 7 }), ..Default::default() };
+    let s = extract(&vlm, &data, &TeacherDir::new(&teacher_dir), &eo, |_| {}, |_, _| {}).unwrap();
+    let set = TeacherSet::open(&teacher_dir).unwrap();
+    let photos = set.photos();
+    assert_eq!(set.index.views.len(), photos + 5);
+    assert_eq!(s.written, photos + 5);
+    assert!(set.index.views[..photos].iter().all(|v| v.camera.is_none()));
+    assert!(set.index.views[photos..].iter().all(|v| v.camera.is_some() && !v.objects.is_empty()));
+    let (splats, state) = geometry.load_model(&dev).unwrap();
+    assert_eq!(set.index.novel.as_ref().unwrap().gaussians_hash, gaussians_hash(&splats));
+    // each novel view's tokens are the teacher's tokens of the geometry rendered at its camera
+    let cameras = set.cameras().unwrap();
+    for v in [photos, photos + 4] {
+        let r = splats.render(&cameras[v], state.sh_degree, state.background).unwrap();
+        let rgb: Vec<f32> = r.rgb.iter().map(|c| c.clamp(0.0, 1.0)).collect();
+        let (w, h) = (cameras[v].width as usize, cameras[v].height as usize);
+        let want = host(vlm.teacher_tokens(&model::vlm::preprocess::RgbImage::from_f32(w, h, &rgb)));
+        let got = set.tokens(v, None).unwrap();
+        let err = want.iter().zip(&got).map(|(a, b)| (a - b).abs()).fold(0f32, f32::max);
+        let scale = want.iter().map(|a| a.abs()).fold(0f32, f32::max);
+        assert!(err <= 2e-3 * scale.max(1.0), "novel view {v}: tokens differ by {err} (scale {scale})");
+        // ... and a novel camera is none of the training cameras
+        assert!(cameras[..photos].iter().all(|c| c.world_to_cam != cameras[v].world_to_cam));
+    }
+    // a re-run keeps every file
+    let again = extract(&vlm, &data, &TeacherDir::new(&teacher_dir), &eo, |_| {}, |_, _| {}).unwrap();
+    assert_eq!((again.written, again.skipped, again.indexed), (0, photos + 5, true));
+
+    // the language stage takes them as views: training on the novel views lowers their token L1
+    let mut t = LanguageTrainer::new(&geometry, set.clone(), lang_cfg(40), &dev).unwrap();
+    assert_eq!(t.cameras.len(), photos + 5);
+    let novel: Vec<usize> = (photos..photos + 5).collect();
+    let before = t.token_l1(&novel).unwrap();
+    for i in 0..40 {
+        t.step(novel[i % 5]).unwrap();
+    }
+    let after = t.token_l1(&novel).unwrap();
+    assert!(after.0 < before.0 / 1.2 && after.1 < before.1 / 1.2, "novel token L1 {before:?} -> {after:?}");
+
+    // other Gaussians (the means nudged) refuse the novel views, naming the way out
+    let other_dir = temp_dir("lang-novel-other");
+    for e in std::fs::read_dir(&run_dir).unwrap() {
+        let p = e.unwrap().path();
+        if p.is_file() {
+            std::fs::copy(&p, other_dir.join(p.file_name().unwrap())).unwrap();
+        }
+    }
+    let other = GeometryRun::new(&other_dir);
+    let (mut tensors, meta) = model::io::read_f32(&other.checkpoint()).unwrap();
+    tensors.get_mut("means").unwrap().1[0] += 0.01;
+    let named = tensors.into_iter().map(|(n, (s, v))| (n, s, v)).collect();
+    model::io::write_f32(&other.checkpoint(), named, Some(meta)).unwrap();
+    let e = LanguageTrainer::new(&other, set, lang_cfg(40), &dev).err().expect("other Gaussians refused").to_string();
+    assert!(e.contains("novel views") && e.contains("--run"), "{e}");
 }
 
 /// A small language scene on `dev`: the built-in Gaussian tabletop with a fresh field.

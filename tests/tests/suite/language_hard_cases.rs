@@ -135,7 +135,7 @@ fn assert_saved_run_is_sound(case: &Case) -> f32 {
         assert_finite(&name, &host(t));
     }
     let mut t = LanguageTrainer::resume(&case.geometry(), &case.language(), &dev).unwrap();
-    let views: Vec<usize> = (0..t.views.len()).collect();
+    let views: Vec<usize> = (0..t.cameras.len()).collect();
     let (lv, lo) = t.token_l1(&views).unwrap();
     assert!(lv.is_finite() && lo.is_finite(), "token L1 {lv} / {lo}");
     lv
@@ -182,7 +182,7 @@ fn outlier_teacher_channels_and_a_constant_channel_train_finite() {
     assert_saved_run_is_sound(&case);
     // the constant channel comes out as the constant
     let t = LanguageTrainer::resume(&case.geometry(), &case.language(), &Device::ndarray()).unwrap();
-    let tokens = host(t.scene.view_tokens(&t.scene.field, &t.views[0].camera).unwrap());
+    let tokens = host(t.scene.view_tokens(&t.scene.field, &t.cameras[0]).unwrap());
     let worst = tokens.iter().skip(2).step_by(d).map(|x| (x - 7.5).abs()).fold(0f32, f32::max);
     assert!(worst < 0.5, "the constant channel is off by up to {worst}");
 }
@@ -230,8 +230,8 @@ fn a_view_without_objects_and_a_one_pixel_object_train_finite() {
     let dev = Device::ndarray();
     // a pixel of view 1 where the geometry renders one of the teacher's objects of that view
     let t = LanguageTrainer::new(&case.geometry(), TeacherSet::open(&case.teacher).unwrap(), cfg(20), &dev).unwrap();
-    let ids = t.scene.splats.render_ids(&t.views[1].camera).unwrap();
-    let w = t.views[1].camera.width as usize;
+    let ids = t.scene.splats.render_ids(&t.cameras[1]).unwrap();
+    let w = t.cameras[1].width as usize;
     let (p, id) = t.teacher.views[1]
         .objects
         .iter()
@@ -252,7 +252,7 @@ fn a_view_without_objects_and_a_one_pixel_object_train_finite() {
     let one = set.views[1].objects[0].clone();
     assert_eq!((one.bbox[2] - one.bbox[0], one.bbox[3] - one.bbox[1]), (1, 1));
     let mut t = LanguageTrainer::new(&case.geometry(), set, cfg(20), &dev).unwrap();
-    let (_, mask) = t.scene.object_crop(&t.views[1].camera, one.id, one.bbox).unwrap();
+    let (_, mask) = t.scene.object_crop(&t.cameras[1], one.id, one.bbox).unwrap();
     let kept = mask.iter().filter(|&&m| m > 0.0).count();
     eprintln!("one-pixel object: {kept} of {} map pixels kept by its mask", mask.len());
     assert!((1..=9).contains(&kept), "a one-pixel box keeps {kept} map pixels");
@@ -290,7 +290,7 @@ fn gaussians_of_degenerate_scale_train_finite() {
     });
     let dev = Device::ndarray();
     let t = LanguageTrainer::new(&case.geometry(), TeacherSet::open(&case.teacher).unwrap(), cfg(20), &dev).unwrap();
-    let cam = t.scene.cfg.view_camera(&t.views[0].camera);
+    let cam = t.scene.cfg.view_camera(&t.cameras[0]);
     let w = std::sync::Arc::new(t.scene.blend_weights(&cam).unwrap());
     let replay = host(t.scene.blend_map(t.scene.field.view_features.val(), &w).unwrap());
     let raster = host(t.scene.render_map(t.scene.field.view_features.val(), &cam).unwrap());

@@ -23,7 +23,7 @@ pub fn choose(t: &mut LanguageTrainer, full: (f32, f32)) -> Result<Option<Compac
     let tolerance = t.cfg.compact_tolerance;
     let w = t.cfg.object_weight;
     let score = |(v, o): (f32, f32)| v + w * o;
-    let views: Vec<usize> = (0..t.views.len()).collect();
+    let views: Vec<usize> = (0..t.cameras.len()).collect();
     let n = t.contribution.len();
     let mut candidates = Vec::new();
     let mut best: Option<(Vec<usize>, (f32, f32))> = None;

@@ -20,7 +20,6 @@ use crate::schedule::warmup_cosine;
 use crate::teacher::{TeacherObject, TeacherSet};
 use burn::optim::{Adam, AdamConfig};
 use burn::tensor::{Device, Tensor, TensorData};
-use model::data::View;
 use model::error::{Error, Result};
 use model::io;
 use model::language::field::ParamGroup;
@@ -164,7 +163,8 @@ pub struct LanguageTrainer {
     pub cfg: LanguageTrainConfig,
     pub scene: LanguageScene,
     pub teacher: TeacherSet,
-    pub views: Vec<View>,
+    /// The camera of every teacher view: the training photos', then the novel views'.
+    pub cameras: Vec<Camera>,
     pub states: AdamStates,
     pub iter: usize,
     /// Per-Gaussian sum of |gradient| of both feature tensors: zero = never seen by any map.
@@ -208,9 +208,10 @@ impl LanguageTrainer {
                 ),
             ));
         }
-        let views = teacher.dataset()?.train;
+        teacher.check_novel(&splats, run)?;
+        let cameras = teacher.cameras()?;
         if cfg.field.patch == 0 {
-            let (w, h) = views.iter().fold((0, 0), |(w, h), v| (w.max(v.camera.width), h.max(v.camera.height)));
+            let (w, h) = cameras.iter().fold((0, 0), |(w, h), c| (w.max(c.width), h.max(c.height)));
             cfg.field.patch = cfg.field.auto_patch(w, h);
         }
         cfg.field.validate()?;
@@ -241,14 +242,14 @@ impl LanguageTrainer {
             margin: teacher.index.object_margin,
             masks: state.data.masks,
         };
-        Ok(Self::with(cfg, scene, teacher, views, device, n))
+        Ok(Self::with(cfg, scene, teacher, cameras, device, n))
     }
 
     fn with(
         cfg: LanguageTrainConfig,
         scene: LanguageScene,
         teacher: TeacherSet,
-        views: Vec<View>,
+        cameras: Vec<Camera>,
         device: &Device,
         n: usize,
     ) -> Self {
@@ -256,7 +257,7 @@ impl LanguageTrainer {
             cfg,
             scene,
             teacher,
-            views,
+            cameras,
             states: AdamStates::default(),
             iter: 0,
             contribution: vec![0.0; n],
@@ -274,7 +275,7 @@ impl LanguageTrainer {
         if let Some(m) = self.masks.get(&(v, obj.id)) {
             return Ok(m.clone());
         }
-        let m = self.scene.object_crop(&self.views[v].camera, obj.id, obj.bbox)?;
+        let m = self.scene.object_crop(&self.cameras[v], obj.id, obj.bbox)?;
         self.masks.insert((v, obj.id), m.clone());
         Ok(m)
     }
@@ -309,7 +310,7 @@ impl LanguageTrainer {
 
     /// View-level tokens of training view `v` with `field`.
     fn view_tokens(&mut self, field: &LanguageField, v: usize) -> Result<Tensor<2>> {
-        let cam = self.views[v].camera;
+        let cam = self.cameras[v];
         if !self.replay() {
             return self.scene.view_tokens(field, &cam);
         }
@@ -480,7 +481,7 @@ impl LanguageTrainer {
     pub fn token_l1_of(&mut self, scene: &LanguageScene, views: &[usize]) -> Result<(f32, f32)> {
         self.l1_over(
             views,
-            |t, v| scene.view_tokens(&scene.field, &t.views[v].camera),
+            |t, v| scene.view_tokens(&scene.field, &t.cameras[v]),
             |t, v, obj| {
                 let (oc, mask) = t.mask(v, obj)?;
                 scene.object_tokens_with(&scene.field, &oc, &mask)
@@ -555,11 +556,12 @@ impl LanguageTrainer {
         let state = out.read_state()?;
         crate::ckpt::check_progress(&out.state(), state.iter, cfg.iters, &state.adam_time)?;
         let teacher = TeacherSet::open(&state.teacher.resolve(&out.dir))?;
-        let views = teacher.dataset()?.train;
+        teacher.check_novel(&scene.splats, run)?;
+        let cameras = teacher.cameras()?;
         let path = out.checkpoint();
         let (mut tensors, _) = io::read_f32(&path)?;
         let n = scene.splats.len();
-        let mut t = Self::with(cfg, scene, teacher, views, device, n);
+        let mut t = Self::with(cfg, scene, teacher, cameras, device, n);
         t.states = AdamStates::take(&state.adam_time, &mut tensors, &path, device)?;
         let (_, contribution) =
             tensors.remove("contribution").ok_or_else(|| Error::invalid(&path, "tensor contribution is missing"))?;

@@ -100,7 +100,7 @@ pub fn run(
     } else {
         None
     };
-    let all: Vec<usize> = (0..t.views.len()).collect();
+    let all: Vec<usize> = (0..t.cameras.len()).collect();
     let before = match &stored {
         Some(m) => (m.train_view_token_l1_before, m.train_object_token_l1_before),
         None if root => t.token_l1(&all)?,
@@ -116,7 +116,7 @@ pub fn run(
     let mut guard = LossGuard::new("lower lr_features and lr_encoder (and check the teacher tokens)");
     let mut pending: Option<Snapshot> = None;
     while t.iter < t.cfg.iters {
-        let views: Vec<usize> = (0..b).map(|j| view_at(t.iter * b + j, t.views.len(), t.cfg.seed)).collect();
+        let views: Vec<usize> = (0..b).map(|j| view_at(t.iter * b + j, t.cameras.len(), t.cfg.seed)).collect();
         let at = t.iter;
         let s = t.step_views(&views, c)?;
         guard.check(at, s.loss)?;

@@ -614,7 +614,9 @@ mod tests {
 
     /// Twelve cameras on a ring around the look-at point.
     fn ring() -> Vec<Camera> {
-        (0..12).map(|i| orbit_camera(i as f32 * 0.5236, 0.5, CAMERA_DISTANCE, LOOK_AT, 40.0, 32, 32)).collect()
+        (0..12)
+            .map(|i| orbit_camera(i as f32 * std::f32::consts::FRAC_PI_6, 0.5, CAMERA_DISTANCE, LOOK_AT, 40.0, 32, 32))
+            .collect()
     }
 
     fn centre(c: &Camera) -> glam::Vec3 {

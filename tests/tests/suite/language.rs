@@ -459,6 +459,7 @@ fn novel_views_teach_the_field_between_the_training_cameras() {
 
     // other Gaussians (the means nudged) refuse the novel views, naming the way out
     let other_dir = temp_dir("lang-novel-other");
+    std::fs::create_dir_all(&other_dir).unwrap();
     for e in std::fs::read_dir(&run_dir).unwrap() {
         let p = e.unwrap().path();
         if p.is_file() {

@@ -241,16 +241,16 @@ struct Novel {
 }
 
 impl Novel {
-    /// Loads `n.run` (trained on the dataset `ds` from `data`) and draws the cameras.
+    /// Loads `n.run` (trained on the dataset `ds` from `data`, of fingerprint `now`) and draws
+    /// the cameras.
     fn open(
         n: &NovelViews,
-        ds: &Dataset,
+        (ds, now): (&Dataset, &str),
         data: &Path,
         out: &TeacherDir,
         device: &burn::tensor::Device,
     ) -> Result<Self> {
         let (splats, state) = n.run.load_model(device)?;
-        let now = ds.fingerprint();
         if !state.data.fingerprint.is_empty() && state.data.fingerprint != now {
             return Err(Error::invalid(
                 &n.run.dir,
@@ -328,10 +328,13 @@ pub fn extract(
     let dim = vlm.cfg.vision.hidden_size;
     let mut plan = plan(&ds.train, grid, dim, opts);
     let photos = ds.train.len();
+    let fingerprint = ds.fingerprint();
     let novel = match &opts.novel {
-        Some(n) if n.count > 0 => Some(Novel::open(n, &ds, data, out, &vlm.device())?),
+        Some(n) if n.count > 0 => Some(Novel::open(n, (&ds, &fingerprint), data, out, &vlm.device())?),
         _ => None,
     };
+    // novel view `k` of plan index `index`, with its geometry
+    let novel_at = |index: usize| novel.as_ref().and_then(|n| index.checked_sub(photos).map(|k| (n, k)));
     if let Some(n) = &novel {
         // the objects of a novel view are those its rendered identity shows
         for k in 0..n.cameras.len() {
@@ -341,15 +344,13 @@ pub fn extract(
             plan.views.push(ViewPlan { index: photos + k, image: PathBuf::from(Novel::name(k)), objects });
         }
     }
-    let gaussians =
-        |vp: &ViewPlan| novel.as_ref().filter(|_| vp.index >= photos).map(|n| n.source.gaussians_hash.clone());
+    let gaussians = |vp: &ViewPlan| novel_at(vp.index).map(|(n, _)| n.source.gaussians_hash.clone());
     on_start(&plan);
     io::create_dir(&out.dir)?;
     // tokens made from other data, another downscale or masks, or by another teacher are redone,
     // and the old index goes first: an interrupted re-run leaves no index rather than a mixed one
     // (so does one with other novel views; their files carry the hash of the Gaussians they
     // were rendered from)
-    let fingerprint = ds.fingerprint();
     let masks = opts.load.masks.as_ref().map(|m| StoredPath::new(m, &out.dir));
     let new_novel = novel.as_ref().map(|n| n.source.clone());
     let old = out.index().is_file().then(|| out.read_index());
@@ -384,13 +385,13 @@ pub fn extract(
             progress(vp.index + 1, total);
             continue;
         }
-        let (img, ids) = match (ds.train.get(vp.index), &novel) {
+        let (img, ids) = match (ds.train.get(vp.index), novel_at(vp.index)) {
             (Some(view), _) => {
                 let [w, h] = [view.camera.width as usize, view.camera.height as usize];
                 (RgbImage::from_f32(w, h, &view.rgb), view.instance_ids.clone())
             }
-            (None, Some(n)) => {
-                let (img, ids) = n.render(vp.index - photos)?;
+            (None, Some((n, k))) => {
+                let (img, ids) = n.render(k)?;
                 (img, Some(ids))
             }
             (None, None) => return Err(Error::input(format!("extract: view {} is past the dataset", vp.index))),
@@ -420,10 +421,7 @@ pub fn extract(
                 file: TeacherDir::view_file_name(v.index),
                 image: v.image.display().to_string(),
                 objects: v.objects.clone(),
-                camera: novel
-                    .as_ref()
-                    .filter(|_| v.index >= photos)
-                    .map(|n| StoredCamera::new(&v.image, &n.cameras[v.index - photos])),
+                camera: novel_at(v.index).map(|(n, k)| StoredCamera::new(&v.image, &n.cameras[k])),
             })
             .collect(),
         novel: new_novel,

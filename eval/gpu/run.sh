@@ -16,7 +16,13 @@
 #          reference the vlm step prints its ratios against;
 #   vlm    vlm-bench: the published 0.5B configuration (random weights), wgpu, flex and ndarray;
 #   train  geometry and language training s/iter on a built-in synthetic scene (wgpu), and
-#          lang-bench's views/s and objects/s (real-size encoder too) on it.
+#          lang-bench's views/s and objects/s (real-size encoder too) on it;
+#   accuracy  splat-bench --accuracy: forward error against the f64 reference and the wgpu
+#          backward's error against ndarray, for each way of adding a tile's gradients;
+#   reduce splat-bench's wgpu forward+backward with each way (--grad-reduce atomic, plane).
+# CHATSPLAT_GPU_TRAIN_REDUCE: the language stage runs once per word in it (default "auto"; e.g.
+# "atomic plane", each through CHATSPLAT_WGPU_GRAD_REDUCE), CHATSPLAT_GPU_GEO_ITERS and
+# CHATSPLAT_GPU_LANG_ITERS shorten the training (defaults 1000 and 300).
 # CHATSPLAT_GPU_PARTS picks the parts (default "splat peers vlm train"; "peers" is "gsplat
 # transformers": split them over two calls if one would pass the device's 10-minute limit per
 # command; vlm takes its reference from CHATSPLAT_GPU_REFERENCE, default
@@ -46,6 +52,7 @@ pack() {
     tar -C "$stripped" -cf - "${bins[@]}" | xz --lzma2=preset=6,dict=256MiB -T1 >.gpu/bin/bins.tar.xz
     rm -rf "$stripped"
     du -sh .gpu/bin
+    mkdir -p .git/info && touch .git/info/exclude
     grep -qx '/.gpu/' .git/info/exclude || echo '/.gpu/' >>.git/info/exclude
     grep -qx '/.gl/' .git/info/exclude || echo '/.gl/' >>.git/info/exclude
     grep -qx '/.whl/' .git/info/exclude || echo '/.whl/' >>.git/info/exclude
@@ -105,7 +112,8 @@ bench() {
     command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv
     local quick=${CHATSPLAT_GPU_QUICK:-0} parts=" ${CHATSPLAT_GPU_PARTS:-splat peers vlm train} "
     parts=${parts/ peers / gsplat transformers }
-    local n=100000,1000000 c=3,32 res=384x384,1280x720 vlm=0.5b views=32 side=96 geo=1000 lang=300 be=wgpu
+    local n=100000,1000000 c=3,32 res=384x384,1280x720 vlm=0.5b views=32 side=96 be=wgpu
+    local geo=${CHATSPLAT_GPU_GEO_ITERS:-1000} lang=${CHATSPLAT_GPU_LANG_ITERS:-300}
     local impls=${CHATSPLAT_GPU_IMPLS:-wgpu,ndarray}
     if [ "$quick" = 1 ]; then
         n=10000 c=3 res=384x384 views=8 side=64 geo=20 lang=5 be=ndarray
@@ -117,6 +125,15 @@ bench() {
     {
         if [[ $parts == *" splat "* ]]; then
             step "$bin/splat-bench" --n "$n" --c "$c" --res "$res" --impls "$impls" --max-secs 20 || true
+        fi
+        if [[ $parts == *" accuracy "* ]]; then
+            step "$bin/splat-bench" --accuracy || true
+        fi
+        if [[ $parts == *" reduce "* ]]; then
+            for r in atomic plane; do
+                step "$bin/splat-bench" --n "$n" --c "$c" --res "$res" --impls wgpu --max-secs 20 --grad-reduce "$r" ||
+                    true
+            done
         fi
         if [[ $parts == *" gsplat "* || $parts == *" transformers "* ]] && [ "$cuda" = 0 ]; then
             echo "peers: skipped (python3's torch sees no CUDA device)"
@@ -154,10 +171,15 @@ bench() {
             step "$bin/chatsplat" synth --out "$scene" --views "$views" --width "$side" --height "$side" &&
                 step "$bin/chatsplat" train --data "$scene" --out "$run" --iters "$geo" --backend "$be" &&
                 step "$bin/chatsplat" extract --data "$scene" --out "$scene/teacher" --backend "$be" &&
-                step "$bin/chatsplat" train-language --run "$run" --teacher "$scene/teacher" --iters "$lang" \
-                    --backend "$be" &&
-                step "$bin/lang-bench" --run "$run" --backend "$be" --sweep-iters 0 --reps 3 --full-size &&
-                cp "$run/bench/bench.json" "$out/lang_bench.json" || true
+                for r in ${CHATSPLAT_GPU_TRAIN_REDUCE:-auto}; do
+                    CHATSPLAT_WGPU_GRAD_REDUCE=$r step "$bin/chatsplat" train-language --run "$run" \
+                        --teacher "$scene/teacher" --iters "$lang" --backend "$be" --no-compact \
+                        --out "$run/language-$r" || true
+                done
+                [ -n "${CHATSPLAT_GPU_TRAIN_REDUCE:-}" ] ||
+                    { mv "$run/language-auto" "$run/language" &&
+                        step "$bin/lang-bench" --run "$run" --backend "$be" --sweep-iters 0 --reps 3 --full-size &&
+                        cp "$run/bench/bench.json" "$out/lang_bench.json"; } || true
         fi
     } 2>&1 | tee "$out/gpu_bench.log"
 }

@@ -49,11 +49,29 @@ pub struct RasterConfig {
     pub t_min: f32,
     /// A Gaussian is binned to the tiles its `extent`-sigma ellipse bounding square touches (3DGS: 3).
     pub extent: f32,
+    /// How the wgpu backward adds per-pixel gradients into each Gaussian's slots (the CPU
+    /// backends ignore it).
+    pub grad_reduce: GradReduce,
+}
+
+/// How the wgpu backward accumulates a tile's per-pixel contributions to one Gaussian's gradient.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum GradReduce {
+    /// [`GradReduce::Plane`] where the adapter reports plane (subgroup) operations, else
+    /// [`GradReduce::Atomic`]. Real GPUs report them; Mesa lavapipe does not. The environment
+    /// variable `CHATSPLAT_WGPU_GRAD_REDUCE=atomic|plane` overrides the choice (to compare them).
+    #[default]
+    Auto,
+    /// Every pixel adds its contribution with its own atomic: up to 256 at once on one slot.
+    Atomic,
+    /// The pixels of a plane (subgroup) sum their contributions first; one atomic per plane.
+    /// Needs an adapter with subgroup support (the shader does not compile without it).
+    Plane,
 }
 
 impl Default for RasterConfig {
     fn default() -> Self {
-        Self { alpha_max: 0.99, alpha_min: 1.0 / 255.0, t_min: 1e-4, extent: 3.0 }
+        Self { alpha_max: 0.99, alpha_min: 1.0 / 255.0, t_min: 1e-4, extent: 3.0, grad_reduce: GradReduce::Auto }
     }
 }
 
@@ -61,6 +79,6 @@ impl RasterConfig {
     /// No alpha skip, no early stop and an 8-sigma footprint: the output is smooth in every input
     /// as long as no alpha reaches `alpha_max` and no Gaussian changes tiles.
     pub fn smooth() -> Self {
-        Self { alpha_max: 0.99, alpha_min: 0.0, t_min: 0.0, extent: 8.0 }
+        Self { alpha_max: 0.99, alpha_min: 0.0, t_min: 0.0, extent: 8.0, ..Self::default() }
     }
 }

@@ -12,7 +12,7 @@ use clap::Parser;
 use model::rng::Rng;
 use model::{Backend, catch_backend};
 use splat_kernels::api::{SplatOptions, splat};
-use splat_kernels::{Camera, Gaussians, RasterConfig, dense};
+use splat_kernels::{Camera, Gaussians, GradReduce, RasterConfig, dense};
 use std::time::Instant;
 
 #[derive(Parser)]
@@ -39,6 +39,27 @@ struct Args {
     /// Instead of timing, print each implementation's error against the f64 reference.
     #[arg(long)]
     accuracy: bool,
+    /// How the wgpu backward adds a tile's gradients: auto (plane sums where the adapter has
+    /// plane operations), atomic (one atomic per pixel) or plane.
+    #[arg(long, value_enum, default_value_t = Reduce::Auto)]
+    grad_reduce: Reduce,
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum Reduce {
+    Auto,
+    Atomic,
+    Plane,
+}
+
+impl From<Reduce> for GradReduce {
+    fn from(r: Reduce) -> Self {
+        match r {
+            Reduce::Auto => GradReduce::Auto,
+            Reduce::Atomic => GradReduce::Atomic,
+            Reduce::Plane => GradReduce::Plane,
+        }
+    }
 }
 
 /// Max abs error of every implementation against the dense f64 reference on a small scene
@@ -112,6 +133,55 @@ fn accuracy() {
     }
 }
 
+/// The backward's error on wgpu, per way of adding a tile's gradients, against ndarray's
+/// deterministic backward: max abs difference over the largest gradient, per parameter, on the
+/// smooth configuration (no alpha threshold whose rounding could flip between backends) with
+/// the usual early stop (without it the transmittance recovered back to front from 1e-30 is noise).
+fn grad_accuracy() {
+    println!();
+    println!("| scene (smooth config) | wgpu backward | means | log_scales | quats | opacity | features |");
+    println!("|---|---|---|---|---|---|---|");
+    // From few Gaussians per tile to many (the last two overlap hundreds per tile).
+    for (n, c, w, h) in [(40usize, 32usize, 45u32, 37u32), (300, 32, 64, 48), (2000, 3, 64, 48), (2000, 32, 160, 120)] {
+        grad_errors(n, c, w, h);
+    }
+}
+
+fn grad_errors(n: usize, c: usize, w: u32, h: u32) {
+    let cam = Camera::look_at(glam::Vec3::ZERO, glam::Vec3::Z, -glam::Vec3::Y, 50.0, w, h);
+    let host = scene(n, c);
+    let grads = |device: &Device, reduce: GradReduce| -> Vec<Vec<f32>> {
+        let device = device.clone().autodiff();
+        let (g, bg) = tensors(&host, n, c, &device, true);
+        let config = RasterConfig { grad_reduce: reduce, t_min: 1e-4, ..RasterConfig::smooth() };
+        let out = splat(&g, &cam, bg, &SplatOptions { config, ..Default::default() }).expect("valid");
+        let loss = (out.features.clone() * out.features).sum() + out.alpha.sum() + out.depth.sum();
+        let gr = loss.backward();
+        let get = |t: burn::tensor::Tensor<2>| t.grad(&gr).expect("gradient").into_data().to_vec::<f32>().expect("f32");
+        vec![
+            get(g.means),
+            get(g.log_scales),
+            get(g.quats),
+            g.opacity_logits.grad(&gr).expect("gradient").into_data().to_vec::<f32>().expect("f32"),
+            get(g.features),
+        ]
+    };
+    let want = grads(&Device::ndarray(), GradReduce::Atomic);
+    for (name, reduce) in [("atomic", GradReduce::Atomic), ("plane", GradReduce::Plane), ("auto", GradReduce::Auto)] {
+        let Ok(got) = catch_backend("wgpu", || grads(&Backend::Wgpu.device(), reduce)) else { continue };
+        let cells: Vec<String> = got
+            .iter()
+            .zip(&want)
+            .map(|(a, b)| {
+                let scale = b.iter().fold(1e-30f32, |m, v| m.max(v.abs()));
+                let err = a.iter().zip(b).fold(0.0f32, |m, (x, y)| m.max((x - y).abs()));
+                format!("{:.2e}", err / scale)
+            })
+            .collect();
+        println!("| N={n}, C={c}, {w}x{h} | {name} | {} |", cells.join(" | "));
+    }
+}
+
 /// A cloud of `n` Gaussians filling a box in front of the camera; sizes shrink as n^(-1/3) so the
 /// depth complexity stays comparable across n.
 fn scene(n: usize, c: usize) -> Vec<Vec<f32>> {
@@ -178,10 +248,11 @@ fn op_fwd(host: &[Vec<f32>], n: usize, c: usize, cam: &Camera, device: &Device) 
     })
 }
 
-fn op_fwd_bwd(host: &[Vec<f32>], n: usize, c: usize, cam: &Camera, device: &Device) -> f64 {
+fn op_fwd_bwd(host: &[Vec<f32>], n: usize, c: usize, cam: &Camera, device: &Device, reduce: GradReduce) -> f64 {
     let device = device.clone().autodiff();
     let (g, bg) = tensors(host, n, c, &device, true);
-    let opts = SplatOptions { validate: false, ..Default::default() };
+    let config = RasterConfig { grad_reduce: reduce, ..Default::default() };
+    let opts = SplatOptions { validate: false, config, ..Default::default() };
     time_runs(|| {
         let out = splat(&g, cam, bg.clone(), &opts).expect("valid");
         let loss = out.features.sum() + out.alpha.sum();
@@ -232,9 +303,11 @@ fn main() {
     let a = Args::parse();
     if a.accuracy {
         accuracy();
+        grad_accuracy();
         return;
     }
     let want = |s: &str| a.impls.iter().any(|x| x == s);
+    let reduce = GradReduce::from(a.grad_reduce);
     println!(
         "| res | N | C | ndarray fwd | ndarray f+b | wgpu fwd | wgpu f+b | dense fwd | dense f+b | ndarray vs \
             dense (fwd / f+b) |"
@@ -264,13 +337,13 @@ fn main() {
                 };
                 let nd = Device::ndarray();
                 let ndf = run(0, want("ndarray"), &mut || op_fwd(&host, n, c, &cam, &nd));
-                let ndb = run(1, want("ndarray"), &mut || op_fwd_bwd(&host, n, c, &cam, &nd));
+                let ndb = run(1, want("ndarray"), &mut || op_fwd_bwd(&host, n, c, &cam, &nd, reduce));
                 let wg = Backend::Wgpu.device();
                 let wgf = run(2, want("wgpu"), &mut || {
                     catch_backend("wgpu", || op_fwd(&host, n, c, &cam, &wg)).unwrap_or(f64::NAN)
                 });
                 let wgb = run(3, want("wgpu"), &mut || {
-                    catch_backend("wgpu", || op_fwd_bwd(&host, n, c, &cam, &wg)).unwrap_or(f64::NAN)
+                    catch_backend("wgpu", || op_fwd_bwd(&host, n, c, &cam, &wg, reduce)).unwrap_or(f64::NAN)
                 });
                 let (mut df, mut db) = (None, None);
                 let (mut cf, mut cb) = (1.0, 1.0);

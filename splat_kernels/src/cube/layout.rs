@@ -47,3 +47,6 @@ pub(super) const C_EXTENT: usize = 20;
 pub(super) const C_ALPHA_MAX: usize = 21;
 pub(super) const C_ALPHA_MIN: usize = 22;
 pub(super) const C_T_MIN: usize = 23;
+
+/// The runtime trip count of [`super::raster`]'s loop canary (see `loop_canary`).
+pub(super) const CANARY_TRIPS: u32 = 2;

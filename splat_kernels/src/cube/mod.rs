@@ -14,8 +14,10 @@
 //!
 //! Backward: steps 1-4 again, then (6) `raster_bwd_kernel` walks each pixel's list back to front
 //! and adds per-Gaussian screen-space gradients with atomic float adds (compare-and-swap on the
-//! bits), then (7) `project_bwd_kernel` maps them to the 3D parameters. Float atomics make the wgpu
-//! gradients order-dependent in the last bits (the CPU path is bitwise deterministic).
+//! bits; where the adapter has plane operations each plane sums its pixels' contributions
+//! first, [`crate::GradReduce`]), then (7) `project_bwd_kernel` maps them to the 3D parameters.
+//! Float atomics make the wgpu gradients order-dependent in the last bits (the CPU path is
+//! bitwise deterministic).
 //!
 //! The math mirrors [`crate::project`] and [`crate::cpu`] line for line; see there for derivations.
 //! Files by pipeline stage: `project` (1, 7), `sort` (2-4), `raster` (5, 6), `layout` (the packed
@@ -27,7 +29,7 @@ mod raster;
 mod sort;
 
 use crate::camera::Camera;
-use crate::constants::{RasterConfig, TILE_PIXELS};
+use crate::constants::{GradReduce, RasterConfig, TILE_PIXELS};
 use crate::ext::{SplatBackend, SplatFwdPrims, SplatPrims, SplatSaved};
 use burn::backend::ops::FloatTensorOps;
 use burn::backend::try_read_sync;
@@ -35,14 +37,18 @@ use burn::backend::wgpu::{CubeBackend, CubeTensor};
 use burn::tensor::{DType, Shape, TensorData};
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::{empty_device_dtype, zeros_client};
+use cubecl::features::Plane;
 use cubecl::prelude::*;
-use layout::{CAM, G2D, PROJ};
+use layout::{CAM, CANARY_TRIPS, G2D, PROJ};
 use project::{project_bwd_kernel, project_kernel};
 use raster::{raster_bwd_kernel, raster_fwd_kernel};
 use sort::{emit_kernel, scan_kernel, tile_sort_kernel};
 
 // ---------------------------------------------------------------------------------------------
 // Host-side orchestration.
+
+/// Overrides [`GradReduce::Auto`]'s choice for the whole process: `atomic` or `plane`.
+pub const GRAD_REDUCE_ENV: &str = "CHATSPLAT_WGPU_GRAD_REDUCE";
 
 fn buf(t: &CubeTensor) -> BufferArg {
     let len = t.meta.shape().num_elements().max(1);
@@ -107,6 +113,8 @@ struct DeviceBins {
     counts: CubeTensor,
     gids: CubeTensor,
     cam: CubeTensor,
+    /// One flag: a kernel of this call reached lavapipe's loop limit ([`check_loops`]).
+    truncated: CubeTensor,
 }
 
 fn bin(p: &SplatPrims<CubeBackend>, camera: &Camera, config: &RasterConfig) -> DeviceBins {
@@ -141,6 +149,7 @@ fn bin(p: &SplatPrims<CubeBackend>, camera: &Camera, config: &RasterConfig) -> D
     }
     let offsets = alloc(like, vec![num_tiles], DType::I32);
     let total = alloc(like, vec![1], DType::I32);
+    let truncated = zeros(like, vec![1], DType::I32);
     scan_kernel::launch(
         client,
         CubeCount::Static(1, 1, 1),
@@ -182,9 +191,34 @@ fn bin(p: &SplatPrims<CubeBackend>, camera: &Camera, config: &RasterConfig) -> D
             buf(&offsets),
             buf(&counts),
             tx,
+            CANARY_TRIPS,
+            buf(&truncated),
         );
     }
-    DeviceBins { proj, rects, offsets, counts, gids, cam }
+    DeviceBins { proj, rects, offsets, counts, gids, cam, truncated }
+}
+
+/// Mesa lavapipe ends every loop of a shader invocation, silently, once it has run 65,535 loop
+/// iterations in all; the kernels mark `truncated` when that happened (`raster::loop_canary`).
+/// Read back on software adapters only (no physical card: a GPU has no such limit, and the read
+/// would stall its queue). Panics rather than hand on results that lost Gaussians.
+fn check_loops(truncated: &CubeTensor, pass: &str) {
+    let props = truncated.client.properties();
+    if props.identity.physical.is_some() {
+        return;
+    }
+    let data =
+        try_read_sync(<CubeBackend as burn::backend::ops::IntTensorOps<CubeBackend>>::int_into_data(truncated.clone()))
+            .expect("synchronous read is supported")
+            .expect("tensor read succeeds");
+    if data.convert::<i64>().into_vec::<i64>().expect("int data")[0] != 0 {
+        panic!(
+            "the splatting {pass} on `{}` reached the software rasterizer's limit of 65,535 shader loop iterations \
+             per pixel (a tile holds too many Gaussians or channels for it), so its result would be silently wrong: \
+             use the ndarray backend on a CPU, or a GPU",
+            props.identity.name
+        );
+    }
 }
 
 fn contiguous_inputs(p: SplatPrims<CubeBackend>) -> SplatPrims<CubeBackend> {
@@ -229,7 +263,10 @@ impl SplatBackend for CubeBackend {
             camera.height,
             tx,
             c as u32,
+            CANARY_TRIPS,
+            buf(&b.truncated),
         );
+        check_loops(&b.truncated, "forward");
         SplatFwdPrims { packed, top_id, final_t, n_visited }
     }
 
@@ -252,6 +289,15 @@ impl SplatBackend for CubeBackend {
         let g2d = zeros(&p.means, vec![n.max(1), G2D], DType::F32);
         let gfeat = zeros(&p.means, vec![n.max(1), c], DType::F32);
         let client = p.means.client.clone();
+        let plane = match config.grad_reduce {
+            GradReduce::Auto => match std::env::var(GRAD_REDUCE_ENV).as_deref() {
+                Ok("atomic") => false,
+                Ok("plane") => true,
+                _ => client.properties().features.plane.contains(Plane::Ops),
+            },
+            GradReduce::Atomic => false,
+            GradReduce::Plane => true,
+        };
         raster_bwd_kernel::launch(
             &client,
             CubeCount::Static(tx, ty, 1),
@@ -272,7 +318,11 @@ impl SplatBackend for CubeBackend {
             camera.height,
             tx,
             c as u32,
+            CANARY_TRIPS,
+            buf(&b.truncated),
+            plane,
         );
+        check_loops(&b.truncated, "backward");
         let g_means = alloc(&p.means, vec![n.max(1), 3], DType::F32);
         let g_scales = alloc(&p.means, vec![n.max(1), 3], DType::F32);
         let g_quats = alloc(&p.means, vec![n.max(1), 4], DType::F32);

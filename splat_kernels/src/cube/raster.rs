@@ -5,6 +5,22 @@ use super::layout::*;
 use crate::constants::{TILE_PIXELS, TILE_SIZE};
 use cubecl::prelude::*;
 
+/// Mesa lavapipe (llvmpipe) silently ends every loop of an invocation once that invocation has
+/// run 65,535 loop iterations in all (its `LP_MAX_TGSI_LOOP_ITERATIONS`, shared by every loop
+/// of the shader): a tile with many Gaussians then loses contributions without a sign. Called
+/// last, this loop with a runtime trip count of [`CANARY_TRIPS`] runs once instead when the
+/// limit was reached, and marks `truncated[0]`; GPUs have no such limit and never mark it.
+#[cube]
+pub(super) fn loop_canary(canary: u32, truncated: &mut [u32]) {
+    let mut trips = 0u32;
+    for _ in 0..canary {
+        trips += 1;
+    }
+    if trips != canary {
+        truncated[0] = 1;
+    }
+}
+
 /// Each thread of the workgroup copies one tile-list entry (`first + UNIT_POS`, if below
 /// `first + len`) into shared memory: its id and the first 7 projected floats.
 #[cube]
@@ -98,6 +114,8 @@ pub(super) fn raster_fwd_kernel(
     height: u32,
     tiles_x: u32,
     channels: u32,
+    canary: u32,
+    truncated: &mut [u32],
 ) {
     // Shared staging for one batch: TILE_PIXELS ids and STAGED floats each (256 x 7: sizes must be literals).
     let mut s_gid = Shared::<[u32]>::new_slice(256usize);
@@ -165,6 +183,7 @@ pub(super) fn raster_fwd_kernel(
         final_t[pix] = t;
         n_visited[pix] = nv;
     }
+    loop_canary(canary, truncated);
 }
 
 /// `buf[idx] += val` on f32 bits stored in u32 atomics (compare-and-swap loop).
@@ -181,8 +200,23 @@ fn atomic_add_f32(buf: &[Atomic<u32>], idx: usize, val: f32) {
     }
 }
 
+/// `buf[idx] += sum of val over the plane (subgroup)`: one atomic from the plane's first unit
+/// instead of one per unit. Every unit of the plane must call it (uniform control flow per plane).
+#[cube]
+fn plane_add_f32(buf: &[Atomic<u32>], idx: usize, val: f32) {
+    let s = plane_sum(val);
+    if UNIT_POS_PLANE == 0 && s != 0.0 {
+        atomic_add_f32(buf, idx, s);
+    }
+}
+
 /// Workgroup per tile, thread per pixel: back-to-front walk, atomic accumulation of screen-space
 /// and feature gradients per Gaussian.
+///
+/// All units of a tile visit the same Gaussian at the same step, so its gradient slots are the
+/// target of up to 256 atomics at once. With `plane` the units of each plane (subgroup, 32 on
+/// NVIDIA) first sum their contributions and one of them adds the sum: 8 atomics per slot and
+/// tile instead of 256 (the launch picks it where the adapter reports plane operations).
 #[cube(launch)]
 pub(super) fn raster_bwd_kernel(
     proj: &[f32],
@@ -201,6 +235,9 @@ pub(super) fn raster_bwd_kernel(
     height: u32,
     tiles_x: u32,
     channels: u32,
+    canary: u32,
+    truncated: &mut [u32],
+    #[comptime] plane: bool,
 ) {
     // Shared staging for one batch: TILE_PIXELS ids and STAGED floats each (256 x 7: sizes must be literals).
     let mut s_gid = Shared::<[u32]>::new_slice(256usize);
@@ -246,8 +283,23 @@ pub(super) fn raster_bwd_kernel(
         for jj in 0u32..batch {
             let j = batch - 1 - jj;
             let k = begin + j;
+            let ju = j as usize;
+            // The Gaussian is the same for every unit of the tile at this step.
+            let g = s_gid[ju];
+            let fo = (g * channels) as usize;
+            let go = g as usize * G2D;
+            // This pixel's contributions: `hit` when the Gaussian blends into it (blend weight `w`),
+            // `screen` when its alpha is also below the clamp (the screen-space gradients flow).
+            let mut hit = false;
+            let mut screen = false;
+            let mut w = 0.0f32;
+            let mut c_opacity = 0.0f32;
+            let mut c_mx = 0.0f32;
+            let mut c_my = 0.0f32;
+            let mut c_ca = 0.0f32;
+            let mut c_cb = 0.0f32;
+            let mut c_cc = 0.0f32;
             if inside && k < last {
-                let ju = j as usize;
                 let fall = falloff(&s_p, ju, at.pxf, at.pyf);
                 let (dx, dy, ca, cb, cc) = (fall.dx, fall.dy, fall.ca, fall.cb, fall.cc);
                 if fall.power <= 0.0 {
@@ -256,41 +308,72 @@ pub(super) fn raster_bwd_kernel(
                     let raw = op * gexp;
                     let alpha = f32::min(alpha_max, raw);
                     if alpha >= alpha_min {
-                        let g = s_gid[ju];
-                        let fo = (g * channels) as usize;
+                        hit = true;
                         let depth = s_p[ju * STAGED + P_DEPTH];
                         let t_k = tt / (1.0 - alpha);
-                        let w = alpha * t_k;
+                        w = alpha * t_k;
                         let mut d_alpha = 0.0f32;
                         for ch in 0usize..ch_n {
                             let gf = grad_packed[pix * c2 + ch];
                             let f = features[fo + ch];
                             let r = rec[pix * ch_n + ch];
                             d_alpha += gf * (f - r);
-                            atomic_add_f32(gfeat, fo + ch, w * gf);
                             rec[pix * ch_n + ch] = alpha * f + (1.0 - alpha) * r;
                         }
                         d_alpha += g_z * (depth - rec_z);
                         d_alpha *= t_k;
                         d_alpha += g_a * tf / (1.0 - alpha);
-                        let go = g as usize * G2D;
-                        atomic_add_f32(g2d, go + G_DEPTH, w * g_z);
                         rec_z = alpha * depth + (1.0 - alpha) * rec_z;
                         tt = t_k;
                         if raw < alpha_max {
-                            atomic_add_f32(g2d, go + G_OPACITY, d_alpha * gexp);
+                            screen = true;
+                            c_opacity = d_alpha * gexp;
                             let d_power = d_alpha * op * gexp;
-                            atomic_add_f32(g2d, go + G_MX, d_power * (ca * dx + cb * dy));
-                            atomic_add_f32(g2d, go + G_MY, d_power * (cc * dy + cb * dx));
-                            atomic_add_f32(g2d, go + G_CA, d_power * (0.0f32 - 0.5f32 * dx * dx));
-                            atomic_add_f32(g2d, go + G_CB, d_power * (0.0f32 - dx * dy));
-                            atomic_add_f32(g2d, go + G_CC, d_power * (0.0f32 - 0.5f32 * dy * dy));
+                            c_mx = d_power * (ca * dx + cb * dy);
+                            c_my = d_power * (cc * dy + cb * dx);
+                            c_ca = d_power * (0.0f32 - 0.5f32 * dx * dx);
+                            c_cb = d_power * (0.0f32 - dx * dy);
+                            c_cc = d_power * (0.0f32 - 0.5f32 * dy * dy);
                         }
                     }
+                }
+            }
+            if plane {
+                if plane_any(hit) {
+                    for ch in 0usize..ch_n {
+                        let mut v = 0.0f32;
+                        if hit {
+                            v = w * grad_packed[pix * c2 + ch];
+                        }
+                        plane_add_f32(gfeat, fo + ch, v);
+                    }
+                    plane_add_f32(g2d, go + G_DEPTH, w * g_z);
+                    if plane_any(screen) {
+                        plane_add_f32(g2d, go + G_OPACITY, c_opacity);
+                        plane_add_f32(g2d, go + G_MX, c_mx);
+                        plane_add_f32(g2d, go + G_MY, c_my);
+                        plane_add_f32(g2d, go + G_CA, c_ca);
+                        plane_add_f32(g2d, go + G_CB, c_cb);
+                        plane_add_f32(g2d, go + G_CC, c_cc);
+                    }
+                }
+            } else if hit {
+                for ch in 0usize..ch_n {
+                    atomic_add_f32(gfeat, fo + ch, w * grad_packed[pix * c2 + ch]);
+                }
+                atomic_add_f32(g2d, go + G_DEPTH, w * g_z);
+                if screen {
+                    atomic_add_f32(g2d, go + G_OPACITY, c_opacity);
+                    atomic_add_f32(g2d, go + G_MX, c_mx);
+                    atomic_add_f32(g2d, go + G_MY, c_my);
+                    atomic_add_f32(g2d, go + G_CA, c_ca);
+                    atomic_add_f32(g2d, go + G_CB, c_cb);
+                    atomic_add_f32(g2d, go + G_CC, c_cc);
                 }
             }
         }
         sync_cube();
         end = begin;
     }
+    loop_canary(canary, truncated);
 }

@@ -2,6 +2,7 @@
 //! each touched tile's segment, and a bitonic sort per tile.
 
 use super::layout::*;
+use super::raster::loop_canary;
 use crate::constants::TILE_PIXELS;
 use cubecl::prelude::*;
 
@@ -80,7 +81,15 @@ fn compare_swap(keys: &mut [f32], gids: &mut [u32], lo: usize, hi: usize) {
 /// Workgroup per tile: bitonic sort (the variant whose comparators all point the same way, so a
 /// length that is not a power of two is padded with implicit +inf) of the tile's segment.
 #[cube(launch)]
-pub(super) fn tile_sort_kernel(keys: &mut [f32], gids: &mut [u32], offsets: &[u32], counts: &[u32], tiles_x: u32) {
+pub(super) fn tile_sort_kernel(
+    keys: &mut [f32],
+    gids: &mut [u32],
+    offsets: &[u32],
+    counts: &[u32],
+    tiles_x: u32,
+    canary: u32,
+    truncated: &mut [u32],
+) {
     let tile = (CUBE_POS_Y * tiles_x + CUBE_POS_X) as usize;
     let start = offsets[tile] as usize;
     let n = counts[tile];
@@ -122,4 +131,5 @@ pub(super) fn tile_sort_kernel(keys: &mut [f32], gids: &mut [u32], offsets: &[u3
         }
         size *= 2;
     }
+    loop_canary(canary, truncated);
 }

@@ -7,7 +7,7 @@
 use burn::tensor::{Device, Tensor, TensorData};
 use chatsplat_tests::*;
 use splat_kernels::api::{SplatOptions, splat};
-use splat_kernels::{Camera, RasterConfig, SplatError, cpu, reference};
+use splat_kernels::{Camera, GradReduce, RasterConfig, SplatError, cpu, reference};
 
 struct Grads {
     means: Vec<f32>,
@@ -259,6 +259,17 @@ fn wgpu_matches_ndarray_forward_backward_and_hard_cases() {
             assert_close(&format!("C={c} grad {name}"), a, b, 1e-3);
         }
     }
+    // The plane-summed backward (what GPUs run by default) matches too, here forced on lavapipe.
+    let plane = RasterConfig { grad_reduce: GradReduce::Plane, ..RasterConfig::smooth() };
+    for (k, c) in [3usize, 32].into_iter().enumerate() {
+        let scene = random_scene(40, c, &cam, 60 + k as u64);
+        let (fw, gw) = render_and_grad(&scene, &cam, plane, &wgpu.clone().autodiff(), 5);
+        let (fnd, gnd) = render_and_grad(&scene, &cam, RasterConfig::smooth(), &nd.clone().autodiff(), 5);
+        assert_close("smooth forward (plane)", &fw, &fnd, 1e-4);
+        for ((name, a), (_, b)) in grad_list(&gw).into_iter().zip(grad_list(&gnd)) {
+            assert_close(&format!("C={c} plane grad {name}"), a, b, 1e-3);
+        }
+    }
     // Hard cases stay finite on wgpu too.
     let cam = front_camera(33, 21, 30.0);
     let mut hard = Scene::empty(3);
@@ -318,4 +329,47 @@ fn wgpu_matches_ndarray_forward_backward_and_hard_cases() {
     assert!(f0.chunks(2).all(|px| px == empty.background.as_slice()));
     assert!(g0.means.is_empty() && g0.features.is_empty());
     assert_close("N = 0 background gradient", &g0.background, &g0n.background, 1e-5);
+    // Last: on lavapipe it ends in a caught panic.
+    assert_right_or_refused_past_the_loop_limit(&wgpu, &nd);
+}
+
+/// One 16x16 tile under 3,000 faint Gaussians with 64 channels: about 110,000 loop iterations per
+/// pixel, past the 65,535 at which Mesa lavapipe silently ends a shader's loops. The wgpu op must
+/// then refuse (panic naming the limit) instead of returning an image and gradients that lost
+/// Gaussians; on a GPU, without the limit, it must match ndarray.
+fn assert_right_or_refused_past_the_loop_limit(wgpu: &Device, nd: &Device) {
+    let cam = front_camera(16, 16, 16.0);
+    let mut r = Rng::new(91);
+    let mut heavy = Scene::empty(64);
+    for _ in 0..3000 {
+        let feat: Vec<f32> = (0..64).map(|_| r.f()).collect();
+        heavy.push(
+            [r.range(-0.5, 0.5), r.range(-0.5, 0.5), r.range(1.9, 2.1)],
+            [0.0; 3],
+            [1.0, 0.0, 0.0, 0.0],
+            -5.2,
+            &feat,
+        );
+    }
+    let cfg = RasterConfig::default();
+    let got = std::panic::catch_unwind(std::panic::AssertUnwindSafe(|| {
+        render_and_grad(&heavy, &cam, cfg, &wgpu.clone().autodiff(), 4)
+    }));
+    match got {
+        Err(payload) => {
+            let msg = payload
+                .downcast_ref::<String>()
+                .cloned()
+                .or_else(|| payload.downcast_ref::<&str>().map(|s| s.to_string()))
+                .unwrap_or_default();
+            assert!(msg.contains("65,535") && msg.contains("ndarray"), "unexpected panic past the loop limit: {msg}");
+        }
+        Ok((f, g)) => {
+            let (fc, gc) = render_and_grad(&heavy, &cam, cfg, &nd.clone().autodiff(), 4);
+            assert_close("heavy tile forward", &f, &fc, 1e-4);
+            for ((name, a), (_, b)) in grad_list(&g).into_iter().zip(grad_list(&gc)) {
+                assert_close(&format!("heavy tile grad {name}"), a, b, 1e-3);
+            }
+        }
+    }
 }

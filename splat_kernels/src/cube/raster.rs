@@ -200,13 +200,18 @@ fn atomic_add_f32(buf: &[Atomic<u32>], idx: usize, val: f32) {
     }
 }
 
-/// `buf[idx] += sum of val over the plane (subgroup)`: one atomic from the plane's first unit
-/// instead of one per unit. Every unit of the plane must call it (uniform control flow per plane).
+/// `buf[idx] += val`. With `plane`, the sum of `val` over the plane (subgroup) is added by the
+/// plane's first unit, one atomic instead of one per unit; then every unit of the plane must
+/// call it (uniform control flow per plane).
 #[cube]
-fn plane_add_f32(buf: &[Atomic<u32>], idx: usize, val: f32) {
-    let s = plane_sum(val);
-    if UNIT_POS_PLANE == 0 && s != 0.0 {
-        atomic_add_f32(buf, idx, s);
+fn add_grad(buf: &[Atomic<u32>], idx: usize, val: f32, #[comptime] plane: bool) {
+    if plane {
+        let s = plane_sum(val);
+        if UNIT_POS_PLANE == 0 && s != 0.0 {
+            atomic_add_f32(buf, idx, s);
+        }
+    } else {
+        atomic_add_f32(buf, idx, val);
     }
 }
 
@@ -338,37 +343,31 @@ pub(super) fn raster_bwd_kernel(
                     }
                 }
             }
+            // With `plane`, whole planes enter together (plane sums need every unit of the plane).
+            let mut adding = hit;
             if plane {
-                if plane_any(hit) {
-                    for ch in 0usize..ch_n {
-                        let mut v = 0.0f32;
-                        if hit {
-                            v = w * grad_packed[pix * c2 + ch];
-                        }
-                        plane_add_f32(gfeat, fo + ch, v);
-                    }
-                    plane_add_f32(g2d, go + G_DEPTH, w * g_z);
-                    if plane_any(screen) {
-                        plane_add_f32(g2d, go + G_OPACITY, c_opacity);
-                        plane_add_f32(g2d, go + G_MX, c_mx);
-                        plane_add_f32(g2d, go + G_MY, c_my);
-                        plane_add_f32(g2d, go + G_CA, c_ca);
-                        plane_add_f32(g2d, go + G_CB, c_cb);
-                        plane_add_f32(g2d, go + G_CC, c_cc);
-                    }
-                }
-            } else if hit {
+                adding = plane_any(hit);
+            }
+            if adding {
                 for ch in 0usize..ch_n {
-                    atomic_add_f32(gfeat, fo + ch, w * grad_packed[pix * c2 + ch]);
+                    let mut v = 0.0f32;
+                    if hit {
+                        v = w * grad_packed[pix * c2 + ch];
+                    }
+                    add_grad(gfeat, fo + ch, v, plane);
                 }
-                atomic_add_f32(g2d, go + G_DEPTH, w * g_z);
-                if screen {
-                    atomic_add_f32(g2d, go + G_OPACITY, c_opacity);
-                    atomic_add_f32(g2d, go + G_MX, c_mx);
-                    atomic_add_f32(g2d, go + G_MY, c_my);
-                    atomic_add_f32(g2d, go + G_CA, c_ca);
-                    atomic_add_f32(g2d, go + G_CB, c_cb);
-                    atomic_add_f32(g2d, go + G_CC, c_cc);
+                add_grad(g2d, go + G_DEPTH, w * g_z, plane);
+                let mut adding_screen = screen;
+                if plane {
+                    adding_screen = plane_any(screen);
+                }
+                if adding_screen {
+                    add_grad(g2d, go + G_OPACITY, c_opacity, plane);
+                    add_grad(g2d, go + G_MX, c_mx, plane);
+                    add_grad(g2d, go + G_MY, c_my, plane);
+                    add_grad(g2d, go + G_CA, c_ca, plane);
+                    add_grad(g2d, go + G_CB, c_cb, plane);
+                    add_grad(g2d, go + G_CC, c_cc, plane);
                 }
             }
         }

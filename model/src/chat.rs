@@ -304,11 +304,11 @@ impl ChatSession {
     /// The view from `camera` as RGB `[H * W * 3]` in [0, 1], with `picked` highlighted in red
     /// (the paper's display of a picked object) when given; `picked` must come from `camera`.
     pub fn view_image(&self, camera: &Camera, picked: Option<&Picked>) -> Result<Vec<f32>> {
-        let r = self.scene.render(camera)?;
+        let rgb = self.scene.render_rgb(camera)?;
         Ok(match picked {
-            Some(p) if p.ids.len() == r.ids.len() => highlight(&r.rgb, &p.ids, p.id),
+            Some(p) if 3 * p.ids.len() == rgb.len() => highlight(&rgb, &p.ids, p.id),
             Some(_) => return Err(Error::input("the picked object belongs to a view of another size")),
-            None => r.rgb.iter().map(|v| v.clamp(0.0, 1.0)).collect(),
+            None => rgb,
         })
     }
 

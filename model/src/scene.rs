@@ -143,6 +143,12 @@ impl LanguageScene {
         self.display.as_ref().unwrap_or(&self.splats).render(cam, self.sh_degree, self.background)
     }
 
+    /// RGB alone of a view `[H * W * 3]`, clamped to 0..=1 (a frame to show; faster than
+    /// [`render`](Self::render)).
+    pub fn render_rgb(&self, cam: &Camera) -> Result<Vec<f32>> {
+        self.display.as_ref().unwrap_or(&self.splats).render_rgb(cam, self.sh_degree, self.background)
+    }
+
     /// The view-level map `[H, W, Cv]` of a view camera (rendered from its token camera), with
     /// `field` (the scene's own or a copy being trained).
     pub fn view_map(&self, field: &LanguageField, cam: &Camera) -> Result<Tensor<3>> {

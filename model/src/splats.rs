@@ -365,6 +365,23 @@ impl SplatModel {
         Ok((class_ids(logits), out.features))
     }
 
+    /// RGB alone `[H * W * 3]` (clamped to 0..=1) from `cam` at SH degree `degree` over the RGB
+    /// `background`: what a frame shows, 3 channels splatted instead of [`render`](Self::render)'s
+    /// 19, and no identity classifier.
+    pub fn render_rgb(&self, cam: &Camera, degree: usize, background_rgb: [f32; 3]) -> Result<Vec<f32>> {
+        let n = self.len();
+        let g = Gaussians {
+            means: self.means.val(),
+            log_scales: self.log_scales.val(),
+            quats: self.quats.val(),
+            opacity_logits: self.opacity_logits.val().reshape([n]),
+            features: self.colors(cam, degree),
+        };
+        let bg = Tensor::<1>::from_data(TensorData::new(background_rgb.to_vec(), [3]), &self.means.val().device());
+        let opts = SplatOptions { validate: false, ..Default::default() };
+        Ok(host(splat(&g, cam, bg, &opts)?.features.clamp(0.0, 1.0)))
+    }
+
     /// Renders RGB, the identity class of each pixel and alpha from `cam` at SH degree `degree`
     /// over the RGB `background`.
     pub fn render(&self, cam: &Camera, degree: usize, background_rgb: [f32; 3]) -> Result<ViewRender> {
@@ -478,6 +495,45 @@ mod tests {
             }
             (c + 0.5).max(0.0) as f32
         })
+    }
+
+    #[test]
+    fn render_rgb_is_the_rgb_of_the_full_render_clamped() {
+        let dev = Device::ndarray();
+        let mut r = crate::rng::Rng::new(5);
+        let n = 200;
+        let mut vals =
+            |k: usize, lo: f32, hi: f32| -> Vec<f32> { (0..n * k).map(|_| lo + r.f() * (hi - lo)).collect() };
+        let t = |v: Vec<f32>, w: usize| Tensor::<2>::from_data(TensorData::new(v, [n, w]), &dev);
+        let model = SplatModel::from_tensors(SplatParams {
+            means: t(vals(3, -1.0, 1.0), 3),
+            log_scales: t(vals(3, -3.5, -2.0), 3),
+            quats: t(vals(4, -1.0, 1.0), 4),
+            opacity_logits: t(vals(1, -1.0, 4.0), 1),
+            // colours past 0..=1 both ways: the clamp is part of what is compared
+            sh_dc: t(vals(3, -3.0, 3.0), 3),
+            sh_rest: t(vals(45, -0.5, 0.5), 45),
+            identity: t(vals(IDENTITY_DIM, -1.0, 1.0), IDENTITY_DIM),
+            classifier_w: Tensor::from_data(
+                TensorData::new(vals(1, -1.0, 1.0)[..IDENTITY_DIM * 4].to_vec(), [IDENTITY_DIM, 4]),
+                &dev,
+            ),
+            classifier_b: Tensor::zeros([1, 4], &dev),
+        });
+        let cam = Camera::look_at(Vec3::new(0.4, -3.0, 1.2), Vec3::ZERO, Vec3::Z, 50.0, 40, 30);
+        let bg = [0.2, 0.5, 0.9];
+        for degree in [0, 3] {
+            let full = model.render(&cam, degree, bg).unwrap();
+            let rgb = model.render_rgb(&cam, degree, bg).unwrap();
+            assert_eq!(rgb.len(), 40 * 30 * 3);
+            let (mut clamped, mut covered) = (0, 0);
+            for (i, (&a, &b)) in rgb.iter().zip(&full.rgb).enumerate() {
+                assert!((a - b.clamp(0.0, 1.0)).abs() < 1e-5, "degree {degree}, value {i}: {a} vs {b}");
+                clamped += usize::from(!(0.0..=1.0).contains(&b));
+                covered += usize::from(full.alpha[i / 3] > 0.5);
+            }
+            assert!(clamped > 0 && covered > 100, "degree {degree}: {clamped} clamped, {covered} covered");
+        }
     }
 
     #[test]

@@ -245,7 +245,8 @@ impl Novel {
     /// the cameras.
     fn open(
         n: &NovelViews,
-        (ds, now): (&Dataset, &str),
+        ds: &Dataset,
+        now: &str,
         data: &Path,
         out: &TeacherDir,
         device: &burn::tensor::Device,
@@ -330,7 +331,7 @@ pub fn extract(
     let photos = ds.train.len();
     let fingerprint = ds.fingerprint();
     let novel = match &opts.novel {
-        Some(n) if n.count > 0 => Some(Novel::open(n, (&ds, &fingerprint), data, out, &vlm.device())?),
+        Some(n) if n.count > 0 => Some(Novel::open(n, &ds, &fingerprint, data, out, &vlm.device())?),
         _ => None,
     };
     // novel view `k` of plan index `index`, with its geometry

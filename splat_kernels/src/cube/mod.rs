@@ -50,6 +50,16 @@ use sort::{emit_kernel, scan_kernel, tile_sort_kernel};
 /// Overrides [`GradReduce::Auto`]'s choice for the whole process: `atomic` or `plane`.
 pub const GRAD_REDUCE_ENV: &str = "CHATSPLAT_WGPU_GRAD_REDUCE";
 
+/// [`GRAD_REDUCE_ENV`]'s choice, read once: `Some(true)` for `plane`, `Some(false)` for `atomic`.
+fn forced_plane() -> Option<bool> {
+    static FORCED: std::sync::OnceLock<Option<bool>> = std::sync::OnceLock::new();
+    *FORCED.get_or_init(|| match std::env::var(GRAD_REDUCE_ENV).as_deref() {
+        Ok("atomic") => Some(false),
+        Ok("plane") => Some(true),
+        _ => None,
+    })
+}
+
 fn buf(t: &CubeTensor) -> BufferArg {
     let len = t.meta.shape().num_elements().max(1);
     // SAFETY: every tensor handed to a kernel is contiguous and holds `len` 4-byte elements.
@@ -213,9 +223,9 @@ fn check_loops(truncated: &CubeTensor, pass: &str) {
             .expect("tensor read succeeds");
     if data.convert::<i64>().into_vec::<i64>().expect("int data")[0] != 0 {
         panic!(
-            "the splatting {pass} on `{}` reached the software rasterizer's limit of 65,535 shader loop iterations \
-             per pixel (a tile holds too many Gaussians or channels for it), so its result would be silently wrong: \
-             use the ndarray backend on a CPU, or a GPU",
+            "the splatting {pass} on `{}` reached the software rasterizer's limit of 65,535 loop iterations per \
+             shader invocation (a tile holds too many Gaussians or channels for it), so its result would be \
+             silently wrong: use the ndarray backend on a CPU, or a GPU",
             props.identity.name
         );
     }
@@ -290,11 +300,9 @@ impl SplatBackend for CubeBackend {
         let gfeat = zeros(&p.means, vec![n.max(1), c], DType::F32);
         let client = p.means.client.clone();
         let plane = match config.grad_reduce {
-            GradReduce::Auto => match std::env::var(GRAD_REDUCE_ENV).as_deref() {
-                Ok("atomic") => false,
-                Ok("plane") => true,
-                _ => client.properties().features.plane.contains(Plane::Ops),
-            },
+            GradReduce::Auto => {
+                forced_plane().unwrap_or_else(|| client.properties().features.plane.contains(Plane::Ops))
+            }
             GradReduce::Atomic => false,
             GradReduce::Plane => true,
         };

@@ -145,7 +145,7 @@ fn image_tokens(
             None => v.rgb.clone(),
             Some(s) => {
                 let view = model::vqa::scene_view(file, &s.images, frame)?;
-                s.scene.render(s.camera(view)?)?.rgb.iter().map(|c| c.clamp(0.0, 1.0)).collect()
+                s.scene.render_rgb(s.camera(view)?)?
             }
         };
         Ok((image_of(v, &rgb), v))

@@ -310,14 +310,17 @@ impl SplatModel {
 
     /// The splat inputs with features = [RGB (3) | identity (16)].
     pub fn gaussians(&self, camera: &Camera, degree: usize) -> Gaussians {
-        let colors = self.colors(camera, degree);
-        let n = self.len();
+        self.gaussians_with(Tensor::cat(vec![self.colors(camera, degree), self.identity.val()], 1))
+    }
+
+    /// The splat inputs of this geometry carrying `features` `[N, C]`.
+    fn gaussians_with(&self, features: Tensor<2>) -> Gaussians {
         Gaussians {
             means: self.means.val(),
             log_scales: self.log_scales.val(),
             quats: self.quats.val(),
-            opacity_logits: self.opacity_logits.val().reshape([n]),
-            features: Tensor::cat(vec![colors, self.identity.val()], 1),
+            opacity_logits: self.opacity_logits.val().reshape([self.len()]),
+            features,
         }
     }
 
@@ -347,18 +350,10 @@ impl SplatModel {
     /// Renders `features` `[N, 16 + C]` (the identity first) over a zero background: the identity
     /// class of each pixel and the whole `[H, W, 16 + C]` map.
     fn render_identity(&self, cam: &Camera, features: Tensor<2>) -> Result<(Vec<u8>, Tensor<3>)> {
-        let n = self.len();
         let dev = self.means.val().device();
         let width = features.dims()[1];
-        let g = Gaussians {
-            means: self.means.val(),
-            log_scales: self.log_scales.val(),
-            quats: self.quats.val(),
-            opacity_logits: self.opacity_logits.val().reshape([n]),
-            features,
-        };
         let opts = SplatOptions { validate: false, ..Default::default() };
-        let out = splat(&g, cam, Tensor::zeros([width], &dev), &opts)?;
+        let out = splat(&self.gaussians_with(features), cam, Tensor::zeros([width], &dev), &opts)?;
         let [h, w, _] = out.features.dims();
         let identity = out.features.clone().narrow(2, 0, IDENTITY_DIM).reshape([h * w, IDENTITY_DIM]);
         let logits = identity.matmul(self.classifier_w.val()) + self.classifier_b.val();
@@ -369,14 +364,7 @@ impl SplatModel {
     /// `background`: what a frame shows, 3 channels splatted instead of [`render`](Self::render)'s
     /// 19, and no identity classifier.
     pub fn render_rgb(&self, cam: &Camera, degree: usize, background_rgb: [f32; 3]) -> Result<Vec<f32>> {
-        let n = self.len();
-        let g = Gaussians {
-            means: self.means.val(),
-            log_scales: self.log_scales.val(),
-            quats: self.quats.val(),
-            opacity_logits: self.opacity_logits.val().reshape([n]),
-            features: self.colors(cam, degree),
-        };
+        let g = self.gaussians_with(self.colors(cam, degree));
         let bg = Tensor::<1>::from_data(TensorData::new(background_rgb.to_vec(), [3]), &self.means.val().device());
         let opts = SplatOptions { validate: false, ..Default::default() };
         Ok(host(splat(&g, cam, bg, &opts)?.features.clamp(0.0, 1.0)))

@@ -187,7 +187,7 @@ impl Encoder {
 
     /// The scaling adjustment `t * a + b` of a view-level or object-level token grid `t` `[T, D]`
     /// (the object pair when the encoder has one; `t` unchanged without the adjustment).
-    pub(crate) fn adjust(&self, t: Tensor<2>, object: bool) -> Tensor<2> {
+    pub fn adjust(&self, t: Tensor<2>, object: bool) -> Tensor<2> {
         let pair = match (object, &self.object_scale, &self.object_shift) {
             (true, Some(a), Some(b)) => Some((a, b)),
             _ => self.scale.as_ref().zip(self.shift.as_ref()),

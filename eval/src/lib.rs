@@ -6,4 +6,5 @@
 pub mod compare;
 pub mod plot;
 pub mod progress;
+pub mod regions;
 pub mod score;

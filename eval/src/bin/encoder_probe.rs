@@ -15,10 +15,11 @@
 use burn::tensor::{Device, Tensor, TensorData, activation};
 use clap::Parser;
 use eval::compare::{exact, greedy};
+use eval::regions::{Region, regions};
 use model::chat::answer;
 use model::data::synth::questions::{Kind, ViewFacts, view_questions};
 use model::data::synth::scene::Scene;
-use model::data::synth::{FIRST_OBJECT_ID, SynthOptions, write_dataset};
+use model::data::synth::{SynthOptions, write_dataset};
 use model::data::{LoadOptions, View, load_any};
 use model::language::{Encoder, LanguageConfig};
 use model::rng::Rng;
@@ -275,23 +276,6 @@ fn sample(
     let qas = view_questions(scene, &facts, &mut Rng::new(0));
     let colors = qas.iter().find(|q| q.kind == Kind::Colors).map(|q| q.answer.clone()).unwrap_or_default();
     let teacher = host(vlm.teacher_tokens(&RgbImage::from_f32(w, h, &v.rgb)));
-    let mut edge = Vec::new();
-    for py in 0..h / p {
-        for px in 0..w / p {
-            let (mut objects, mut other) = (Vec::new(), false);
-            for y in py * p..(py + 1) * p {
-                for &i in &ids[y * w + px * p..y * w + (px + 1) * p] {
-                    if i >= FIRST_OBJECT_ID {
-                        if !objects.contains(&i) {
-                            objects.push(i);
-                        }
-                    } else {
-                        other = true;
-                    }
-                }
-            }
-            edge.push(objects.len() >= 2 || (objects.len() == 1 && other));
-        }
-    }
+    let edge = regions(ids, w, h, p).into_iter().map(Region::is_boundary).collect();
     Ok(Some(Sample { map: v.rgb.clone(), teacher, held_out, count: facts.seen.len(), colors, edge, scene: si }))
 }

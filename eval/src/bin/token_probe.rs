@@ -17,8 +17,8 @@
 use burn::tensor::{Device, Tensor, TensorData};
 use clap::Parser;
 use eval::compare::{exact, greedy};
+use eval::regions::{REGIONS, Region, regions};
 use model::chat::{ChatSession, Target, answer};
-use model::data::synth::FIRST_OBJECT_ID;
 use model::data::synth::questions::{Kind, ViewFacts, view_questions};
 use model::data::synth::scene::Scene;
 use model::data::{LoadOptions, load_any};
@@ -50,18 +50,6 @@ struct Args {
     #[arg(long, default_value_t = Backend::Ndarray)]
     backend: Backend,
 }
-
-/// A patch's place relative to the objects, from the ground-truth mask.
-#[derive(Clone, Copy, Debug, PartialEq, Eq, PartialOrd, Ord, serde::Serialize)]
-#[serde(rename_all = "snake_case")]
-enum Region {
-    Background,
-    Inside,
-    Edge,
-    Contact,
-}
-
-const REGIONS: [Region; 4] = [Region::Background, Region::Inside, Region::Edge, Region::Contact];
 
 /// The token grid a variant asks from: `base`'s tokens with `other`'s in `regions`.
 struct Variant {
@@ -113,34 +101,6 @@ fn main() -> std::process::ExitCode {
             std::process::ExitCode::FAILURE
         }
     }
-}
-
-/// The region of every patch of a `w`x`h` mask cut in `p`-pixel patches, row-major.
-fn regions(ids: &[u8], w: usize, h: usize, p: usize) -> Vec<Region> {
-    let mut out = Vec::with_capacity((w / p) * (h / p));
-    for py in 0..h / p {
-        for px in 0..w / p {
-            let (mut objects, mut other) = (Vec::new(), false);
-            for y in py * p..(py + 1) * p {
-                for &i in &ids[y * w + px * p..y * w + (px + 1) * p] {
-                    if i >= FIRST_OBJECT_ID {
-                        if !objects.contains(&i) {
-                            objects.push(i);
-                        }
-                    } else {
-                        other = true;
-                    }
-                }
-            }
-            out.push(match (objects.len(), other) {
-                (0, _) => Region::Background,
-                (1, false) => Region::Inside,
-                (1, true) => Region::Edge,
-                _ => Region::Contact,
-            });
-        }
-    }
-    out
 }
 
 fn probe(a: &Args) -> Result<()> {

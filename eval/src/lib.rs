@@ -5,6 +5,6 @@
 
 pub mod compare;
 pub mod plot;
+pub mod probe;
 pub mod progress;
-pub mod regions;
 pub mod score;

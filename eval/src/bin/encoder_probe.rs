@@ -15,9 +15,8 @@
 use burn::tensor::{Device, Tensor, TensorData, activation};
 use clap::Parser;
 use eval::compare::{exact, greedy};
-use eval::regions::{Region, regions};
+use eval::probe::{Region, count_answer, regions, token_l1, view_truth};
 use model::chat::answer;
-use model::data::synth::questions::{Kind, ViewFacts, view_questions};
 use model::data::synth::scene::Scene;
 use model::data::synth::{SynthOptions, write_dataset};
 use model::data::{LoadOptions, View, load_any};
@@ -217,12 +216,11 @@ fn probe(a: &Args) -> Result<()> {
             e[0] += exact(&count.text, &s.count.to_string()) as u8 as f64;
             e[1] += exact(&cols.text, &s.colors) as u8 as f64;
             e[2] += 1.0;
-            if let Ok(n) = count.text.trim().trim_end_matches('.').parse::<usize>() {
-                e[3] += (n < s.count) as u8 as f64;
+            if let Some(n) = count_answer(&count.text) {
+                e[3] += (n < s.count as i64) as u8 as f64;
             }
             for (k, edge) in s.edge.iter().enumerate() {
-                let l = toks[k * d..(k + 1) * d].iter().zip(&s.teacher[k * d..(k + 1) * d]);
-                let l = l.map(|(x, y)| (x - y).abs() as f64).sum::<f64>() / d as f64;
+                let l = token_l1(toks, &s.teacher, k, d);
                 e[4] += l;
                 e[5] += 1.0;
                 if *edge {
@@ -269,13 +267,8 @@ fn sample(
 ) -> Result<Option<Sample>> {
     let Some(ids) = v.instance_ids.as_ref() else { return Ok(None) };
     let (w, h) = (v.camera.width as usize, v.camera.height as usize);
-    let facts = ViewFacts::of(scene, ids, &vec![0.0; w * h], w, h);
-    if facts.ambiguous {
-        return Ok(None);
-    }
-    let qas = view_questions(scene, &facts, &mut Rng::new(0));
-    let colors = qas.iter().find(|q| q.kind == Kind::Colors).map(|q| q.answer.clone()).unwrap_or_default();
+    let Some((count, colors)) = view_truth(scene, ids, w, h) else { return Ok(None) };
     let teacher = host(vlm.teacher_tokens(&RgbImage::from_f32(w, h, &v.rgb)));
     let edge = regions(ids, w, h, p).into_iter().map(Region::is_boundary).collect();
-    Ok(Some(Sample { map: v.rgb.clone(), teacher, held_out, count: facts.seen.len(), colors, edge, scene: si }))
+    Ok(Some(Sample { map: v.rgb.clone(), teacher, held_out, count, colors, edge, scene: si }))
 }

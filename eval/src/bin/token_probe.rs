@@ -17,12 +17,10 @@
 use burn::tensor::{Device, Tensor, TensorData};
 use clap::Parser;
 use eval::compare::{exact, greedy};
-use eval::regions::{REGIONS, Region, regions};
+use eval::probe::{REGIONS, Region, count_answer, regions, token_l1, view_truth};
 use model::chat::{ChatSession, Target, answer};
-use model::data::synth::questions::{Kind, ViewFacts, view_questions};
 use model::data::synth::scene::Scene;
 use model::data::{LoadOptions, load_any};
-use model::rng::Rng;
 use model::run::GeometryRun;
 use model::splats::host;
 use model::vlm::{LlavaOnevision, RgbImage};
@@ -138,17 +136,9 @@ fn probe(a: &Args) -> Result<()> {
             let Some(index) = session.images.iter().position(|i| *i == name) else { continue };
             let Some(ids) = v.instance_ids.as_ref() else { continue };
             let (w, h) = (v.camera.width as usize, v.camera.height as usize);
-            let facts = ViewFacts::of(&scene, ids, &vec![0.0; w * h], w, h);
-            if facts.ambiguous {
-                continue;
-            }
+            let Some((truth_count, truth_colors)) = view_truth(&scene, ids, w, h) else { continue };
             views_seen += 1;
             held_views += held_out as usize;
-            let truth_count = facts.seen.len();
-            // the colours answer as the question files write it (one rule: `view_questions`)
-            let qas = view_questions(&scene, &facts, &mut Rng::new(0));
-            let truth_colors =
-                qas.iter().find(|q| q.kind == Kind::Colors).map(|q| q.answer.clone()).unwrap_or_default();
             let gt = host(vlm.teacher_tokens(&RgbImage::from_f32(w, h, &v.rgb)));
             let cam = *session.camera(index)?;
             let cs = host(session.tokens(&Target::View(cam))?.remove(0));
@@ -161,8 +151,7 @@ fn probe(a: &Args) -> Result<()> {
                 )));
             }
             for (t, r) in reg.iter().enumerate() {
-                let (x, y) = (&gt[t * d..(t + 1) * d], &cs[t * d..(t + 1) * d]);
-                let err = x.iter().zip(y).map(|(x, y)| (x - y).abs() as f64).sum::<f64>() / d as f64;
+                let err = token_l1(&gt, &cs, t, d);
                 let add = |m: &mut BTreeMap<Region, (f64, usize)>| {
                     let e = m.entry(*r).or_default();
                     e.0 += err;
@@ -190,7 +179,7 @@ fn probe(a: &Args) -> Result<()> {
                 let tokens = Tensor::<2>::from_data(TensorData::new(mixed, [reg.len(), d]), &device);
                 let count = answer(&vlm, std::slice::from_ref(&tokens), "How many objects are there?", &opts, |_| {})?;
                 let cols = answer(&vlm, &[tokens], "What colors are there?", &opts, |_| {})?;
-                let number = count.text.trim().trim_end_matches('.').parse::<i64>().ok();
+                let number = count_answer(&count.text);
                 for s in std::iter::once(&mut scores[vi]).chain(held_out.then_some(&mut held[vi])) {
                     s.asked += 1;
                     s.count_right += exact(&count.text, &truth_count.to_string()) as usize;

@@ -5,14 +5,14 @@
 //! view (RGB as a 3-channel map) and is fitted to the teacher's tokens of the training views of
 //! each scene (view level, L1, as the language stage does). Then count and colours are asked on
 //! the training and the held-out views from the teacher's tokens and from the encoder's. With
-//! `--mix` a token-mixing block (one self-attention layer over the token grid, with learned
-//! positions, residual, zero-initialised output) sits between the patch convolution and the
-//! scale/shift: the same fit with global reach.
+//! `--mix` the encoder has its token mixer (`model::language::TokenMixer`: one self-attention
+//! layer over the token grid, learned positions, residual, zero-initialised output) between the
+//! patch convolution and the scale/shift: the same fit with global reach.
 //!
 //! cargo run --release -p eval --bin encoder-probe -- --seeds 5 --first-seed 30000 [--mix]
 #![allow(deprecated)]
 
-use burn::tensor::{Device, Tensor, TensorData, activation};
+use burn::tensor::{Device, Tensor, TensorData};
 use clap::Parser;
 use eval::compare::{exact, greedy};
 use eval::probe::{Region, count_answer, regions, token_l1, view_truth};
@@ -76,43 +76,9 @@ struct Sample {
     scene: usize,
 }
 
-/// The token-mixing block's tensors, beside the encoder's.
-fn mixer_init(d: usize, t: usize, seed: u64, device: &Device) -> Vec<(String, Tensor<2>)> {
-    let mut rng = Rng::new(seed ^ 0x5eed_a77e);
-    let k = 1.0 / (d as f32).sqrt();
-    let mut m = |rows: usize, cols: usize, s: f32| {
-        let v: Vec<f32> = (0..rows * cols).map(|_| rng.range(-s, s)).collect();
-        Tensor::<2>::from_data(TensorData::new(v, [rows, cols]), device)
-    };
-    vec![
-        ("mix.pos".into(), m(t, d, 0.02)),
-        ("mix.q".into(), m(d, d, k)),
-        ("mix.k".into(), m(d, d, k)),
-        ("mix.v".into(), m(d, d, k)),
-        ("mix.o".into(), Tensor::zeros([d, d], device)),
-    ]
-}
-
-/// `x + softmax((n + pos) Wq ((n + pos) Wk)^T / sqrt(d)) (n Wv) Wo`, `n` = `x` normalised per token.
-fn mix(x: Tensor<2>, p: &BTreeMap<String, Tensor<2>>) -> Tensor<2> {
-    let d = x.dims()[1];
-    let mean = x.clone().mean_dim(1);
-    let c = x.clone() - mean;
-    let var = c.clone().powf_scalar(2.0).mean_dim(1);
-    let n = c / (var + 1e-5).sqrt();
-    let np = n.clone() + p["mix.pos"].clone();
-    let q = np.clone().matmul(p["mix.q"].clone());
-    let k = np.matmul(p["mix.k"].clone());
-    let v = n.matmul(p["mix.v"].clone());
-    let w = activation::softmax(q.matmul(k.transpose()) / (d as f32).sqrt(), 1);
-    x + w.matmul(v).matmul(p["mix.o"].clone())
-}
-
-fn tokens(enc_names: &[String], p: &BTreeMap<String, Tensor<2>>, map: Tensor<3>, with_mix: bool) -> Result<Tensor<2>> {
+fn tokens(enc_names: &[String], p: &BTreeMap<String, Tensor<2>>, map: Tensor<3>) -> Result<Tensor<2>> {
     let enc = Encoder::from_named(enc_names.iter().map(|n| (n.clone(), p[n].clone())).collect())?;
-    let raw = enc.tokens_raw(map);
-    let raw = if with_mix { mix(raw, p) } else { raw };
-    Ok(enc.adjust(raw, false))
+    Ok(enc.forward_level(map, false))
 }
 
 fn probe(a: &Args) -> Result<()> {
@@ -131,6 +97,7 @@ fn probe(a: &Args) -> Result<()> {
         teacher_image: side,
         teacher_patch: p,
         scale_shift_per_level: false,
+        token_mixer: a.mix,
         ..Default::default()
     };
     let mut samples = Vec::new();
@@ -151,13 +118,7 @@ fn probe(a: &Args) -> Result<()> {
     eprintln!();
     let ad = device.clone().autodiff();
     let t = grid * grid;
-    let fresh = |seed: u64| {
-        let mut named = Encoder::new(&cfg, seed, &device).named();
-        if a.mix {
-            named.extend(mixer_init(d, t, seed, &device));
-        }
-        named
-    };
+    let fresh = |seed: u64| Encoder::new(&cfg, seed, &device).named();
     let enc_names: Vec<String> = Encoder::new(&cfg, 0, &device).named().into_iter().map(|(n, _)| n).collect();
     let groups: Vec<Vec<usize>> =
         if a.pooled { vec![(0..a.seeds as usize).collect()] } else { (0..a.seeds as usize).map(|s| vec![s]).collect() };
@@ -177,7 +138,7 @@ fn probe(a: &Args) -> Result<()> {
             let pm: BTreeMap<String, Tensor<2>> = leaves.iter().cloned().collect();
             let map = Tensor::<3>::from_data(TensorData::new(s.map.clone(), [side, side, 3]), &ad);
             let target = Tensor::<2>::from_data(TensorData::new(s.teacher.clone(), [t, d]), &ad);
-            let loss = (tokens(&enc_names, &pm, map, a.mix)? - target).abs().mean();
+            let loss = (tokens(&enc_names, &pm, map)? - target).abs().mean();
             avg = 0.98 * avg + 0.02 * host(loss.clone())[0] as f64;
             let grads = loss.backward();
             let lr = a.lr * 0.5 * (1.0 + (std::f64::consts::PI * it as f64 / a.iters as f64).cos());
@@ -198,7 +159,7 @@ fn probe(a: &Args) -> Result<()> {
         for (i, s) in samples.iter().enumerate() {
             if g.contains(&s.scene) {
                 let map = Tensor::<3>::from_data(TensorData::new(s.map.clone(), [side, side, 3]), &device);
-                predicted[i] = Some(host(tokens(&enc_names, &pm, map, a.mix)?));
+                predicted[i] = Some(host(tokens(&enc_names, &pm, map)?));
             }
         }
     }

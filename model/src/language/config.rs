@@ -39,6 +39,10 @@ pub struct LanguageConfig {
     /// the picture as the teacher's token did.
     pub teacher_image: usize,
     pub teacher_patch: usize,
+    /// One self-attention layer over the token grid after the patch convolution
+    /// ([`TokenMixer`](super::TokenMixer); not in the paper, whose encoder is local). Off by
+    /// default until it is measured to hold on answers.
+    pub token_mixer: bool,
 }
 
 impl Default for LanguageConfig {
@@ -55,6 +59,7 @@ impl Default for LanguageConfig {
             patch: 14,
             teacher_image: 384,
             teacher_patch: 14,
+            token_mixer: false,
         }
     }
 }

@@ -10,6 +10,8 @@
 //! | `patch.bias`       | `[D]`                  |                                          |
 //! | `scale`, `shift`   | `[T, D]`               | tokens * scale + shift (T = grid²)       |
 //! | `object_scale`, `object_shift` | `[T, D]`   | the same for object-level maps (optional)|
+//! | `mix.pos`          | `[T, D]`               | token mixer (optional, `token_mixer`):   |
+//! | `mix.q/k/v/o`      | `[D, D]`               | `x @ W` projections, see `TokenMixer`    |
 
 use super::{Encoder, LanguageConfig};
 use crate::error::{Error, Result};
@@ -42,6 +44,9 @@ pub struct EncoderHeader {
     pub teacher_model: String,
     pub teacher_image: usize,
     pub teacher_patch: usize,
+    /// Whether the file holds a token mixer (`mix.*`; absent in files written before it).
+    #[serde(default)]
+    pub token_mixer: bool,
     /// Shape of every tensor in the file.
     pub tensors: BTreeMap<String, Vec<usize>>,
 }
@@ -81,6 +86,7 @@ pub fn write_encoder(path: &Path, enc: &Encoder, cfg: &LanguageConfig, teacher_m
         teacher_model: teacher_model.to_string(),
         teacher_image: cfg.teacher_image,
         teacher_patch: cfg.teacher_patch,
+        token_mixer: enc.mixer.is_some(),
         tensors: tensors.iter().map(|(n, s, _)| (n.clone(), s.clone())).collect(),
     };
     let mut meta = HashMap::new();
@@ -111,6 +117,7 @@ pub fn read_encoder(path: &Path, device: &Device) -> Result<(Encoder, LanguageCo
         patch: h.patch,
         teacher_image: h.teacher_image,
         teacher_patch: h.teacher_patch,
+        token_mixer: h.token_mixer,
     };
     let mut take = |name: &str| {
         let (s, v) = tensors.remove(name).ok_or_else(|| Error::invalid(path, format!("tensor {name} is missing")))?;
@@ -142,6 +149,13 @@ pub fn read_encoder(path: &Path, device: &Device) -> Result<(Encoder, LanguageCo
     named.push(("patch.weight".into(), w));
     let (s, v) = take("patch.bias")?;
     named.push(("patch.bias".into(), Tensor::from_data(TensorData::new(v, [1, s[0]]), device)));
+    if h.token_mixer {
+        for n in super::mix::MIXER_TENSORS {
+            let name = format!("mix.{n}");
+            let (s, v) = take(&name)?;
+            named.push((name, Tensor::from_data(TensorData::new(v, [s[0], s[1]]), device)));
+        }
+    }
     let names: &[&str] = match (cfg.scale_shift, cfg.scale_shift_per_level) {
         (false, _) => &[],
         (true, false) => &["scale", "shift"],

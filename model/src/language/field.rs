@@ -5,13 +5,15 @@
 #[cfg(doc)]
 use super::FrozenEncoder;
 use super::LanguageConfig;
+use super::mix::{MIXER_TENSORS, TokenMixer};
 use crate::error::{Error, Result};
 use crate::rng::Rng;
 use burn::module::{Module, Param};
 use burn::tensor::{Device, Tensor, TensorData, activation};
 
 /// The encoder: lifting network (1x1 convolutions, GELU between them), the non-overlapping
-/// patch convolution, and the scaling adjustment (shared by both levels, or one pair per level).
+/// patch convolution, the optional token mixer ([`TokenMixer`]), and the scaling adjustment
+/// (shared by both levels, or one pair per level).
 #[derive(Module, Debug)]
 pub struct Encoder {
     /// Lifting 1x1 convolutions as `[in, out]` matrices (empty without lifting).
@@ -23,6 +25,8 @@ pub struct Encoder {
     pub patch_weight: Param<Tensor<2>>,
     /// `[1, D]`
     pub patch_bias: Param<Tensor<2>>,
+    /// One self-attention layer over the token grid (with `token_mixer`), shared by both levels.
+    pub mixer: Option<TokenMixer>,
     /// `[T, D]` scaling `a` (absent without the scaling adjustment).
     pub scale: Option<Param<Tensor<2>>>,
     /// `[T, D]` shift `b`.
@@ -68,6 +72,7 @@ impl Encoder {
             lift_biases,
             patch_weight: Param::from_tensor(uniform(&mut rng, fan, cfg.dim, fan, device)),
             patch_bias: Param::from_tensor(uniform(&mut rng, 1, cfg.dim, fan, device)),
+            mixer: cfg.token_mixer.then(|| TokenMixer::new(t, cfg.dim, seed, device)),
             scale,
             shift,
             object_scale,
@@ -182,7 +187,15 @@ impl Encoder {
     /// As [`forward`](Self::forward) for a view-level (`object = false`) or a masked
     /// object-level map (the object pair `(a, b)` when the encoder has one).
     pub fn forward_level(&self, map: Tensor<3>, object: bool) -> Tensor<2> {
-        self.adjust(self.tokens_raw(map), object)
+        self.adjust(self.mix(self.tokens_raw(map)), object)
+    }
+
+    /// The token mixer on a `[T, D]` grid of patch tokens (unchanged without one).
+    pub fn mix(&self, t: Tensor<2>) -> Tensor<2> {
+        match &self.mixer {
+            Some(m) => m.forward(t),
+            None => t,
+        }
     }
 
     /// The scaling adjustment `t * a + b` of a view-level or object-level token grid `t` `[T, D]`
@@ -199,7 +212,7 @@ impl Encoder {
     }
 
     /// Every tensor with its name, in a fixed order (lift.{i}.weight/bias, patch.weight/bias,
-    /// scale, shift), in this module's matmul layout.
+    /// mix.pos/q/k/v/o, scale, shift, object_scale, object_shift), in this module's matmul layout.
     pub fn named(&self) -> Vec<(String, Tensor<2>)> {
         let mut out = Vec::new();
         for (i, (w, b)) in self.lift_weights.iter().zip(&self.lift_biases).enumerate() {
@@ -208,6 +221,9 @@ impl Encoder {
         }
         out.push(("patch.weight".into(), self.patch_weight.val()));
         out.push(("patch.bias".into(), self.patch_bias.val()));
+        if let Some(m) = &self.mixer {
+            out.extend(m.named().into_iter().map(|(n, t)| (format!("mix.{n}"), t)));
+        }
         if let (Some(a), Some(b)) = (&self.scale, &self.shift) {
             out.push(("scale".into(), a.val()));
             out.push(("shift".into(), b.val()));
@@ -225,7 +241,12 @@ impl Encoder {
         let mut lift_biases = Vec::new();
         let (mut patch_weight, mut patch_bias, mut scale, mut shift, mut object_scale, mut object_shift) =
             (None, None, None, None, None, None);
+        let mut mix: [Option<Tensor<2>>; 5] = Default::default();
         for (name, t) in tensors {
+            if let Some(i) = name.strip_prefix("mix.").and_then(|n| MIXER_TENSORS.iter().position(|m| *m == n)) {
+                mix[i] = Some(t);
+                continue;
+            }
             match name.as_str() {
                 "patch.weight" => patch_weight = Some(t),
                 "patch.bias" => patch_bias = Some(t),
@@ -247,11 +268,19 @@ impl Encoder {
         {
             return Err(Error::input("encoder: lifting weights/biases or scale/shift are incomplete"));
         }
+        let mixer = match mix {
+            [None, None, None, None, None] => None,
+            [Some(p), Some(q), Some(k), Some(v), Some(o)] => {
+                Some(TokenMixer::from_tensors([p, q, k, v, o]).map_err(|e| Error::input(format!("encoder: {e}")))?)
+            }
+            _ => return Err(Error::input("encoder: the token mixer is incomplete (needs mix.pos, q, k, v and o)")),
+        };
         Ok(Self {
             lift_weights,
             lift_biases,
             patch_weight: Param::from_tensor(pw),
             patch_bias: Param::from_tensor(pb),
+            mixer,
             scale,
             shift,
             object_scale,
@@ -266,14 +295,23 @@ impl Encoder {
 pub enum ParamGroup {
     /// The per-Gaussian `view_features` and `object_features`.
     Features,
-    /// The encoder: lifting, patch convolution, scaling adjustment (`encoder.*`).
+    /// The encoder: lifting, patch convolution, scaling adjustment (`encoder.*` but the mixer).
     Encoder,
+    /// The token mixer (`encoder.mix.*`): attention weights want a smaller rate than the
+    /// convolutions (the probe that measured it fitted the mixer at 0.002).
+    Mixer,
 }
 
 impl ParamGroup {
     /// The group of a [`LanguageField::named`] tensor.
     pub fn of(name: &str) -> Self {
-        if name.starts_with("encoder.") { ParamGroup::Encoder } else { ParamGroup::Features }
+        if name.starts_with("encoder.mix.") {
+            ParamGroup::Mixer
+        } else if name.starts_with("encoder.") {
+            ParamGroup::Encoder
+        } else {
+            ParamGroup::Features
+        }
     }
 }
 
@@ -315,6 +353,9 @@ impl LanguageField {
         }
         out.push("encoder.patch.weight".into());
         out.push("encoder.patch.bias".into());
+        if cfg.token_mixer {
+            out.extend(MIXER_TENSORS.iter().map(|n| format!("encoder.mix.{n}")));
+        }
         if cfg.scale_shift {
             out.push("encoder.scale".into());
             out.push("encoder.shift".into());

@@ -6,7 +6,8 @@
 //!
 //! ```text
 //! features [N, C] --splat--> map [27*14, 27*14, C] --lift (1x1 convs C -> hidden -> D)-->
-//!   [378, 378, D] --14x14 stride-14 conv--> tokens [729, D] --* a + b--> tokens [729, D]
+//!   [378, 378, D] --14x14 stride-14 conv--> tokens [729, D] (--token mixer, optional-->)
+//!   --* a + b--> tokens [729, D]
 //! ```
 //!
 //! The 1x1 convolutions are per-pixel matrix products and the non-overlapping 14x14 convolution is
@@ -16,15 +17,18 @@
 //!
 //! Modules: [`config`] (shapes and the token cameras), [`crop`] (the object crop rule shared with
 //! the teacher), [`field`] (the burn modules), [`frozen`] (the encoder at inference, its fold
-//! formed once), [`export`] (Conv2d-layout weights).
+//! formed once), [`mix`] (the optional token mixer after the patch convolution), [`export`]
+//! (Conv2d-layout weights).
 
 pub mod config;
 pub mod crop;
 pub mod export;
 pub mod field;
 pub mod frozen;
+pub mod mix;
 
 pub use config::LanguageConfig;
 pub use crop::{CROP_MARGIN, ObjectCrop, object_box, object_image, objects_in};
 pub use field::{Encoder, LanguageField, mask_out};
 pub use frozen::FrozenEncoder;
+pub use mix::TokenMixer;

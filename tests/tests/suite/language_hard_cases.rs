@@ -59,6 +59,11 @@ impl Case {
         GeometryRun::new(&*self.run)
     }
 
+    /// The case's teacher tokens, opened.
+    pub(crate) fn teacher_set(&self) -> TeacherSet {
+        TeacherSet::open(&self.teacher).unwrap()
+    }
+
     /// Rewrites every teacher file: `tokens(view, name, values)` edits each token grid, `boxes(view,
     /// boxes)` the stored object boxes (`"id:x0,y0,x1,y1 ..."`); a tensor whose object is no longer
     /// boxed is dropped.

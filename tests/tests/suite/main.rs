@@ -35,6 +35,8 @@ mod tabletop_vlm;
 
 mod language;
 
+mod token_mixer;
+
 mod language_hard_cases;
 
 mod compact;

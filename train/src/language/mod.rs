@@ -54,6 +54,9 @@ pub struct LanguageTrainConfig {
     /// 10-25 against 90 % at 0.02), so the default is 0.02; at 240 iterations on the bench scenes
     /// 0.05 scores about a point higher (BENCHMARKS.md).
     pub lr_encoder: f64,
+    /// Adam learning rate of the token mixer (`field.token_mixer`): its attention projections
+    /// were fitted at 0.002 where they were measured (`encoder-probe`, BENCHMARKS.md).
+    pub lr_mixer: f64,
     /// Weight of the object loss (paper: 1).
     pub object_weight: f32,
     /// Objects per step (a seeded random subset of the view's objects; 0 = all, as in the
@@ -104,6 +107,7 @@ impl Default for LanguageTrainConfig {
             seed: 0,
             lr_features: 0.05,
             lr_encoder: 0.02,
+            lr_mixer: 0.002,
             object_weight: 1.0,
             max_objects_per_step: 0,
             warmup_iters: 100,
@@ -125,7 +129,8 @@ impl LanguageTrainConfig {
         if self.iters == 0 {
             return bad("iters", "must be at least 1 (0 would save an untrained field as a run)");
         }
-        for (k, v) in [("lr_features", self.lr_features), ("lr_encoder", self.lr_encoder)] {
+        for (k, v) in [("lr_features", self.lr_features), ("lr_encoder", self.lr_encoder), ("lr_mixer", self.lr_mixer)]
+        {
             if !(v.is_finite() && v >= 0.0) {
                 return bad(k, "must be a finite number >= 0");
             }
@@ -404,6 +409,7 @@ impl LanguageTrainer {
                 * match group {
                     ParamGroup::Features => self.cfg.lr_features,
                     ParamGroup::Encoder => self.cfg.lr_encoder,
+                    ParamGroup::Mixer => self.cfg.lr_mixer,
                 };
             let value = self.states.step(&self.adam, &name, lr, value, g);
             new.push((name, value));

@@ -142,18 +142,15 @@ fn token_cameras_frame_what_the_teacher_saw() {
     assert_eq!(object_box(&ids, 20, 10, 4, 0.1), None);
 }
 
+/// A small encoder's shapes: 3 input channels, hidden 5, D 6, a 3x3 grid of 2x2 patches.
+pub(crate) fn small_encoder_cfg() -> LanguageConfig {
+    LanguageConfig { view_channels: 3, object_channels: 3, hidden: 5, dim: 6, grid: 3, patch: 2, ..Default::default() }
+}
+
 #[test]
 fn encoder_export_round_trips_bit_exactly_in_conv_layout() {
     let dev = Device::ndarray();
-    let cfg = LanguageConfig {
-        view_channels: 3,
-        object_channels: 3,
-        hidden: 5,
-        dim: 6,
-        grid: 3,
-        patch: 2,
-        ..Default::default()
-    };
+    let cfg = small_encoder_cfg();
     let field = LanguageField::new(&cfg, 4, 11, &dev);
     let path = temp_dir("enc-export.safetensors");
     let params = model::language::export::write_encoder(&path, &field.encoder, &cfg, "tiny").unwrap();

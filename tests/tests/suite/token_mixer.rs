@@ -25,17 +25,9 @@ fn map(side: usize, c: usize, seed: u64, dev: &Device) -> Tensor<3> {
     tensor(side * side, c, 1.0, seed, dev).reshape([side, side, c])
 }
 
+/// The export test's small encoder, with or without a mixer.
 fn cfg(token_mixer: bool) -> LanguageConfig {
-    LanguageConfig {
-        view_channels: 3,
-        object_channels: 3,
-        hidden: 5,
-        dim: 6,
-        grid: 3,
-        patch: 2,
-        token_mixer,
-        ..Default::default()
-    }
+    LanguageConfig { token_mixer, ..crate::language::small_encoder_cfg() }
 }
 
 /// An encoder with a mixer whose output projection is not zero (a trained one's stand-in).

@@ -68,12 +68,8 @@ fn mixer_gradients_match_central_differences() {
         tensor(d, d, 0.6, 2, &dev),
         tensor(d, d, 0.6, 3, &dev),
         tensor(d, d, 0.6, 4, &dev),
-    ]
-    .into_iter()
-    .chain([tensor(d, d, 0.6, 5, &dev)])
-    .collect::<Vec<_>>()
-    .try_into()
-    .unwrap();
+        tensor(d, d, 0.6, 5, &dev),
+    ];
     let x = tensor(t, d, 1.0, 6, &dev);
     let weights = tensor(t, d, 1.0, 7, &dev);
     // loss(params, x) = sum(weights * mixer(x)) in f64 on the host

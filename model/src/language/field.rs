@@ -36,10 +36,15 @@ pub struct Encoder {
     pub object_shift: Option<Param<Tensor<2>>>,
 }
 
-fn uniform(rng: &mut Rng, rows: usize, cols: usize, fan_in: usize, device: &Device) -> Tensor<2> {
-    let k = 1.0 / (fan_in as f32).sqrt();
-    let v: Vec<f32> = (0..rows * cols).map(|_| rng.range(-k, k)).collect();
+/// A `[rows, cols]` tensor drawn uniform in ±`bound` from `rng`, row-major.
+pub(crate) fn uniform(rng: &mut Rng, rows: usize, cols: usize, bound: f32, device: &Device) -> Tensor<2> {
+    let v: Vec<f32> = (0..rows * cols).map(|_| rng.range(-bound, bound)).collect();
     Tensor::from_data(TensorData::new(v, [rows, cols]), device)
+}
+
+/// The usual initialisation bound of a layer with `fan_in` inputs: 1/sqrt(fan_in).
+pub(crate) fn fan_in_bound(fan_in: usize) -> f32 {
+    1.0 / (fan_in as f32).sqrt()
 }
 
 impl Encoder {
@@ -50,8 +55,8 @@ impl Encoder {
         let mut lift_weights = Vec::new();
         let mut lift_biases = Vec::new();
         for w in widths.windows(2) {
-            lift_weights.push(Param::from_tensor(uniform(&mut rng, w[0], w[1], w[0], device)));
-            lift_biases.push(Param::from_tensor(uniform(&mut rng, 1, w[1], w[0], device)));
+            lift_weights.push(Param::from_tensor(uniform(&mut rng, w[0], w[1], fan_in_bound(w[0]), device)));
+            lift_biases.push(Param::from_tensor(uniform(&mut rng, 1, w[1], fan_in_bound(w[0]), device)));
         }
         let fan = cfg.patch * cfg.patch * cfg.dim;
         let t = cfg.tokens();
@@ -70,8 +75,8 @@ impl Encoder {
         Self {
             lift_weights,
             lift_biases,
-            patch_weight: Param::from_tensor(uniform(&mut rng, fan, cfg.dim, fan, device)),
-            patch_bias: Param::from_tensor(uniform(&mut rng, 1, cfg.dim, fan, device)),
+            patch_weight: Param::from_tensor(uniform(&mut rng, fan, cfg.dim, fan_in_bound(fan), device)),
+            patch_bias: Param::from_tensor(uniform(&mut rng, 1, cfg.dim, fan_in_bound(fan), device)),
             mixer: cfg.token_mixer.then(|| TokenMixer::new(t, cfg.dim, seed, device)),
             scale,
             shift,

@@ -8,9 +8,10 @@
 //! BENCHMARKS.md). The output projection starts at zero, so a fresh mixer is the identity and a
 //! field trains as without it until the layer has learnt something.
 
+use super::field::{fan_in_bound, uniform};
 use crate::rng::Rng;
 use burn::module::{Module, Param};
-use burn::tensor::{Device, Tensor, TensorData, activation};
+use burn::tensor::{Device, Tensor, activation};
 
 /// `x + softmax(q kᵀ / sqrt(D)) v o` with `n` = `x` normalised per token (zero mean, unit
 /// variance over channels), `q = (n + pos) W_q`, `k = (n + pos) W_k`, `v = n W_v`: one head of
@@ -34,16 +35,14 @@ impl TokenMixer {
     /// ±1/sqrt(D), the output projection zero (the mixer starts as the identity).
     pub fn new(tokens: usize, dim: usize, seed: u64, device: &Device) -> Self {
         let mut rng = Rng::new(seed ^ 0x5eed_a77e);
-        let k = 1.0 / (dim as f32).sqrt();
-        let mut uniform = |rows: usize, cols: usize, s: f32| {
-            let v: Vec<f32> = (0..rows * cols).map(|_| rng.range(-s, s)).collect();
-            Param::from_tensor(Tensor::<2>::from_data(TensorData::new(v, [rows, cols]), device))
-        };
+        let k = fan_in_bound(dim);
+        let mut draw =
+            |rows: usize, cols: usize, bound: f32| Param::from_tensor(uniform(&mut rng, rows, cols, bound, device));
         Self {
-            pos: uniform(tokens, dim, 0.02),
-            query: uniform(dim, dim, k),
-            key: uniform(dim, dim, k),
-            value: uniform(dim, dim, k),
+            pos: draw(tokens, dim, 0.02),
+            query: draw(dim, dim, k),
+            key: draw(dim, dim, k),
+            value: draw(dim, dim, k),
             out: Param::from_tensor(Tensor::zeros([dim, dim], device)),
         }
     }

@@ -113,7 +113,11 @@ pub fn run(
     // A step's loss judges the weights it starts from, so a checkpoint due after step k holds
     // weights no loss has seen yet: it is written after step k + 1's loss passed the guard. A
     // divergence thus never reaches disk; the last checkpoint written stays loadable and sound.
-    let mut guard = LossGuard::new("lower lr_features and lr_encoder (and check the teacher tokens)");
+    let mut guard = LossGuard::new(if t.cfg.field.token_mixer {
+        "lower lr_features and lr_encoder, and lr_mixer (and check the teacher tokens)"
+    } else {
+        "lower lr_features and lr_encoder (and check the teacher tokens)"
+    });
     let mut pending: Option<Snapshot> = None;
     while t.iter < t.cfg.iters {
         let views: Vec<usize> = (0..b).map(|j| view_at(t.iter * b + j, t.cameras.len(), t.cfg.seed)).collect();

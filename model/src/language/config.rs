@@ -39,9 +39,9 @@ pub struct LanguageConfig {
     /// the picture as the teacher's token did.
     pub teacher_image: usize,
     pub teacher_patch: usize,
-    /// One self-attention layer over the view-level token grid after the patch convolution
-    /// ([`TokenMixer`](super::TokenMixer); not in the paper, whose encoder is local; object
-    /// tokens skip it). Off by default until it is measured to hold on answers.
+    /// One self-attention layer over the token grid after the patch convolution
+    /// ([`TokenMixer`](super::TokenMixer); not in the paper, whose encoder is local). Off by
+    /// default until it is measured to hold on answers.
     pub token_mixer: bool,
 }
 

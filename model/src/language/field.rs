@@ -25,8 +25,7 @@ pub struct Encoder {
     pub patch_weight: Param<Tensor<2>>,
     /// `[1, D]`
     pub patch_bias: Param<Tensor<2>>,
-    /// One self-attention layer over the view-level token grid (with `token_mixer`); object tokens
-    /// skip it.
+    /// One self-attention layer over the token grid (with `token_mixer`), shared by both levels.
     pub mixer: Option<TokenMixer>,
     /// `[T, D]` scaling `a` (absent without the scaling adjustment).
     pub scale: Option<Param<Tensor<2>>>,
@@ -193,18 +192,14 @@ impl Encoder {
     /// As [`forward`](Self::forward) for a view-level (`object = false`) or a masked
     /// object-level map (the object pair `(a, b)` when the encoder has one).
     pub fn forward_level(&self, map: Tensor<3>, object: bool) -> Tensor<2> {
-        self.adjust(self.mix(self.tokens_raw(map), object), object)
+        self.adjust(self.mix(self.tokens_raw(map)), object)
     }
 
-    /// The token mixer on a view-level `[T, D]` grid of patch tokens; object-level grids and an
-    /// encoder without a mixer return `t` unchanged. A view's count and its colour list live in
-    /// tokens that their own patch does not determine (the mixer's job); an object's name and
-    /// shape do not, and a mixer shared with the views cost clicks their names (BENCHMARKS.md,
-    /// "The token mixer at view level only").
-    pub fn mix(&self, t: Tensor<2>, object: bool) -> Tensor<2> {
+    /// The token mixer on a `[T, D]` grid of patch tokens (unchanged without one).
+    pub fn mix(&self, t: Tensor<2>) -> Tensor<2> {
         match &self.mixer {
-            Some(m) if !object => m.forward(t),
-            _ => t,
+            Some(m) => m.forward(t),
+            None => t,
         }
     }
 

@@ -38,6 +38,6 @@ impl FrozenEncoder {
             Some((weight, bias)) => self.encoder.tokens_raw_with_fold(map, weight.clone(), bias.clone()),
             None => self.encoder.tokens_raw_plain(map),
         };
-        self.encoder.adjust(self.encoder.mix(raw, object), object)
+        self.encoder.adjust(self.encoder.mix(raw), object)
     }
 }

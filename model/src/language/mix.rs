@@ -1,6 +1,5 @@
-//! The token mixer: one self-attention layer over the encoder's view-level token grid, between
-//! the patch convolution and the scaling adjustment (`LanguageConfig::token_mixer`; not in the
-//! paper; object tokens skip it, see `Encoder::mix`).
+//! The token mixer: one self-attention layer over the encoder's token grid, between the patch
+//! convolution and the scaling adjustment (`LanguageConfig::token_mixer`; not in the paper).
 //!
 //! The paper's encoder is local: a token sees only the map under its own patch. The teacher's
 //! SigLIP tokens are not (27 attention layers), and what a question such as "how many" needs is

@@ -6,7 +6,7 @@
 //!
 //! ```text
 //! features [N, C] --splat--> map [27*14, 27*14, C] --lift (1x1 convs C -> hidden -> D)-->
-//!   [378, 378, D] --14x14 stride-14 conv--> tokens [729, D] (--token mixer, views, optional-->)
+//!   [378, 378, D] --14x14 stride-14 conv--> tokens [729, D] (--token mixer, optional-->)
 //!   --* a + b--> tokens [729, D]
 //! ```
 //!

@@ -130,6 +130,9 @@ const NOVEL_SEED: u64 = 0x6e6f_7665_6c00;
 /// Fails when the dataset's first camera is not the synthetic frame's (a capture that is not
 /// `synth`'s, or one moved after writing), where the ray-cast truth would be of other poses.
 fn novel_views(scene: &Scene, ds: &model::data::Dataset, n: usize) -> Result<Vec<ProbeView>> {
+    if n == 0 {
+        return Ok(Vec::new()); // without --novel, any dataset the probe read before still works
+    }
     let Some(first) = ds.train.iter().chain(&ds.test).find(|v| v.image_path.ends_with("frame_0000.png")) else {
         return Err(model::Error::input("--novel needs a synth dataset (no frame_0000.png)"));
     };

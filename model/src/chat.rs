@@ -172,6 +172,18 @@ impl ChatSession {
                 ),
             ));
         }
+        if scene.cfg.tower_tail > vlm.tower_layers() {
+            return Err(Error::invalid(
+                vlm_dir,
+                format!(
+                    "the language field in {} leaves the vision tower's last {} layers to run on its tokens, but \
+                        this tower has {}: chat with the model it was taught by",
+                    language.dir.display(),
+                    scene.cfg.tower_tail,
+                    vlm.tower_layers()
+                ),
+            ));
+        }
         Ok(Self {
             vlm,
             encoder: FrozenEncoder::new(scene.field.encoder.clone()),
@@ -210,10 +222,11 @@ impl ChatSession {
         Ok(Target::Scene(self.scene_views(k)?.into_iter().map(|v| self.cameras[v]).collect()))
     }
 
-    /// View-level tokens `[T, D]` of the view from `camera` (any pose and size).
+    /// View-level tokens `[T, D]` of the view from `camera` (any pose and size), through the
+    /// tower's last layers where the field was taught before them (`tower_tail`).
     pub fn view_tokens(&self, camera: &Camera) -> Result<Tensor<2>> {
         let map = self.scene.view_map(&self.scene.field, camera)?;
-        Ok(self.encoder.forward_level(map, false))
+        Ok(self.vlm.tower_tail(self.encoder.forward_level(map, false), self.scene.cfg.tower_tail))
     }
 
     /// The object under pixel `(x, y)` of the view from `camera`: one identity render of the
@@ -244,7 +257,8 @@ impl ChatSession {
             return Ok(t.clone());
         }
         let map = self.scene.object_map_in(&picked.camera, picked.id, picked.bbox)?;
-        Ok(picked.tokens.get_or_init(|| self.encoder.forward_level(map, true)).clone())
+        let tail = self.scene.cfg.tower_tail;
+        Ok(picked.tokens.get_or_init(|| self.vlm.tower_tail(self.encoder.forward_level(map, true), tail)).clone())
     }
 
     /// The token grids of a target, one `[T, D]` per image.

@@ -429,6 +429,10 @@ pub struct TeacherIndex {
     #[serde(default)]
     pub fingerprint: String,
     pub vision_feature_layer: i64,
+    /// The tokens are the tower's state before its last `tower_tail` layers, which run on the
+    /// field's tokens at inference (0, as in older indexes: the selected hidden state itself).
+    #[serde(default)]
+    pub tower_tail: usize,
     /// Token grid side and width.
     pub grid: usize,
     pub dim: usize,

@@ -47,6 +47,11 @@ pub struct Args {
     /// Seed of the novel views' cameras.
     #[arg(long, default_value_t = 0)]
     pub novel_seed: u64,
+    /// Keep the vision tower's state before its last K layers instead of its output (0, the
+    /// paper's teacher): a field trained on these tokens leaves those K layers to the tower,
+    /// which runs them on the field's tokens at inference (slower per view, not in the paper).
+    #[arg(long, default_value_t = 0, value_name = "K")]
+    pub tower_tail: usize,
 }
 
 pub fn run(a: Args) -> anyhow::Result<()> {
@@ -65,6 +70,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
             count: a.novel_views,
             seed: a.novel_seed,
         }),
+        tower_tail: a.tower_tail,
         ..Default::default()
     };
     teacher(&vlm_dir, &a.data, &out, &opts, a.backend)

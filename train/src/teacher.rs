@@ -107,6 +107,9 @@ pub struct ExtractOptions {
     pub shard: (usize, usize),
     /// Novel views rendered from a geometry run, taught after the photos (`None`: photos only).
     pub novel: Option<NovelViews>,
+    /// Keep the tower's state before its last this many layers (0: the selected hidden state, as
+    /// the paper): a field trained on it leaves those layers to the tower at inference.
+    pub tower_tail: usize,
 }
 
 impl Default for ExtractOptions {
@@ -118,6 +121,7 @@ impl Default for ExtractOptions {
             load: LoadOptions::default(),
             shard: (0, 1),
             novel: None,
+            tower_tail: 0,
         }
     }
 }
@@ -196,17 +200,19 @@ fn write_view(
     ids: Option<&[u8]>,
     margin: f32,
     gaussians: Option<&str>,
+    tail: usize,
 ) -> Result<usize> {
     let grid = vlm.cfg.vision.grid();
     let dim = vlm.cfg.vision.hidden_size;
     let (w, h) = (img.width, img.height);
-    let mut tensors: Vec<(String, Vec<u8>)> = vec![("view".into(), f16_bytes(vlm.teacher_tokens(img))?)];
+    let mut tensors: Vec<(String, Vec<u8>)> =
+        vec![("view".into(), f16_bytes(vlm.teacher_tokens_before_tail(img, tail))?)];
     let mut boxes = Vec::new();
     if let Some(ids) = ids {
         for &id in &vp.objects {
             let Some(crop) = ObjectCrop::of(ids, w, h, id, margin) else { continue };
             let obj = crop.masked_image(img, ids, id);
-            tensors.push((format!("object_{id}"), f16_bytes(vlm.teacher_tokens(&obj))?));
+            tensors.push((format!("object_{id}"), f16_bytes(vlm.teacher_tokens_before_tail(&obj, tail))?));
             let b = crop.bbox;
             boxes.push(format!("{id}:{},{},{},{}", b[0], b[1], b[2], b[3]));
         }
@@ -325,6 +331,16 @@ pub fn extract(
     if ds.train.is_empty() {
         return Err(Error::invalid(data, "the dataset has no training views"));
     }
+    if opts.tower_tail > vlm.tower_layers() {
+        return Err(Error::invalid(
+            &vlm.dir,
+            format!(
+                "tower tail {}: this vision tower has {} layers (the tail is at most that many)",
+                opts.tower_tail,
+                vlm.tower_layers()
+            ),
+        ));
+    }
     let grid = vlm.cfg.vision.grid();
     let dim = vlm.cfg.vision.hidden_size;
     let mut plan = plan(&ds.train, grid, dim, opts);
@@ -361,6 +377,7 @@ pub fn extract(
                 || old.downscale != opts.load.downscale
                 || old.masks.as_ref().map(|m| m.absolute.clone()) != masks.as_ref().map(|m| m.absolute.clone())
                 || old.teacher != vlm.dir.display().to_string()
+                || old.tower_tail != opts.tower_tail
         }
         Some(Err(_)) => true,
         None => false,
@@ -397,7 +414,7 @@ pub fn extract(
             }
             (None, None) => return Err(Error::input(format!("extract: view {} is past the dataset", vp.index))),
         };
-        images += write_view(vlm, &path, vp, &img, ids.as_deref(), opts.margin, hash.as_deref())?;
+        images += write_view(vlm, &path, vp, &img, ids.as_deref(), opts.margin, hash.as_deref(), opts.tower_tail)?;
         written += 1;
         progress(vp.index + 1, total);
     }
@@ -406,6 +423,7 @@ pub fn extract(
         data: StoredPath::new(data, &out.dir),
         fingerprint,
         vision_feature_layer: vlm.cfg.vision_feature_layer,
+        tower_tail: opts.tower_tail,
         grid,
         dim,
         image_size: vlm.cfg.vision.image_size,

@@ -132,7 +132,7 @@ fn fidelity(
     for v in views {
         let gt_img = image_of(v);
         let gt = tokens_host(vlm, &gt_img);
-        let cs = host(scene.view_tokens(&scene.field, &v.camera)?);
+        let cs = host(vlm.tower_tail(scene.view_tokens(&scene.field, &v.camera)?, scene.cfg.tower_tail));
         f.view.add(&cs, &gt, d);
         let (w, h) = (v.camera.width as usize, v.camera.height as usize);
         let base_img = with_baseline
@@ -161,7 +161,8 @@ fn fidelity(
             let Some((obj, crop)) = object_image(&gt_img, ids, id, scene.margin) else { continue };
             let gt_o = tokens_host(vlm, &obj);
             let (oc, mask) = scene.object_crop(&v.camera, id, crop.bbox)?;
-            f.object.add(&host(scene.object_tokens_with(&scene.field, &oc, &mask)?), &gt_o, d);
+            let tokens = vlm.tower_tail(scene.object_tokens_with(&scene.field, &oc, &mask)?, scene.cfg.tower_tail);
+            f.object.add(&host(tokens), &gt_o, d);
             if let Some(b) = &base_img {
                 let (bo, _) = object_image(b, ids, id, scene.margin).expect("same mask");
                 f.object_baseline.add(&tokens_host(vlm, &bo), &gt_o, d);
@@ -202,12 +203,16 @@ fn clicks(v: &View) -> Vec<(usize, usize)> {
         .collect()
 }
 
-fn speed(scene: &LanguageScene, vlm: Option<&LlavaOnevision>, views: &[View], reps: usize) -> Result<Speed> {
+/// Views/s and objects/s of `scene`'s tokens as `chat` makes them (through the tower's last
+/// layers where the field leaves them to it), and with `baseline` the render-then-tower path's.
+fn speed(scene: &LanguageScene, vlm: &LlavaOnevision, baseline: bool, views: &[View], reps: usize) -> Result<Speed> {
     let mut s = Speed::default();
     // inference as `chat` runs it: the encoder frozen once, its fold formed
     let enc = FrozenEncoder::new(scene.field.encoder.clone());
-    let view_tokens =
-        |v: &View| -> Result<Tensor<2>> { Ok(enc.forward_level(scene.view_map(&scene.field, &v.camera)?, false)) };
+    let tail = scene.cfg.tower_tail;
+    let view_tokens = |v: &View| -> Result<Tensor<2>> {
+        Ok(vlm.tower_tail(enc.forward_level(scene.view_map(&scene.field, &v.camera)?, false), tail))
+    };
     // warm-up (kernel compilation on wgpu)
     let _ = host(view_tokens(&views[0])?);
     let t0 = Instant::now();
@@ -222,14 +227,14 @@ fn speed(scene: &LanguageScene, vlm: Option<&LlavaOnevision>, views: &[View], re
         for v in views {
             for (x, y) in clicks(v) {
                 if let Some((_, map)) = scene.object_map_at(&v.camera, x, y)? {
-                    let _ = host(enc.forward_level(map, true));
+                    let _ = host(vlm.tower_tail(enc.forward_level(map, true), tail));
                     n += 1;
                 }
             }
         }
     }
     s.objects_per_s = n as f64 / t0.elapsed().as_secs_f64().max(1e-9);
-    if let Some(vlm) = vlm {
+    if baseline {
         let t0 = Instant::now();
         for _ in 0..reps {
             for v in views {
@@ -291,7 +296,7 @@ fn row(
     train_s: Option<f64>,
 ) -> Result<Row> {
     let f = fidelity(scene, vlm, views, false, false)?;
-    let s = speed(scene, None, views, reps)?;
+    let s = speed(scene, vlm, false, views, reps)?;
     let c = scene.field.view_features.val().dims()[1];
     let r = Row {
         name: name.to_string(),
@@ -381,7 +386,7 @@ fn bench(a: &Args) -> Result<()> {
     );
     println!("\n(KL averaged over {} view x question pairs: {:?})", f.kl_n, QUESTIONS);
 
-    let s = speed(scene, Some(vlm), held, a.reps)?;
+    let s = speed(scene, vlm, true, held, a.reps)?;
     println!("\n## Speed ({:?}, {} views x {} reps)\n", a.backend, held.len(), a.reps);
     println!("| path | views/s | objects/s |");
     println!("|---|---|---|");

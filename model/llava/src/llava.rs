@@ -176,10 +176,33 @@ impl LlavaOnevision {
 
     /// Base-view teacher tokens of an image: resized to the tower's size like the processor, `[tokens, vision D]`.
     pub fn teacher_tokens(&self, img: &RgbImage) -> Tensor<2> {
+        self.teacher_tokens_before_tail(img, 0)
+    }
+
+    /// [`teacher_tokens`](Self::teacher_tokens) taken before the tower's last `tail` layers
+    /// (at most [`tower_layers`](Self::tower_layers)): what a field that leaves those layers to
+    /// the tower ([`tower_tail`](Self::tower_tail)) learns, `[tokens, vision D]`.
+    pub fn teacher_tokens_before_tail(&self, img: &RgbImage, tail: usize) -> Tensor<2> {
         let view = base_view_unpadded(img, &self.processor);
-        let f = self.vision_features(self.pixels(&view));
+        let f = self.vision.state_before_tail(self.pixels(&view), tail);
         let [_, t, d] = f.dims();
         f.reshape([t, d])
+    }
+
+    /// Layers of the vision tower as loaded (those up to the selected hidden state).
+    pub fn tower_layers(&self) -> usize {
+        self.vision.layers.len()
+    }
+
+    /// Runs the tower's last `tail` layers on tokens `[T, vision D]` taken before them (a field's
+    /// tokens trained on [`teacher_tokens_before_tail`](Self::teacher_tokens_before_tail)); the
+    /// identity for `tail` = 0, as the paper's field feeds the projector directly.
+    pub fn tower_tail(&self, tokens: Tensor<2>, tail: usize) -> Tensor<2> {
+        if tail == 0 {
+            return tokens;
+        }
+        let [t, d] = tokens.dims();
+        self.vision.tail(tokens.reshape([1, t, d]), tail).reshape([t, d])
     }
 
     /// Preprocesses one image for a single-image (anyres) or multi-image (base view) prompt. A

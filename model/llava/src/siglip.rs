@@ -143,6 +143,36 @@ impl VisionTower {
 
     /// `pixels`: `[B, 3, S, S]` normalised -> selected hidden state `[B, tokens, D]`.
     pub fn forward(&self, pixels: Tensor<4>) -> Tensor<3> {
+        self.run_layers(self.embed(pixels), 0..self.layers.len())
+    }
+
+    /// The hidden state before the tower's last `tail` layers (`tail` = 0: [`forward`](Self::forward);
+    /// `tail` = all layers: the patch embedding with positions).
+    ///
+    /// # Shapes
+    /// `pixels` `[B, 3, S, S]` -> `[B, tokens, D]`.
+    pub fn state_before_tail(&self, pixels: Tensor<4>, tail: usize) -> Tensor<3> {
+        let n = self.layers.len();
+        assert!(tail <= n, "the vision tower has {n} layers, not {tail} to leave out");
+        self.run_layers(self.embed(pixels), 0..n - tail)
+    }
+
+    /// Runs the tower's last `tail` layers on a hidden state: `tail(state_before_tail(x, k), k)`
+    /// is `forward(x)`.
+    ///
+    /// # Shapes
+    /// `x` `[B, tokens, D]` -> `[B, tokens, D]`.
+    pub fn tail(&self, x: Tensor<3>, tail: usize) -> Tensor<3> {
+        let n = self.layers.len();
+        assert!(tail <= n, "the vision tower has {n} layers, not {tail} to run");
+        self.run_layers(x, n - tail..n)
+    }
+
+    /// Patch embedding plus positions.
+    ///
+    /// # Shapes
+    /// `pixels` `[B, 3, S, S]` normalised -> `[B, tokens, D]`.
+    pub fn embed(&self, pixels: Tensor<4>) -> Tensor<3> {
         let [b, c, s, s2] = pixels.dims();
         let p = self.cfg.patch_size;
         let g = self.cfg.grid();
@@ -157,12 +187,16 @@ impl VisionTower {
         let pixels = if used < s { pixels.narrow(2, 0, used).narrow(3, 0, used) } else { pixels };
         let patches = pixels.reshape([b, 3, g, p, g, p]).permute([0, 2, 4, 1, 3, 5]).reshape([b * g * g, 3 * p * p]);
         let x = linear(&self.patch, patches);
-        let mut x = x.reshape([b, g * g, d]) + self.position.val().unsqueeze_dim::<3>(0);
+        x.reshape([b, g * g, d]) + self.position.val().unsqueeze_dim::<3>(0)
+    }
+
+    /// Encoder layers `range` on hidden state `x` `[B, tokens, D]`.
+    fn run_layers(&self, mut x: Tensor<3>, range: std::ops::Range<usize>) -> Tensor<3> {
+        let [b, t, d] = x.dims();
         let heads = self.cfg.num_heads;
         let hd = d / heads;
-        let t = g * g;
         let split = |y: Tensor<3>| y.reshape([b, t, heads, hd]).swap_dims(1, 2).reshape([b * heads, t, hd]);
-        for l in &self.layers {
+        for l in &self.layers[range] {
             let h = l.ln1.forward(x.clone());
             let o = attention(
                 split(linear(&l.q, h.clone())),

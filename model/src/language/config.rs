@@ -40,9 +40,13 @@ pub struct LanguageConfig {
     pub teacher_image: usize,
     pub teacher_patch: usize,
     /// One self-attention layer over the token grid after the patch convolution
-    /// ([`TokenMixer`](super::TokenMixer); not in the paper, whose encoder is local). Off by
-    /// default until it is measured to hold on answers.
+    /// ([`TokenMixer`](super::TokenMixer); not in the paper, whose encoder is local). Off: on
+    /// ten held-out scenes it did not answer better than the field without it (BENCHMARKS.md).
     pub token_mixer: bool,
+    /// The encoder's tokens are the teacher tower's state before its last `tower_tail` layers,
+    /// which run, frozen, on them before the projector (not in the paper: 0). Set from the
+    /// teacher index (`chatsplat extract --tower-tail`), never by hand.
+    pub tower_tail: usize,
 }
 
 impl Default for LanguageConfig {
@@ -60,6 +64,7 @@ impl Default for LanguageConfig {
             teacher_image: 384,
             teacher_patch: 14,
             token_mixer: false,
+            tower_tail: 0,
         }
     }
 }

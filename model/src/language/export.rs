@@ -47,6 +47,10 @@ pub struct EncoderHeader {
     /// Whether the file holds a token mixer (`mix.*`; absent in files written before it).
     #[serde(default)]
     pub token_mixer: bool,
+    /// The tokens are the teacher tower's state before its last this many layers, which must
+    /// run on them before the projector (0, and absent in older files: its output).
+    #[serde(default)]
+    pub tower_tail: usize,
     /// Shape of every tensor in the file.
     pub tensors: BTreeMap<String, Vec<usize>>,
 }
@@ -87,6 +91,7 @@ pub fn write_encoder(path: &Path, enc: &Encoder, cfg: &LanguageConfig, teacher_m
         teacher_image: cfg.teacher_image,
         teacher_patch: cfg.teacher_patch,
         token_mixer: enc.mixer.is_some(),
+        tower_tail: cfg.tower_tail,
         tensors: tensors.iter().map(|(n, s, _)| (n.clone(), s.clone())).collect(),
     };
     let mut meta = HashMap::new();
@@ -118,6 +123,7 @@ pub fn read_encoder(path: &Path, device: &Device) -> Result<(Encoder, LanguageCo
         teacher_image: h.teacher_image,
         teacher_patch: h.teacher_patch,
         token_mixer: h.token_mixer,
+        tower_tail: h.tower_tail,
     };
     let mut take = |name: &str| {
         let (s, v) = tensors.remove(name).ok_or_else(|| Error::invalid(path, format!("tensor {name} is missing")))?;

@@ -401,6 +401,39 @@ fn end_to_end_language_field_chat_and_export() {
         .render_map(session.scene.field.view_features.val(), &session.scene.cfg.view_camera(&ds.train[1].camera))
         .unwrap();
     assert_eq!(host(enc.forward(map.clone())), host(session.scene.field.encoder.forward(map)));
+
+    // --- a field taught before the tower's last layers (`extract --tower-tail`): the session
+    // runs those layers on the encoder's tokens, the export says so, and a tail longer than the
+    // tower is refused at open
+    let tail_dir = temp_dir("lang-e2e-tail");
+    std::fs::create_dir_all(&tail_dir).unwrap();
+    for f in std::fs::read_dir(&lang_dir).unwrap() {
+        let f = f.unwrap().path();
+        if f.is_file() {
+            std::fs::copy(&f, tail_dir.join(f.file_name().unwrap())).unwrap();
+        }
+    }
+    // the field's shapes as the run saved them (what `extract --tower-tail` leads to)
+    let set_tail = |k: usize| {
+        let path = tail_dir.join("state.json");
+        let mut c: serde_json::Value = serde_json::from_str(&std::fs::read_to_string(&path).unwrap()).unwrap();
+        c["field"]["tower_tail"] = k.into();
+        std::fs::write(&path, c.to_string()).unwrap();
+    };
+    set_tail(1);
+    let tailed = model::chat::ChatSession::open(&geometry, Some(&tail_dir), &fixture(), &dev).unwrap();
+    assert_eq!(tailed.scene.cfg.tower_tail, 1);
+    let own = session.view_tokens(&cam0).unwrap();
+    let through = host(tailed.view_tokens(&cam0).unwrap());
+    assert_eq!(through, host(tailed.vlm.tower_tail(own.clone(), 1)));
+    let moved = chatsplat_tests::max_abs_diff(&through, &host(own));
+    assert!(moved > 1e-3, "the tower's last layer must change the tokens ({moved})");
+    let out = tail_dir.join("encoder.safetensors");
+    model::language::export::write_encoder(&out, &tailed.scene.field.encoder, &tailed.scene.cfg, "tiny").unwrap();
+    assert_eq!(model::language::export::read_encoder(&out, &dev).unwrap().1.tower_tail, 1);
+    set_tail(vlm.tower_layers() + 1);
+    let e = model::chat::ChatSession::open(&geometry, Some(&tail_dir), &fixture(), &dev).err().unwrap().to_string();
+    assert!(e.contains("tower") && e.contains(&tail_dir.display().to_string()), "{e}");
 }
 
 /// Novel views: the geometry rendered between the training cameras and taught like photos. The

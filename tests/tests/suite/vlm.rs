@@ -446,6 +446,31 @@ fn teacher_extraction_writes_f16_tokens_and_resumes() {
     assert!(max_abs_diff(&small, &got) > 1e-3, "downscale-2 tokens replace the full-size ones");
     let s = extract(&m, &data, &teacher, &half, |_| {}, |_, _| {}).unwrap();
     assert_eq!((s.written, s.skipped), (0, planned));
+    // Tokens taken before the tower's last layers (`--tower-tail`): the tower's last k layers
+    // on them give its output, for every k; another tail redoes every view and the index says
+    // which; one longer than the tower is refused, naming the model.
+    let layers = m.tower_layers();
+    assert!(layers >= 1);
+    for k in 0..=layers {
+        let before = m.teacher_tokens_before_tail(&img, k);
+        let done = host(m.tower_tail(before.clone(), k));
+        assert!(max_abs_diff(&done, &want) < 1e-5, "tail {k}: {}", max_abs_diff(&done, &want));
+        if k > 0 {
+            assert!(max_abs_diff(&host(before), &want) > 1e-3, "tail {k}: the state before must differ");
+        }
+    }
+    let tail = ExtractOptions { tower_tail: 1, ..eo.clone() };
+    let s = extract(&m, &data, &teacher, &tail, |_| {}, |_, _| {}).unwrap();
+    assert_eq!((s.written, s.skipped), (planned, 0));
+    assert_eq!(teacher.read_index().unwrap().tower_tail, 1);
+    let (_, early) = read_tokens(&out.join(view_file(0)), "view").unwrap();
+    let early_want = host(m.teacher_tokens_before_tail(&img, 1));
+    for (g, w) in early.iter().zip(&early_want) {
+        assert!((g - w).abs() <= w.abs() * 1e-3 + 1e-4, "f16 token {g} vs {w}");
+    }
+    let long = ExtractOptions { tower_tail: layers + 1, ..eo.clone() };
+    let e = extract(&m, &data, &teacher, &long, |_| {}, |_, _| {}).unwrap_err().to_string();
+    assert!(e.contains("tower tail") && e.contains(&m.dir.display().to_string()), "{e}");
     // A dataset path that does not exist is a clear error.
     let e = extract(&m, Path::new("/nonexistent/scene"), &teacher, &eo, |_| {}, |_, _| {}).unwrap_err().to_string();
     assert!(e.contains("/nonexistent/scene"), "{e}");

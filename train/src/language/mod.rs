@@ -194,6 +194,7 @@ impl LanguageTrainer {
         cfg.field.dim = ix.dim;
         cfg.field.teacher_image = ix.image_size;
         cfg.field.teacher_patch = ix.patch_size;
+        cfg.field.tower_tail = ix.tower_tail;
         if !cfg.field.lifting {
             cfg.field.view_channels = ix.dim;
             cfg.field.object_channels = ix.dim;

@@ -19,6 +19,19 @@ fn fixture() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../checkpoints/tiny-llava-ov")
 }
 
+/// A fresh scratch folder (tagged `tag`) holding copies of the files directly in `dir`.
+fn copy_files(dir: &Path, tag: &str) -> Scratch {
+    let out = temp_dir(tag);
+    std::fs::create_dir_all(&out).unwrap();
+    for e in std::fs::read_dir(dir).unwrap() {
+        let p = e.unwrap().path();
+        if p.is_file() {
+            std::fs::copy(&p, out.join(p.file_name().unwrap())).unwrap();
+        }
+    }
+    out
+}
+
 fn random_map(h: usize, w: usize, c: usize, seed: u64, dev: &Device) -> Tensor<3> {
     let mut r = Rng::new(seed);
     Tensor::from_data(TensorData::new((0..h * w * c).map(|_| r.normal()).collect::<Vec<f32>>(), [h, w, c]), dev)
@@ -405,14 +418,7 @@ fn end_to_end_language_field_chat_and_export() {
     // --- a field taught before the tower's last layers (`extract --tower-tail`): the session
     // runs those layers on the encoder's tokens, the export says so, and a tail longer than the
     // tower is refused at open
-    let tail_dir = temp_dir("lang-e2e-tail");
-    std::fs::create_dir_all(&tail_dir).unwrap();
-    for f in std::fs::read_dir(&lang_dir).unwrap() {
-        let f = f.unwrap().path();
-        if f.is_file() {
-            std::fs::copy(&f, tail_dir.join(f.file_name().unwrap())).unwrap();
-        }
-    }
+    let tail_dir = copy_files(&lang_dir, "lang-e2e-tail");
     // the field's shapes as the run saved them (what `extract --tower-tail` leads to)
     let set_tail = |k: usize| {
         let path = tail_dir.join("state.json");
@@ -488,14 +494,7 @@ fn novel_views_teach_the_field_between_the_training_cameras() {
     assert!(after.0 < before.0 / 1.2 && after.1 < before.1 / 1.2, "novel token L1 {before:?} -> {after:?}");
 
     // other Gaussians (the means nudged) refuse the novel views, naming the way out
-    let other_dir = temp_dir("lang-novel-other");
-    std::fs::create_dir_all(&other_dir).unwrap();
-    for e in std::fs::read_dir(&run_dir).unwrap() {
-        let p = e.unwrap().path();
-        if p.is_file() {
-            std::fs::copy(&p, other_dir.join(p.file_name().unwrap())).unwrap();
-        }
-    }
+    let other_dir = copy_files(&run_dir, "lang-novel-other");
     let other = GeometryRun::new(&other_dir);
     let (mut tensors, meta) = model::io::read_f32(&other.checkpoint()).unwrap();
     tensors.get_mut("means").unwrap().1[0] += 0.01;

@@ -35,8 +35,12 @@ fn batch(manifest: &Path, extra: &[&str]) -> Command {
     c
 }
 
+fn json(path: &Path) -> serde_json::Value {
+    serde_json::from_slice(&std::fs::read(path).unwrap_or_else(|e| panic!("{}: {e}", path.display()))).unwrap()
+}
+
 fn summary(out: &Path, scene: &str) -> serde_json::Value {
-    serde_json::from_slice(&std::fs::read(out.join(scene).join("summary.json")).unwrap()).unwrap()
+    json(&out.join(scene).join("summary.json"))
 }
 
 #[test]
@@ -66,6 +70,9 @@ fn two_shards_cover_the_manifest_once_and_a_rerun_skips_what_is_done() {
         for stage in ["geometry", "teacher", "language"] {
             assert!(s["seconds"][stage].as_f64().is_some(), "{stage} missing in {s}");
         }
+        // the teacher leaves the default number of the tower's last layers to chat
+        let index = json(&out.join(scene).join("teacher/teacher.json"));
+        assert_eq!(index["tower_tail"], train::teacher::DEFAULT_TOWER_TAIL, "{scene}");
         // VQA on every question of the scene's file, or none when a 48 px capture has none
         let qf: serde_json::Value =
             serde_json::from_slice(&std::fs::read(dir.join(format!("d{seed}/questions.json"))).unwrap()).unwrap();
@@ -104,8 +111,12 @@ fn a_worker_killed_mid_scene_resumes_it_from_its_checkpoint() {
     std::fs::create_dir_all(&*dir).unwrap();
     scenes(&dir, &[30_204]);
     let manifest = dir.join("one.toml");
-    std::fs::write(&manifest, "geometry_iters = 80\nlanguage_iters = 3\n[[scene]]\nname = \"a\"\ndata = \"d30204\"\n")
-        .unwrap();
+    // a tower tail other than the default, as a manifest asks for it
+    let tail = train::teacher::DEFAULT_TOWER_TAIL + 1;
+    let text = format!(
+        "geometry_iters = 80\nlanguage_iters = 3\ntower_tail = {tail}\n[[scene]]\nname = \"a\"\ndata = \"d30204\"\n"
+    );
+    std::fs::write(&manifest, text).unwrap();
     let state = dir.join("one-out/a/run/state.json");
     let mut child = batch(&manifest, &[]).stdout(Stdio::null()).stderr(Stdio::null()).spawn().unwrap();
     // killed (SIGKILL) once the geometry has a checkpoint past its start
@@ -134,6 +145,8 @@ fn a_worker_killed_mid_scene_resumes_it_from_its_checkpoint() {
         serde_json::from_slice(&std::fs::read(dir.join("one-out/a/run/metrics.json")).unwrap()).unwrap();
     let state: serde_json::Value = serde_json::from_slice(&std::fs::read(&state).unwrap()).unwrap();
     assert_eq!(state["iter"], 80, "{metrics}");
+    assert_eq!(json(&dir.join("one-out/a/teacher/teacher.json"))["tower_tail"], tail);
+    assert_eq!(json(&dir.join("one-out/a/run/language/state.json"))["field"]["tower_tail"], tail);
 }
 
 #[test]

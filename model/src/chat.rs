@@ -226,7 +226,7 @@ impl ChatSession {
     /// tower's last layers where the field was taught before them (`tower_tail`).
     pub fn view_tokens(&self, camera: &Camera) -> Result<Tensor<2>> {
         let map = self.scene.view_map(&self.scene.field, camera)?;
-        Ok(self.vlm.tower_tail(self.encoder.forward_level(map, false), self.scene.cfg.tower_tail))
+        Ok(self.scene.reader_tokens(&self.vlm, self.encoder.forward_level(map, false)))
     }
 
     /// The object under pixel `(x, y)` of the view from `camera`: one identity render of the
@@ -257,8 +257,8 @@ impl ChatSession {
             return Ok(t.clone());
         }
         let map = self.scene.object_map_in(&picked.camera, picked.id, picked.bbox)?;
-        let tail = self.scene.cfg.tower_tail;
-        Ok(picked.tokens.get_or_init(|| self.vlm.tower_tail(self.encoder.forward_level(map, true), tail)).clone())
+        let tokens = || self.scene.reader_tokens(&self.vlm, self.encoder.forward_level(map, true));
+        Ok(picked.tokens.get_or_init(tokens).clone())
     }
 
     /// The token grids of a target, one `[T, D]` per image.

@@ -6,6 +6,7 @@ use crate::error::{Error, Result};
 use crate::language::{LanguageConfig, LanguageField, ObjectCrop, mask_out};
 use crate::run::{GeometryRun, LanguageRun};
 use crate::splats::{SplatModel, ViewRender, host};
+use crate::vlm::LlavaOnevision;
 use burn::tensor::{Device, Int, Tensor, TensorData};
 use splat_kernels::api::{SplatOptions, splat};
 use splat_kernels::blend::BlendWeights;
@@ -159,6 +160,13 @@ impl LanguageScene {
     /// [`FrozenEncoder`](crate::language::FrozenEncoder) of [`view_map`](Self::view_map) is faster).
     pub fn view_tokens(&self, field: &LanguageField, cam: &Camera) -> Result<Tensor<2>> {
         Ok(field.encoder.forward(self.view_map(field, cam)?))
+    }
+
+    /// The tokens the reader takes from the encoder's `tokens` `[T, D]`: the tower's last
+    /// `cfg.tower_tail` layers of `vlm` run on them (none where the field learnt the tower's
+    /// output, as the paper's).
+    pub fn reader_tokens(&self, vlm: &LlavaOnevision, tokens: Tensor<2>) -> Tensor<2> {
+        vlm.tower_tail(tokens, self.cfg.tower_tail)
     }
 
     /// The object crop camera and its `[r, r]` 0/1 mask of object `id`: the rendered identity,

@@ -22,7 +22,7 @@ use train::teacher::ExtractOptions;
 #[derive(clap::Args)]
 pub struct Args {
     /// The manifest (TOML): optional `out`, `vlm`, `backend`, `geometry_iters`,
-    /// `language_iters`, then one `[[scene]]` table per scene (`name`, `data`, optional
+    /// `language_iters`, `tower_tail`, then one `[[scene]]` table per scene (`name`, `data`, optional
     /// `questions` and per-scene iterations). Paths are relative to the manifest's folder.
     #[arg(long)]
     pub manifest: PathBuf,
@@ -49,6 +49,9 @@ struct Manifest {
     geometry_iters: usize,
     #[serde(default = "default_language_iters")]
     language_iters: usize,
+    /// The vision tower's last layers left to run on the fields' tokens (`extract --tower-tail`).
+    #[serde(default = "default_tower_tail")]
+    tower_tail: usize,
     #[serde(default)]
     scene: Vec<SceneEntry>,
 }
@@ -59,6 +62,10 @@ fn default_geometry_iters() -> usize {
 
 fn default_language_iters() -> usize {
     100
+}
+
+fn default_tower_tail() -> usize {
+    train::teacher::DEFAULT_TOWER_TAIL
 }
 
 /// One `[[scene]]` table.
@@ -88,6 +95,7 @@ struct Plan {
     out: PathBuf,
     vlm: Option<PathBuf>,
     backend: Backend,
+    tower_tail: usize,
     scenes: Vec<Scene>,
 }
 
@@ -162,7 +170,7 @@ fn read_manifest(path: &Path) -> anyhow::Result<Plan> {
     }
     let stem = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "batch".into());
     let out = m.out.as_ref().map(|o| base.join(o)).unwrap_or_else(|| base.join(format!("{stem}-out")));
-    Ok(Plan { out, vlm: m.vlm.as_ref().map(|v| base.join(v)), backend, scenes })
+    Ok(Plan { out, vlm: m.vlm.as_ref().map(|v| base.join(v)), backend, tower_tail: m.tower_tail, scenes })
 }
 
 /// `(I, N)` from `--shard I/N` or the scheduler's environment.
@@ -237,7 +245,8 @@ fn run_scene(plan: &Plan, s: &Scene, d: &SceneDirs, shard: &str) -> anyhow::Resu
     if !lang.metrics().is_file() {
         // resumable: views already extracted are kept
         let vlm = super::vlm_dir(plan.vlm.as_ref())?;
-        super::extract::teacher(&vlm, &s.data, &d.teacher, &ExtractOptions::default(), plan.backend)?;
+        let eo = ExtractOptions { tower_tail: plan.tower_tail, ..Default::default() };
+        super::extract::teacher(&vlm, &s.data, &d.teacher, &eo, plan.backend)?;
         time("teacher", t0);
         let t0 = std::time::Instant::now();
         let mut cfg = LanguageTrainConfig {

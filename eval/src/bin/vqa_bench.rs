@@ -62,6 +62,10 @@ struct Args {
     /// rendered between its training cameras (`chatsplat extract --novel-views`).
     #[arg(long, default_value_t = 0)]
     novel_views: usize,
+    /// The tower's last K layers left to the tower (`chatsplat extract --tower-tail`; 0 is the
+    /// paper's field).
+    #[arg(long, default_value_t = train::teacher::DEFAULT_TOWER_TAIL, value_name = "K")]
+    tower_tail: usize,
     /// Work directory (datasets, runs) and bench.json.
     #[arg(long, default_value = "out/vqa-bench")]
     out: PathBuf,
@@ -349,7 +353,7 @@ fn bench(a: &Args) -> Result<()> {
         })?;
         let teacher = TeacherDir::new(data.join("teacher"));
         let novel = (a.novel_views > 0).then(|| NovelViews { run: run.clone(), count: a.novel_views, seed });
-        let eo = ExtractOptions { novel, ..Default::default() };
+        let eo = ExtractOptions { novel, tower_tail: a.tower_tail, ..Default::default() };
         train::teacher::extract(&vlm, &data, &teacher, &eo, |_| {}, |_, _| {})?;
         let lang = LanguageRun::new(run.dir.join("language"));
         let lcfg = language_config.clone();
@@ -512,6 +516,7 @@ fn bench(a: &Args) -> Result<()> {
     let settings = serde_json::json!({
         "seeds": [a.first_seed, a.first_seed + a.seeds], "views": a.views, "resolution": a.resolution,
         "geometry_iters": a.geometry_iters, "language_iters": a.language_iters, "novel_views": a.novel_views,
+        "tower_tail": a.tower_tail,
         "language_config": language_config, "backend": a.backend.to_string(),
     });
     report(&totals, &format!("{} views of {}px", a.views, a.resolution), settings, &a.out)

@@ -426,10 +426,14 @@ fn end_to_end_language_field_chat_and_export() {
         c["field"]["tower_tail"] = k.into();
         std::fs::write(&path, c.to_string()).unwrap();
     };
+    // the default teacher's tail reaches the run from the teacher's index
+    assert_eq!(session.scene.cfg.tower_tail, train::teacher::DEFAULT_TOWER_TAIL);
+    set_tail(0);
+    let plain = model::chat::ChatSession::open(&geometry, Some(&tail_dir), &fixture(), &dev).unwrap();
+    let own = plain.view_tokens(&cam0).unwrap();
     set_tail(1);
     let tailed = model::chat::ChatSession::open(&geometry, Some(&tail_dir), &fixture(), &dev).unwrap();
     assert_eq!(tailed.scene.cfg.tower_tail, 1);
-    let own = session.view_tokens(&cam0).unwrap();
     let through = host(tailed.view_tokens(&cam0).unwrap());
     assert_eq!(through, host(tailed.vlm.tower_tail(own.clone(), 1)));
     let moved = chatsplat_tests::max_abs_diff(&through, &host(own));
@@ -470,7 +474,8 @@ fn novel_views_teach_the_field_between_the_training_cameras() {
         let r = splats.render(&cameras[v], state.sh_degree, state.background).unwrap();
         let rgb: Vec<f32> = r.rgb.iter().map(|c| c.clamp(0.0, 1.0)).collect();
         let (w, h) = (cameras[v].width as usize, cameras[v].height as usize);
-        let want = host(vlm.teacher_tokens(&model::vlm::preprocess::RgbImage::from_f32(w, h, &rgb)));
+        let img = model::vlm::preprocess::RgbImage::from_f32(w, h, &rgb);
+        let want = host(vlm.teacher_tokens_before_tail(&img, eo.tower_tail));
         let got = set.tokens(v, None).unwrap();
         let err = want.iter().zip(&got).map(|(a, b)| (a - b).abs()).fold(0f32, f32::max);
         let scale = want.iter().map(|a| a.abs()).fold(0f32, f32::max);

@@ -403,7 +403,7 @@ fn teacher_extraction_writes_f16_tokens_and_resumes() {
     let m = LlavaOnevision::load(&fixture(), &dev).unwrap();
     let out = data.join("teacher");
     let teacher = TeacherDir::new(&out);
-    let eo = ExtractOptions { min_object_pixels: 16, ..Default::default() };
+    let eo = ExtractOptions { min_object_pixels: 16, tower_tail: 0, ..Default::default() };
     let mut planned = 0;
     let s = extract(&m, &data, &teacher, &eo, |p| planned = p.views.len(), |_, _| {}).unwrap();
     assert_eq!((s.written, s.skipped), (planned, 0));

@@ -74,8 +74,7 @@ fn two_shards_cover_the_manifest_once_and_a_rerun_skips_what_is_done() {
         let index = json(&out.join(scene).join("teacher/teacher.json"));
         assert_eq!(index["tower_tail"], train::teacher::DEFAULT_TOWER_TAIL, "{scene}");
         // VQA on every question of the scene's file, or none when a 48 px capture has none
-        let qf: serde_json::Value =
-            serde_json::from_slice(&std::fs::read(dir.join(format!("d{seed}/questions.json"))).unwrap()).unwrap();
+        let qf = json(&dir.join(format!("d{seed}/questions.json")));
         let asked = qf["questions"].as_array().unwrap().len() as u64;
         if asked == 0 {
             assert!(s["vqa"].is_null(), "{s}");
@@ -87,7 +86,7 @@ fn two_shards_cover_the_manifest_once_and_a_rerun_skips_what_is_done() {
     assert!(answered > 0, "no scene had questions");
     let o = batch(&manifest, &["--report"]).output().unwrap();
     assert!(o.status.success(), "{}", show(&o));
-    let report: serde_json::Value = serde_json::from_slice(&std::fs::read(out.join("report.json")).unwrap()).unwrap();
+    let report = json(&out.join("report.json"));
     assert_eq!(report["done"], 3, "{report}");
     let names: Vec<&str> = report["results"].as_array().unwrap().iter().map(|r| r["scene"].as_str().unwrap()).collect();
     assert_eq!(names, ["one", "two", "three"]);
@@ -141,9 +140,8 @@ fn a_worker_killed_mid_scene_resumes_it_from_its_checkpoint() {
     let s = summary(&dir.join("one-out"), "a");
     let resumed = s["resumed_from"]["geometry"].as_u64().expect("resumed");
     assert!(resumed >= at, "resumed from {resumed}, killed after {at}: {s}");
-    let metrics: serde_json::Value =
-        serde_json::from_slice(&std::fs::read(dir.join("one-out/a/run/metrics.json")).unwrap()).unwrap();
-    let state: serde_json::Value = serde_json::from_slice(&std::fs::read(&state).unwrap()).unwrap();
+    let metrics = json(&dir.join("one-out/a/run/metrics.json"));
+    let state = json(&state);
     assert_eq!(state["iter"], 80, "{metrics}");
     assert_eq!(json(&dir.join("one-out/a/teacher/teacher.json"))["tower_tail"], tail);
     assert_eq!(json(&dir.join("one-out/a/run/language/state.json"))["field"]["tower_tail"], tail);
@@ -298,8 +296,6 @@ fn extract_shards_write_what_one_extract_writes_and_the_last_one_writes_the_inde
         assert_eq!(ha, hb, "{f}");
         assert!(da == db, "{f}: the tokens differ");
     }
-    let index = |d: &Path| -> serde_json::Value {
-        serde_json::from_slice(&std::fs::read(d.join("teacher.json")).unwrap()).unwrap()
-    };
+    let index = |d: &Path| json(&d.join("teacher.json"));
     assert_eq!(index(&sharded)["views"], index(&whole)["views"]);
 }

@@ -75,6 +75,9 @@ fn evaluate(dir: &std::path::Path, a: &Args) -> anyhow::Result<()> {
     );
     println!("exact match {}", acc.summary());
     println!("by type: {}", acc.by_kind_line());
+    for line in acc.smallest_lines() {
+        println!("{line}");
+    }
     Ok(())
 }
 

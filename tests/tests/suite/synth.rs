@@ -10,7 +10,7 @@ use burn::tensor::{Device, Tensor};
 use chatsplat_tests::temp_dir;
 use glam::{Mat4, Quat, Vec3, Vec4};
 use model::data::synth::questions::{Kind, ViewFacts, object_questions, scene_questions, view_questions};
-use model::data::synth::raycast::render_view;
+use model::data::synth::raycast::{render_view, render_view_supersampled};
 use model::data::synth::scene::{
     CUBE_HALF, CYLINDER_HALF_HEIGHT, CYLINDER_RADIUS, Color, Scene, Shape, Size, TORUS_MAJOR, TORUS_MINOR,
 };
@@ -148,6 +148,60 @@ fn recompute(scene: &Scene, ids: &[u8], depth: &[f32], w: usize, qa: &model::dat
         }
         other => panic!("{other:?} is not a view question"),
     }
+}
+
+/// Supersampling blends edge pixels only, and each blended pixel is the box filter of a view
+/// rendered `s` times finer (whose pixel centres are the sub-rays): the plain twin as oracle.
+#[test]
+fn supersampled_views_blend_edge_pixels_as_a_finer_render_averaged() {
+    let (s, side) = (3usize, 64u32);
+    let mut rng = Rng::new(5);
+    let mut blended = 0;
+    for seed in [3u64, 11, 29] {
+        let scene = Scene::from_seed(seed);
+        let cam = synth::random_camera(&mut rng, 50.0, side, side);
+        let plain = render_view(&cam, &scene);
+        assert!(render_view_supersampled(&cam, &scene, 1).rgb == plain.rgb, "s = 1 is the plain render");
+        let ss = render_view_supersampled(&cam, &scene, s);
+        assert!(ss.ids == plain.ids && ss.depth == plain.depth, "ids and depths are the centre ray's");
+        let mut fine = cam;
+        (fine.fx, fine.fy, fine.cx, fine.cy) =
+            (cam.fx * s as f32, cam.fy * s as f32, cam.cx * s as f32, cam.cy * s as f32);
+        (fine.width, fine.height) = (side * s as u32, side * s as u32);
+        let f = render_view(&fine, &scene);
+        let (w, fw) = (side as usize, side as usize * s);
+        for y in 0..w {
+            for x in 0..w {
+                let o = y * w + x;
+                let id = plain.ids[o];
+                let edge =
+                    [(x > 0, o.wrapping_sub(1)), (x + 1 < w, o + 1), (y > 0, o.wrapping_sub(w)), (y + 1 < w, o + w)]
+                        .iter()
+                        .any(|&(inside, n)| inside && plain.ids[n] != id);
+                for k in 0..3 {
+                    let want = if edge {
+                        let mut sum = 0.0;
+                        for j in 0..s {
+                            for i in 0..s {
+                                sum += f.rgb[((y * s + j) * fw + x * s + i) * 3 + k];
+                            }
+                        }
+                        sum / (s * s) as f32
+                    } else {
+                        plain.rgb[o * 3 + k]
+                    };
+                    assert!(
+                        (ss.rgb[o * 3 + k] - want).abs() < 2e-3,
+                        "seed {seed} pixel ({x}, {y}) channel {k}: {} vs {want} (plain {}, edge {edge})",
+                        ss.rgb[o * 3 + k],
+                        plain.rgb[o * 3 + k]
+                    );
+                }
+                blended += (edge && (0..3).any(|k| (ss.rgb[o * 3 + k] - plain.rgb[o * 3 + k]).abs() > 0.02)) as usize;
+            }
+        }
+    }
+    assert!(blended > 50, "only {blended} edge pixels changed colour");
 }
 
 #[test]

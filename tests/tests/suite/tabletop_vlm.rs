@@ -401,10 +401,46 @@ fn the_committed_model_answers_questions_on_held_out_scenes() {
         acc.by_kind_line()
     );
     assert!(n >= 40, "two seeds ask every kind of question ({n} asked)");
+    // every view question, and nothing else, is filed under the size of its smallest object
+    let filed: usize = acc.view_by_smallest.iter().flat_map(|m| m.values()).map(|v| v.1).sum();
+    let view_kinds = |k: &String| {
+        model::data::synth::questions::Kind::ALL
+            .iter()
+            .any(|c| c.as_str() == k && c.level() == model::question_file::Level::View)
+    };
+    let asked: usize = acc.by_kind.iter().filter(|(k, _)| view_kinds(k)).map(|(_, v)| v.1).sum();
+    assert_eq!(filed, asked, "view questions filed by size ({} buckets)", acc.view_by_smallest.len());
     assert!(
         all >= COMMITTED_FLOOR,
         "exact match {all:.3} < {COMMITTED_FLOOR} (measured {COMMITTED_MEASURED} when committed)"
     );
+}
+
+/// The size buckets of `--evaluate`'s breakdown: a view question goes under the smallest object
+/// its view sees, bounds exclusive above; other questions only under their kind.
+#[test]
+fn view_questions_are_filed_under_their_smallest_object() {
+    use model::data::synth::questions::Kind;
+    use train::vlm::{Accuracy, SMALLEST_BUCKETS};
+    let mut a = Accuracy::default();
+    let [b0, b1, b2] = SMALLEST_BUCKETS;
+    a.add_sized(Kind::Shapes, true, Some(28));
+    a.add_sized(Kind::Shapes, false, Some(b0 - 1));
+    a.add_sized(Kind::Shapes, true, Some(b0));
+    a.add_sized(Kind::Count, false, Some(b1));
+    a.add_sized(Kind::Count, true, Some(b2 + 1000));
+    a.add_sized(Kind::Name, false, None);
+    assert_eq!(a.by_kind["shapes"], (2, 3));
+    assert_eq!(a.by_kind["name"], (0, 1));
+    let got: Vec<Vec<(&str, (usize, usize))>> =
+        a.view_by_smallest.iter().map(|m| m.iter().map(|(k, v)| (k.as_str(), *v)).collect()).collect();
+    assert_eq!(
+        got,
+        vec![vec![("shapes", (1, 2))], vec![("shapes", (1, 1))], vec![("count", (0, 1))], vec![("count", (1, 1))]]
+    );
+    let lines = a.smallest_lines();
+    assert_eq!(lines[0], format!("smallest seen object 0-{} px: view 50% of 2, shapes 50% of 2", b0 - 1));
+    assert!(lines[3].starts_with(&format!("smallest seen object >= {b2} px: view 100% of 1")), "{}", lines[3]);
 }
 
 /// ChatSplat with the committed model as teacher and reader, end to end on one small held-out

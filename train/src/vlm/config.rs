@@ -105,6 +105,9 @@ pub struct VlmTrainConfig {
     pub feature_noise: f32,
     /// Side of the rendered views (the synthetic datasets' resolution).
     pub resolution: u32,
+    /// Rays per pixel side on the views' edges (`render_view_supersampled`): 1 = one ray
+    /// through each pixel's centre, as the synthetic datasets are rendered.
+    pub supersample: usize,
     /// Object crop margin (the teacher's).
     pub margin: f32,
     /// Label tokens (the curriculum): every image's tokens are the label tokens until this
@@ -159,6 +162,7 @@ impl Default for VlmTrainConfig {
             adaptive_floor: 0.05,
             feature_noise: 0.1,
             resolution: 96,
+            supersample: 1,
             margin: model::language::CROP_MARGIN,
             label_tokens_until: 0.3,
             label_tokens_end: 0.6,

@@ -8,7 +8,7 @@ use model::data::synth::questions::{
     CLICK_FRACTION, Kind, Qa, VISIBLE_FRACTION, ViewFacts, covering_views, object_questions, scene_questions,
     view_questions,
 };
-use model::data::synth::raycast::{SynthView, render_view};
+use model::data::synth::raycast::{SynthView, render_view_supersampled};
 use model::data::synth::scene::Scene;
 use model::data::synth::{SCENE_VIEWS, random_camera};
 use model::language::ObjectCrop;
@@ -78,6 +78,9 @@ pub struct Sample {
     pub kind: SampleKind,
     pub images: Vec<TowerImage>,
     pub qas: Vec<Qa>,
+    /// View samples: the pixels (at the rendered resolution) of the smallest object the
+    /// questions count as seen; `None` for other samples and for views that see nothing.
+    pub smallest: Option<usize>,
 }
 
 /// How samples are made.
@@ -85,6 +88,8 @@ pub struct Sample {
 pub struct DataSpec {
     /// Rendered view side (the synthetic datasets' resolution); resized to the tower's input.
     pub resolution: u32,
+    /// Rays per pixel side on edges (`render_view_supersampled`; 1: one per pixel).
+    pub supersample: usize,
     pub fov_deg: f32,
     /// Object crop margin (the teacher's).
     pub margin: f32,
@@ -99,6 +104,7 @@ impl DataSpec {
     pub fn new(cfg: &LlavaConfig, processor: &ProcessorConfig, resolution: u32, margin: f32) -> Self {
         Self {
             resolution,
+            supersample: 1,
             fov_deg: model::data::synth::FOV_DEG,
             margin,
             processor: processor.clone(),
@@ -106,6 +112,12 @@ impl DataSpec {
             patch: cfg.vision.patch_size,
             grid: cfg.vision.grid(),
         }
+    }
+
+    /// The same, rendering with `s` x `s` rays per pixel side on edges.
+    pub fn with_supersample(mut self, s: usize) -> Self {
+        self.supersample = s.max(1);
+        self
     }
 
     /// The tower input of an image, its id map and depth (`[h, w]`, same size), resized like
@@ -168,7 +180,7 @@ impl DataSpec {
     fn render(&self, scene: &Scene, rng: &mut Rng) -> (SynthView, ViewFacts, RgbImage) {
         let r = self.resolution;
         let cam = random_camera(rng, self.fov_deg, r, r);
-        let v = render_view(&cam, scene);
+        let v = render_view_supersampled(&cam, scene, self.supersample);
         let facts = ViewFacts::of(scene, &v.ids, &v.depth, r as usize, r as usize);
         let img = RgbImage::from_f32(r as usize, r as usize, &v.rgb);
         (v, facts, img)
@@ -187,6 +199,7 @@ impl DataSpec {
                     kind,
                     images: vec![image],
                     qas,
+                    smallest: facts.seen.iter().map(|s| s.pixels).min(),
                 })
             }
             SampleKind::Object => {
@@ -223,7 +236,7 @@ impl DataSpec {
                 }
                 let o = scene.object(id)?;
                 let image = self.tower_image(&obj_img, &ids, &depth, &scene);
-                Some(Sample { kind, images: vec![image], qas: object_questions(o) })
+                Some(Sample { kind, images: vec![image], qas: object_questions(o), smallest: None })
             }
             SampleKind::Scene => {
                 // candidate views around the scene; the first SCENE_VIEWS that together see everything
@@ -235,7 +248,7 @@ impl DataSpec {
                     .map(|&i| self.tower_image(&renders[i].2, &renders[i].0.ids, &renders[i].0.depth, &scene))
                     .collect();
                 let shown = chosen.iter().zip(&images).all(|(&i, im)| shows_every_seen_object(im, &facts[i], &scene));
-                shown.then(|| Sample { kind, images, qas: scene_questions(&scene) })
+                shown.then(|| Sample { kind, images, qas: scene_questions(&scene), smallest: None })
             }
         }
     }

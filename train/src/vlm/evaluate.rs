@@ -11,10 +11,19 @@ use model::vlm::LlavaOnevision;
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 
+/// Upper bounds (pixels at the rendered resolution) of the buckets that split view questions by
+/// the smallest object their view sees: under 8 x 8, 12 x 12 and 20 x 20 pixels; the last
+/// bucket holds the rest. (At 96 px an object is seen from 28 pixels on.)
+pub const SMALLEST_BUCKETS: [usize; 3] = [64, 144, 400];
+
 /// Exact-match results by question kind: (right, asked).
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]
 pub struct Accuracy {
     pub by_kind: BTreeMap<String, (usize, usize)>,
+    /// View questions by the bucket ([`SMALLEST_BUCKETS`]) of the smallest object their view
+    /// sees, then by kind: (right, asked). Empty where no sizes were given.
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub view_by_smallest: Vec<BTreeMap<String, (usize, usize)>>,
 }
 
 impl Accuracy {
@@ -22,6 +31,43 @@ impl Accuracy {
         let e = self.by_kind.entry(kind.as_str().to_string()).or_default();
         e.0 += right as usize;
         e.1 += 1;
+    }
+
+    /// As [`Accuracy::add`], also filing a view question under the size of the smallest object
+    /// its view sees (`smallest`, pixels; `None` for other questions).
+    pub fn add_sized(&mut self, kind: Kind, right: bool, smallest: Option<usize>) {
+        self.add(kind, right);
+        let Some(px) = smallest else { return };
+        let bucket = SMALLEST_BUCKETS.iter().position(|&b| px < b).unwrap_or(SMALLEST_BUCKETS.len());
+        self.view_by_smallest.resize_with(SMALLEST_BUCKETS.len() + 1, Default::default);
+        let e = self.view_by_smallest[bucket].entry(kind.as_str().to_string()).or_default();
+        e.0 += right as usize;
+        e.1 += 1;
+    }
+
+    /// One line per size bucket of the smallest object seen: how many view questions, the share
+    /// right, and the shape questions (`shapes`, `objects`, `shape_of`) apart.
+    pub fn smallest_lines(&self) -> Vec<String> {
+        let pct = |(r, n): (usize, usize)| format!("{:.0}% of {n}", 100.0 * r as f64 / n.max(1) as f64);
+        let sum = |m: &BTreeMap<String, (usize, usize)>, f: &dyn Fn(&str) -> bool| {
+            m.iter().filter(|(k, _)| f(k)).fold((0, 0), |a, (_, v)| (a.0 + v.0, a.1 + v.1))
+        };
+        let mut lines = Vec::new();
+        for (i, m) in self.view_by_smallest.iter().enumerate() {
+            let lo = if i == 0 { 0 } else { SMALLEST_BUCKETS[i - 1] };
+            let range = match SMALLEST_BUCKETS.get(i) {
+                Some(hi) => format!("{lo}-{} px", hi - 1),
+                None => format!(">= {lo} px"),
+            };
+            let mut line = format!("smallest seen object {range}: view {}", pct(sum(m, &|_| true)));
+            for k in ["shapes", "objects", "shape_of"] {
+                if let Some(&v) = m.get(k) {
+                    line.push_str(&format!(", {k} {}", pct(v)));
+                }
+            }
+            lines.push(line);
+        }
+        lines
     }
 
     /// Fraction right over the kinds of `level` (`None`: all).
@@ -106,8 +152,10 @@ pub fn evaluate_with(
             let mut p = pack(&m.vlm, chunk)?;
             p.label_tokens.iter_mut().for_each(|f| *f = labels.is_some());
             let f = forward(m, &p, labels, None, false, None, device)?;
-            for (k, right) in exact(&p, f.log_probs) {
-                acc.add(k, right);
+            // `pack` lays out the questions sample by sample, each sample's in order
+            let sizes = chunk.iter().flat_map(|(s, qas)| qas.iter().map(|_| s.smallest));
+            for ((k, right), smallest) in exact(&p, f.log_probs).into_iter().zip(sizes) {
+                acc.add_sized(k, right, smallest);
             }
         }
     }
@@ -127,7 +175,7 @@ pub fn evaluate_model(
     if seeds.end > TRAIN_SEEDS {
         return Err(Error::Input(format!("evaluation seeds must be held out (below {TRAIN_SEEDS}), got {seeds:?}")));
     }
-    let spec = DataSpec::new(&vlm.cfg, &vlm.processor, cfg.resolution, cfg.margin);
+    let spec = DataSpec::new(&vlm.cfg, &vlm.processor, cfg.resolution, cfg.margin).with_supersample(cfg.supersample);
     let samples = eval_samples(&spec, seeds, views, objects);
     evaluate(&Trainable::reading(vlm, device), &samples, device)
 }

@@ -8,7 +8,7 @@ use super::scene::{
     CONE_HEIGHT, CONE_RADIUS, CUBE_HALF, CYLINDER_HALF_HEIGHT, CYLINDER_RADIUS, Object, PYRAMID_HALF, PYRAMID_HEIGHT,
     Scene, Shape, TORUS_MAJOR, TORUS_MINOR,
 };
-use glam::{Quat, Vec3};
+use glam::{Mat4, Quat, Vec3};
 use splat_kernels::Camera;
 
 /// A ray hit: distance along the (unnormalised) ray, unit normal, mask id, albedo.
@@ -206,7 +206,7 @@ pub struct SynthView {
     pub depth: Vec<f32>,
 }
 
-/// Ray-casts view `cam` of `scene`.
+/// Ray-casts view `cam` of `scene`: one ray through each pixel's centre.
 pub fn render_view(cam: &Camera, scene: &Scene) -> SynthView {
     let (w, h) = (cam.width as usize, cam.height as usize);
     let c2w = cam.world_to_cam.inverse();
@@ -215,20 +215,65 @@ pub fn render_view(cam: &Camera, scene: &Scene) -> SynthView {
     let mut v = SynthView { rgb: bg.repeat(w * h), ids: vec![0; w * h], depth: vec![0.0; w * h] };
     for y in 0..h {
         for x in 0..w {
-            let dc = Vec3::new((x as f32 + 0.5 - cam.cx) / cam.fx, (y as f32 + 0.5 - cam.cy) / cam.fy, 1.0);
-            let d = c2w.transform_vector3(dc);
+            let d = pixel_ray(cam, c2w, x as f32 + 0.5, y as f32 + 0.5);
             if let Some(hit) = trace(eye, d, scene) {
                 let o = y * w + x;
                 // `d` has unit camera-space z, so `t` is the camera-space depth.
                 v.depth[o] = hit.t;
                 v.ids[o] = hit.id;
-                let n = if hit.normal.dot(d) > 0.0 { -hit.normal } else { hit.normal };
-                let shade = 0.35 + 0.65 * n.dot(scene.light).max(0.0);
-                for k in 0..3 {
-                    v.rgb[o * 3 + k] = hit.albedo[k] * shade;
-                }
+                v.rgb[o * 3..o * 3 + 3].copy_from_slice(&shade(&hit, d, scene));
             }
         }
     }
     v
+}
+
+/// As [`render_view`], with the colour of every pixel on an edge between objects, the table and
+/// the background (a 4-neighbour of another id) the mean of `s` x `s` rays spread over the
+/// pixel, as a camera's pixel integrates its area; ids and depths stay those of the centre ray.
+/// `s` = 1 is [`render_view`].
+pub fn render_view_supersampled(cam: &Camera, scene: &Scene, s: usize) -> SynthView {
+    let mut v = render_view(cam, scene);
+    if s <= 1 {
+        return v;
+    }
+    let (w, h) = (cam.width as usize, cam.height as usize);
+    let c2w = cam.world_to_cam.inverse();
+    let eye = c2w.transform_point3(Vec3::ZERO);
+    let edge = |x: usize, y: usize| {
+        let id = v.ids[y * w + x];
+        (x > 0 && v.ids[y * w + x - 1] != id)
+            || (x + 1 < w && v.ids[y * w + x + 1] != id)
+            || (y > 0 && v.ids[(y - 1) * w + x] != id)
+            || (y + 1 < h && v.ids[(y + 1) * w + x] != id)
+    };
+    let edges: Vec<usize> =
+        (0..h).flat_map(|y| (0..w).map(move |x| (x, y))).filter(|&(x, y)| edge(x, y)).map(|(x, y)| y * w + x).collect();
+    let step = 1.0 / s as f32;
+    for o in edges {
+        let (x, y) = ((o % w) as f32, (o / w) as f32);
+        let mut sum = [0f32; 3];
+        for j in 0..s {
+            for i in 0..s {
+                let d = pixel_ray(cam, c2w, x + (i as f32 + 0.5) * step, y + (j as f32 + 0.5) * step);
+                let c = trace(eye, d, scene).map_or(scene.background, |hit| shade(&hit, d, scene));
+                (0..3).for_each(|k| sum[k] += c[k]);
+            }
+        }
+        let n = (s * s) as f32;
+        (0..3).for_each(|k| v.rgb[o * 3 + k] = sum[k] / n);
+    }
+    v
+}
+
+/// The world-space ray (unit camera-space z) through pixel position `(px, py)` of `cam`.
+fn pixel_ray(cam: &Camera, c2w: Mat4, px: f32, py: f32) -> Vec3 {
+    c2w.transform_vector3(Vec3::new((px - cam.cx) / cam.fx, (py - cam.cy) / cam.fy, 1.0))
+}
+
+/// The colour of `hit` seen along `d`: its albedo under the scene's light and an ambient term.
+fn shade(hit: &Hit, d: Vec3, scene: &Scene) -> [f32; 3] {
+    let n = if hit.normal.dot(d) > 0.0 { -hit.normal } else { hit.normal };
+    let k = 0.35 + 0.65 * n.dot(scene.light).max(0.0);
+    [hit.albedo[0] * k, hit.albedo[1] * k, hit.albedo[2] * k]
 }

@@ -378,12 +378,12 @@ fn supervised_hops_point_at_the_objects_the_questions_name() {
     }
 }
 
-/// Exact match the committed model must keep on ground-truth images of two held-out seeds: the
-/// issue's 90 %. It scores [`COMMITTED_MEASURED`] (152 of 168, measured 2026-11-26) on ndarray and flex
-/// alike; the closest answer token is 0.012 in log-probability from its runner-up, far above
-/// what another CPU's rounding moves (~1e-6 between the two backends).
-const COMMITTED_FLOOR: f64 = 0.90;
-const COMMITTED_MEASURED: f64 = 0.905;
+/// Exact match the committed model must keep on ground-truth images of two held-out seeds. The
+/// seventh model (patch 8, tower 192 wide; issue 36) scores [`COMMITTED_MEASURED`] (159 of 168,
+/// measured 2026-11-29 on ndarray); the floor sits three answers below it, so no single answer
+/// flipped by another CPU's rounding fails the test. (The sixth model: 152 of 168, floor 0.90.)
+const COMMITTED_FLOOR: f64 = 0.93;
+const COMMITTED_MEASURED: f64 = 0.946;
 
 #[test]
 fn the_committed_model_answers_questions_on_held_out_scenes() {

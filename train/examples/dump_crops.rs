@@ -16,7 +16,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     };
     let cfg = VlmTrainConfig::default();
     let vlm = init_model(&cfg, &burn::tensor::Device::ndarray())?;
-    let spec = DataSpec::new(&vlm.cfg, &vlm.processor, cfg.resolution, cfg.margin).with_supersample(cfg.supersample);
+    let spec = DataSpec::of(&cfg, &vlm.cfg, &vlm.processor);
     let mut rng = Rng::new(5);
     let mut f = std::io::BufWriter::new(std::fs::File::create(out)?);
     let (mut got, mut seed) = (0, TRAIN_SEEDS);

@@ -135,6 +135,11 @@ fn a_stage_chain_trains_its_base_first_or_reads_it_from_a_model_trained_with_it(
     let e = train_from(&stage, &refused, Some(&whole), &dev, &Solo, false, |_| {}).unwrap_err().to_string();
     assert!(e.contains("train_config.json") && e.contains("none of this configuration's stages"), "{e}");
     assert!(!refused.join("base").exists(), "nothing trained: {e}");
+    // edge supersampling out of range is refused, naming the key
+    for supersample in [0, 9] {
+        let e = VlmTrainConfig { supersample, ..base.clone() }.validate().unwrap_err().to_string();
+        assert!(e.contains("supersample"), "{e}");
+    }
     // and a base of another shape is refused by validation
     let mut wide = base.clone();
     wide.model.text_width = 64;

@@ -280,6 +280,9 @@ impl VlmTrainConfig {
         if self.resolution < m.patch_size as u32 {
             return bad("resolution", "must be at least the patch size");
         }
+        if !(1..=8).contains(&self.supersample) {
+            return bad("supersample", "must be in 1..=8 (rays per pixel side on edges; 1: one per pixel)");
+        }
         if self.head_weights().any(|w| !(w >= 0.0 && w.is_finite())) {
             return bad("hop_weights", "must be finite and non-negative (and slot_weight, place_weight too)");
         }

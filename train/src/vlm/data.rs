@@ -114,10 +114,10 @@ impl DataSpec {
         }
     }
 
-    /// The same, rendering with `s` x `s` rays per pixel side on edges.
-    pub fn with_supersample(mut self, s: usize) -> Self {
-        self.supersample = s.max(1);
-        self
+    /// The samples a training configuration draws: its render side, crop margin and edge
+    /// supersampling, for a model of shape `llava` read through `processor`.
+    pub fn of(cfg: &super::VlmTrainConfig, llava: &LlavaConfig, processor: &ProcessorConfig) -> Self {
+        Self { supersample: cfg.supersample.max(1), ..Self::new(llava, processor, cfg.resolution, cfg.margin) }
     }
 
     /// The tower input of an image, its id map and depth (`[h, w]`, same size), resized like

@@ -49,9 +49,6 @@ impl Accuracy {
     /// right, and the shape questions (`shapes`, `objects`, `shape_of`) apart.
     pub fn smallest_lines(&self) -> Vec<String> {
         let pct = |(r, n): (usize, usize)| format!("{:.0}% of {n}", 100.0 * r as f64 / n.max(1) as f64);
-        let sum = |m: &BTreeMap<String, (usize, usize)>, f: &dyn Fn(&str) -> bool| {
-            m.iter().filter(|(k, _)| f(k)).fold((0, 0), |a, (_, v)| (a.0 + v.0, a.1 + v.1))
-        };
         let mut lines = Vec::new();
         for (i, m) in self.view_by_smallest.iter().enumerate() {
             let lo = if i == 0 { 0 } else { SMALLEST_BUCKETS[i - 1] };
@@ -59,7 +56,8 @@ impl Accuracy {
                 Some(hi) => format!("{lo}-{} px", hi - 1),
                 None => format!(">= {lo} px"),
             };
-            let mut line = format!("smallest seen object {range}: view {}", pct(sum(m, &|_| true)));
+            let view = m.values().fold((0, 0), |a, v| (a.0 + v.0, a.1 + v.1));
+            let mut line = format!("smallest seen object {range}: view {}", pct(view));
             for k in ["shapes", "objects", "shape_of"] {
                 if let Some(&v) = m.get(k) {
                     line.push_str(&format!(", {k} {}", pct(v)));
@@ -175,7 +173,7 @@ pub fn evaluate_model(
     if seeds.end > TRAIN_SEEDS {
         return Err(Error::Input(format!("evaluation seeds must be held out (below {TRAIN_SEEDS}), got {seeds:?}")));
     }
-    let spec = DataSpec::new(&vlm.cfg, &vlm.processor, cfg.resolution, cfg.margin).with_supersample(cfg.supersample);
+    let spec = DataSpec::of(cfg, &vlm.cfg, &vlm.processor);
     let samples = eval_samples(&spec, seeds, views, objects);
     evaluate(&Trainable::reading(vlm, device), &samples, device)
 }

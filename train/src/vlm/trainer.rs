@@ -126,8 +126,7 @@ impl Trainer {
     pub fn starting_from(cfg: &VlmTrainConfig, vlm: LlavaOnevision, device: &Device) -> Result<Self> {
         cfg.validate()?;
         let ad = device.clone();
-        let spec =
-            DataSpec::new(&vlm.cfg, &vlm.processor, cfg.resolution, cfg.margin).with_supersample(cfg.supersample);
+        let spec = DataSpec::of(cfg, &vlm.cfg, &vlm.processor);
         let classes: usize = AUX_CLASSES.iter().sum();
         let mut rng = Rng::new(cfg.seed ^ 0xDA7A);
         let aux = model::vlm::layers::init_linear(&mut rng, vlm.cfg.vision.hidden_size, classes, true, 0.02, &ad);

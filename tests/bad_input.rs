@@ -501,6 +501,15 @@ fn broken_datasets_configs_and_arguments_are_refused() {
         out: run(&["train-vlm", "--eval-from", "999990", "--evaluate"], &[&dir]),
         expect: vec!["--eval-from 999990".into(), "training seeds".into()],
     });
+    // a model whose train_config.json was edited out of range: named, not clamped to a default
+    let edited = dir.join("vlm-edited");
+    std::fs::create_dir_all(&edited).unwrap();
+    std::fs::write(edited.join("train_config.json"), r#"{"supersample": 0}"#).unwrap();
+    s.fails(Case {
+        name: "train-vlm --evaluate a config out of range".into(),
+        out: run(&["train-vlm", "--evaluate"], &[&edited]),
+        expect: vec!["train_config.json".into(), "supersample".into()],
+    });
     // teacher tokens: from another scene, or from a dataset that changed since, are refused
     let (teacher_other, teacher_base) = (dir.join("teacher-other"), dir.join("teacher-base"));
     s.succeeds("extract other", run(&["extract", "--data"], &[&other, Path::new("--out"), &teacher_other]));

@@ -278,7 +278,7 @@ fn serve_answers_like_the_library_and_refuses_bad_requests_by_name() {
             400,
             "camera.quaternion",
         ),
-        ("click outside", "/api/pick", json!({"camera": cam0, "x": 96, "y": 3}).to_string(), 400, "x"),
+        ("click outside", "/api/pick", json!({"camera": cam0, "x": cam0["width"], "y": 3}).to_string(), 400, "x"),
         ("negative click", "/api/pick", json!({"camera": cam0, "x": 3, "y": -1}).to_string(), 400, "y"),
         ("object id 0", "/api/select", json!({"camera": cam0, "id": 0}).to_string(), 400, "id"),
         ("object id 300", "/api/select", json!({"camera": cam0, "id": 300}).to_string(), 400, "id"),

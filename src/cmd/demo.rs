@@ -37,6 +37,10 @@ pub struct Args {
     backend: Backend,
 }
 
+/// The largest side the views take from the model's input size (a real 384-px model's would make
+/// the geometry stage 16 times slower than 96-px views).
+const MAX_SIDE: usize = 128;
+
 fn step(n: usize, what: &str) {
     eprintln!("\n== {n}/7 {what}");
 }
@@ -46,8 +50,10 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     let (data, run) = (a.out.join("data"), GeometryRun::new(a.out.join("run")));
     let (lang, teacher) = (run.language(), TeacherDir::new(data.join("teacher")));
     model::io::create_dir(&a.out)?;
-    step(1, "synthetic tabletop (32 views, 96x96)");
-    let scene = SynthOptions { views: 32, width: 96, height: 96, ..Default::default() };
+    // views the size the model reads (the built-in: no resampling between render and tower)
+    let side = model::vlm::config::read_llava_config(&vlm)?.vision.image_size.min(MAX_SIDE) as u32;
+    step(1, &format!("synthetic tabletop (32 views, {side}x{side})"));
+    let scene = SynthOptions { views: 32, width: side, height: side, ..Default::default() };
     super::synth::write(&data, &scene)?;
 
     step(2, "geometry stage: 3DGS + identity field");

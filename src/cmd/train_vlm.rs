@@ -49,6 +49,8 @@ fn evaluate(dir: &std::path::Path, a: &Args) -> anyhow::Result<()> {
     let cfg_path = dir.join("train_config.json");
     let cfg =
         if cfg_path.is_file() { model::io::read_config::<VlmTrainConfig>(&cfg_path)? } else { Default::default() };
+    // a hand-edited value out of range is named, not clamped (e.g. supersample 0)
+    super::check_config(Some(&cfg_path), cfg.validate())?;
     if a.eval_seeds == 0 {
         anyhow::bail!("--eval-seeds must be at least 1 (the number of held-out scenes to ask about)");
     }

@@ -13,7 +13,6 @@ use std::path::{Path, PathBuf};
 /// The scene's seed: none of the built-in model's training or evaluation seeds.
 pub const SEED: u64 = 30_100;
 pub const VIEWS: usize = 16;
-pub const SIZE: u32 = 96;
 pub const GEOMETRY_ITERS: usize = 300;
 pub const LANGUAGE_ITERS: usize = 150;
 
@@ -56,8 +55,10 @@ fn train_into(root: &Path) {
     let dev = Device::ndarray();
     let vlm = model::vlm::LlavaOnevision::load(&builtin_model(), &dev).unwrap();
     let data = root.join("data");
+    // views the size the model reads, as the demo's
+    let side = vlm.cfg.vision.image_size as u32;
     let opts =
-        model::data::synth::SynthOptions { seed: SEED, views: VIEWS, width: SIZE, height: SIZE, ..Default::default() };
+        model::data::synth::SynthOptions { seed: SEED, views: VIEWS, width: side, height: side, ..Default::default() };
     model::data::synth::write_dataset(&data, &opts, |_, _| {}).unwrap();
     let load = LoadOptions::default();
     let ds = load_any(&data, &load).unwrap();

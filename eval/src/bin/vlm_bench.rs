@@ -328,10 +328,7 @@ fn main() -> std::process::ExitCode {
             GiB | vision attn GiB |"
     );
     println!("|---|---|---|---|---|---|---|---|---|");
-    let cfg_path = dir.join("config.json");
-    if let Ok(cfg) =
-        model::vlm::config::read_json(&cfg_path).and_then(|v| model::vlm::config::parse_llava_config(&cfg_path, &v))
-    {
+    if let Ok(cfg) = model::vlm::config::read_llava_config(&dir) {
         memory_table("this directory", &cfg);
     }
     memory_table("llava-onevision-qwen2-0.5b-ov-hf", &LlavaConfig::onevision_0_5b());

@@ -47,8 +47,9 @@ struct Args {
     /// Views per scene (every 8th is held out) and their side.
     #[arg(long, default_value_t = 32)]
     views: usize,
-    #[arg(long, default_value_t = 96)]
-    resolution: u32,
+    /// Default: the side the model reads (the built-in model's image size).
+    #[arg(long)]
+    resolution: Option<u32>,
     #[arg(long, default_value_t = 1500)]
     geometry_iters: usize,
     /// Language-stage iterations (without `--language-config`, the first tenth warm up).
@@ -316,6 +317,7 @@ fn bench(a: &Args) -> Result<()> {
         None => model::vlm::default_model_dir()?,
     };
     let vlm = LlavaOnevision::load(&vlm_dir, &device)?;
+    let side = a.resolution.unwrap_or(vlm.cfg.vision.image_size as u32);
     let mut language_config = match &a.language_config {
         Some(p) => {
             let c: LanguageTrainConfig = model::io::read_config(p)?;
@@ -338,8 +340,7 @@ fn bench(a: &Args) -> Result<()> {
     for seed in a.first_seed..a.first_seed + a.seeds {
         let dir = a.out.join(format!("seed{seed}"));
         let data = dir.join("data");
-        let opts =
-            SynthOptions { seed, views: a.views, width: a.resolution, height: a.resolution, ..Default::default() };
+        let opts = SynthOptions { seed, views: a.views, width: side, height: side, ..Default::default() };
         write_dataset(&data, &opts, |_, _| {})?;
         let load = LoadOptions::default();
         let ds = load_any(&data, &load)?;
@@ -514,12 +515,12 @@ fn bench(a: &Args) -> Result<()> {
         }
     }
     let settings = serde_json::json!({
-        "seeds": [a.first_seed, a.first_seed + a.seeds], "views": a.views, "resolution": a.resolution,
+        "seeds": [a.first_seed, a.first_seed + a.seeds], "views": a.views, "resolution": side,
         "geometry_iters": a.geometry_iters, "language_iters": a.language_iters, "novel_views": a.novel_views,
         "tower_tail": a.tower_tail,
         "language_config": language_config, "backend": a.backend.to_string(),
     });
-    report(&totals, &format!("{} views of {}px", a.views, a.resolution), settings, &a.out)
+    report(&totals, &format!("{} views of {side}px", a.views), settings, &a.out)
 }
 
 /// `--merge`: the bench.json of earlier runs added up and reported as one.

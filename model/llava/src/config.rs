@@ -384,6 +384,15 @@ fn pinpoints(v: Option<Vec<[usize; 2]>>, file: &Path) -> Result<Option<Vec<(usiz
     }
 }
 
+/// Reads `dir/config.json`: the model's shapes, without touching its weights.
+pub fn read_llava_config(dir: &Path) -> Result<LlavaConfig, VlmError> {
+    let path = dir.join("config.json");
+    if !path.exists() {
+        return Err(VlmError::config(&path, "is missing"));
+    }
+    parse_llava_config(&path, &read_json(&path)?)
+}
+
 /// Parses `config.json` of a LLaVA-OneVision model directory.
 pub fn parse_llava_config(file: &Path, root: &Value) -> Result<LlavaConfig, VlmError> {
     if !root.is_object() {

@@ -2,7 +2,7 @@
 //! image-newline embedding -> spliced into the Qwen2 input embeddings at the `<image>` placeholders.
 
 use super::VlmError;
-use super::config::{LlavaConfig, ProcessorConfig, load_processor_config, parse_llava_config, read_json};
+use super::config::{LlavaConfig, ProcessorConfig, load_processor_config, read_llava_config};
 use super::layers::{act, half_linear, init_linear, linear, load_linear, normal};
 use super::preprocess::{AnyresGrid, ImagePatches, RgbImage, anyres_views, base_view, num_image_tokens};
 use super::qwen2::{KvCache, Qwen2};
@@ -65,11 +65,7 @@ impl LlavaOnevision {
                 "is not a directory (expected a Hugging Face LLaVA-OneVision model directory)",
             ));
         }
-        let cfg_path = dir.join("config.json");
-        if !cfg_path.exists() {
-            return Err(VlmError::config(&cfg_path, "is missing"));
-        }
-        let cfg = parse_llava_config(&cfg_path, &read_json(&cfg_path)?)?;
+        let cfg = read_llava_config(dir)?;
         let processor = load_processor_config(dir, &cfg)?;
         let tokenizer = ChatTokenizer::load(dir, cfg.image_token_id)?;
         let w = WeightStore::open(dir, device)?.with_half(half);

@@ -220,6 +220,25 @@ fn kind_weights_make_a_kind_that_lags_picked_more_often() {
     assert!(plain > 0.02 && weighted > 2.0 * plain, "plain {plain:.3}, weighted {weighted:.3}");
 }
 
+/// `small_views` draws views without a small object again: the share of a step's views with an
+/// object under `SMALL_OBJECT` pixels goes from about half (96-px renders) to nearly all.
+#[test]
+fn small_views_fills_a_step_with_views_of_a_small_object() {
+    let share = |small_views: f32| {
+        let cfg = VlmTrainConfig { small_views, mix: [1.0, 0.0, 0.0], images_per_step: 48, ..Default::default() };
+        cfg.validate().unwrap();
+        let spec = train::vlm::data::DataSpec::of(&cfg, &cfg.llava_config(64), &cfg.processor());
+        let samples = train::vlm::step_samples(&cfg, &spec, &RunningAccuracy::default(), &mut model::rng::Rng::new(7));
+        let small = samples.iter().filter(|(s, _)| s.smallest.is_some_and(|px| px < train::vlm::SMALL_OBJECT)).count();
+        small as f64 / samples.len() as f64
+    };
+    let (off, on) = (share(0.0), share(0.9));
+    eprintln!("views with a small object: {off:.2} as drawn, {on:.2} with small_views 0.9");
+    assert!(on > 0.85 && on > off + 0.2, "{on:.2} with the knob, {off:.2} without");
+    let bad = VlmTrainConfig { small_views: 1.0, ..Default::default() };
+    assert!(bad.validate().unwrap_err().to_string().contains("small_views"));
+}
+
 #[test]
 fn a_trained_model_directory_round_trips_through_the_loader() {
     let dev = Device::ndarray();

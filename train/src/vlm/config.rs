@@ -52,6 +52,10 @@ impl Default for Shape {
     }
 }
 
+/// Pixels (at the rendered resolution) below which a seen object is small for
+/// [`VlmTrainConfig::small_views`]: 12 x 12, a patch and a half of an 8-px patch.
+pub const SMALL_OBJECT: usize = 144;
+
 /// Every knob of VLM training (saved beside the model as `train_config.json`).
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(default, deny_unknown_fields)]
@@ -108,6 +112,10 @@ pub struct VlmTrainConfig {
     /// Rays per pixel side on the views' edges (`render_view_supersampled`): 1 = one ray
     /// through each pixel's centre, as the synthetic datasets are rendered.
     pub supersample: usize,
+    /// Share of the view samples whose every seen object covers at least [`SMALL_OBJECT`] pixels
+    /// that are drawn again (0: views as they come): steps on the views where a small object's
+    /// shape is the hard part.
+    pub small_views: f32,
     /// Object crop margin (the teacher's).
     pub margin: f32,
     /// Label tokens (the curriculum): every image's tokens are the label tokens until this
@@ -163,6 +171,7 @@ impl Default for VlmTrainConfig {
             feature_noise: 0.1,
             resolution: 96,
             supersample: 1,
+            small_views: 0.0,
             margin: model::language::CROP_MARGIN,
             label_tokens_until: 0.3,
             label_tokens_end: 0.6,
@@ -282,6 +291,9 @@ impl VlmTrainConfig {
         }
         if !(1..=8).contains(&self.supersample) {
             return bad("supersample", "must be in 1..=8 (rays per pixel side on edges; 1: one per pixel)");
+        }
+        if !(0.0..=0.95).contains(&self.small_views) {
+            return bad("small_views", "must be in 0..=0.95 (the share of views without a small object drawn again)");
         }
         if self.head_weights().any(|w| !(w >= 0.0 && w.is_finite())) {
             return bad("hop_weights", "must be finite and non-negative (and slot_weight, place_weight too)");

@@ -117,7 +117,7 @@ impl DataSpec {
     /// The samples a training configuration draws: its render side, crop margin and edge
     /// supersampling, for a model of shape `llava` read through `processor`.
     pub fn of(cfg: &super::VlmTrainConfig, llava: &LlavaConfig, processor: &ProcessorConfig) -> Self {
-        Self { supersample: cfg.supersample.max(1), ..Self::new(llava, processor, cfg.resolution, cfg.margin) }
+        Self { supersample: cfg.supersample, ..Self::new(llava, processor, cfg.resolution, cfg.margin) }
     }
 
     /// The tower input of an image, its id map and depth (`[h, w]`, same size), resized like

@@ -14,7 +14,7 @@ use std::collections::BTreeMap;
 /// Upper bounds (pixels at the rendered resolution) of the buckets that split view questions by
 /// the smallest object their view sees: under 8 x 8, 12 x 12 and 20 x 20 pixels; the last
 /// bucket holds the rest. (At 96 px an object is seen from 28 pixels on.)
-pub const SMALLEST_BUCKETS: [usize; 3] = [64, 144, 400];
+pub const SMALLEST_BUCKETS: [usize; 3] = [64, super::config::SMALL_OBJECT, 400];
 
 /// Exact-match results by question kind: (right, asked).
 #[derive(Clone, Debug, Default, PartialEq, Serialize, Deserialize)]

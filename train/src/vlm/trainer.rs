@@ -46,7 +46,7 @@ pub struct LogLine {
 
 /// The samples of one step: a level drawn by `cfg.mix` (adaptive: weighted by how much its kinds
 /// still need), fresh scenes until the step's images are filled, questions picked per sample.
-fn step_samples(
+pub fn step_samples(
     cfg: &VlmTrainConfig,
     spec: &DataSpec,
     running: &RunningAccuracy,
@@ -72,7 +72,7 @@ fn step_samples(
     let mut out = Vec::with_capacity(want);
     while out.len() < want {
         let seed = train_seed(rng);
-        if let Some(s) = spec.sample(kind, seed, rng) {
+        if let Some(s) = spec.sample(kind, seed, rng).filter(|s| !drawn_again(cfg, s, rng)) {
             let asked: Vec<Qa> = s.qas.iter().filter(|q| allowed(q.kind)).cloned().collect();
             if !asked.is_empty() {
                 let qs = pick_questions(&asked, cfg.questions_per_sample, |k| cfg.question_weight(k, running), rng);
@@ -81,6 +81,12 @@ fn step_samples(
         }
     }
     out
+}
+
+/// Whether a view sample without a small object is drawn again (`cfg.small_views`; the generator
+/// is only asked when the knob is on, so configurations without it draw as before).
+fn drawn_again(cfg: &VlmTrainConfig, s: &Sample, rng: &mut Rng) -> bool {
+    cfg.small_views > 0.0 && s.smallest.is_some_and(|px| px >= super::config::SMALL_OBJECT) && rng.f() < cfg.small_views
 }
 
 /// The losses of one training step (before its update).

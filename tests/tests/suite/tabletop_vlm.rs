@@ -14,7 +14,7 @@ use train::dist::Solo;
 use train::vlm::batch::{forward, pack};
 use train::vlm::data::SampleKind;
 use train::vlm::hops::{HopKind, SINK};
-use train::vlm::{RunningAccuracy, Shape, Trainer, VlmTrainConfig, eval_samples, save_model, train_from};
+use train::vlm::{HEADS_FILE, RunningAccuracy, Shape, Trainer, VlmTrainConfig, eval_samples, save_model, train_from};
 
 fn tiny_config() -> VlmTrainConfig {
     VlmTrainConfig {
@@ -145,6 +145,43 @@ fn a_stage_chain_trains_its_base_first_or_reads_it_from_a_model_trained_with_it(
     wide.model.text_width = 64;
     let e = VlmTrainConfig { base: Some(Box::new(wide)), ..base }.validate().unwrap_err().to_string();
     assert!(e.contains("base.model"), "{e}");
+}
+
+#[test]
+fn a_stage_with_carry_heads_starts_from_the_heads_its_base_stage_wrote() {
+    let dev = Device::ndarray();
+    // a base whose tower phase teaches the auxiliary head to read the tower
+    let base =
+        VlmTrainConfig { steps: 24, tower_steps: 20, tower_images: 4, eval_every: 0, eval_seeds: 1, ..tiny_config() };
+    let out = temp_dir("vlm-heads-base");
+    train_from(&base, &out, None, &dev, &Solo, false, |_| {}).unwrap();
+    assert!(out.join(HEADS_FILE).is_file(), "every stage keeps its heads beside its model");
+    let stage = |carry_heads: bool| VlmTrainConfig {
+        seed: 4,
+        steps: 2,
+        tower_steps: 0,
+        carry_heads,
+        base: Some(Box::new(base.clone())),
+        ..base.clone()
+    };
+    // the auxiliary loss of the stage's first step (taken before its update)
+    let first_aux = |carry_heads: bool, name: &str| {
+        let mut aux = Vec::new();
+        train_from(&stage(carry_heads), &temp_dir(name), Some(&out), &dev, &Solo, false, |l| aux.push(l.aux_loss))
+            .map(|_| aux[0])
+    };
+    let (fresh, carried) =
+        (first_aux(false, "vlm-heads-fresh").unwrap(), first_aux(true, "vlm-heads-carried").unwrap());
+    eprintln!("first auxiliary loss of the next stage: fresh heads {fresh}, carried heads {carried}");
+    assert!(carried < 0.7 * fresh, "the carried head already reads the tower: {carried} vs fresh {fresh}");
+    // a base without its heads is refused, naming the file
+    std::fs::remove_file(out.join(HEADS_FILE)).unwrap();
+    let e = first_aux(true, "vlm-heads-missing").unwrap_err().to_string();
+    assert!(e.contains(HEADS_FILE) && e.contains("carry_heads"), "{e}");
+    assert!(first_aux(false, "vlm-heads-fresh-again").is_ok(), "fresh heads need no file");
+    // and a first stage has no heads to carry
+    let e = VlmTrainConfig { carry_heads: true, ..base }.validate().unwrap_err().to_string();
+    assert!(e.contains("carry_heads"), "{e}");
 }
 
 #[test]

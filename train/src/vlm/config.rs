@@ -135,10 +135,14 @@ pub struct VlmTrainConfig {
     /// the last bits of a float, and a training run amplifies them, so a committed model's
     /// configuration names the backend each of its stages was trained on.
     pub backend: Option<model::Backend>,
+    /// Start from the base stage's auxiliary, slot and place heads (its [`super::HEADS_FILE`], which
+    /// every stage writes beside its model) instead of fresh ones: the tower's first steps then
+    /// follow a head that already reads it, not the gradients of a random one.
+    pub carry_heads: bool,
     /// A first stage: train this configuration (same model shape) before this one, which then
     /// starts from its weights with a fresh optimizer and fresh heads (auxiliary, slot, place;
-    /// they are not part of the llava-hf files), so a fine-tuned model is reproduced from its seeds
-    /// by one command.
+    /// they are not part of the llava-hf files; unless `carry_heads`), so a fine-tuned model is
+    /// reproduced from its seeds by one command.
     pub base: Option<Box<VlmTrainConfig>>,
 }
 
@@ -180,6 +184,7 @@ impl Default for VlmTrainConfig {
             eval_seeds: 8,
             checkpoint_every: 250,
             backend: None,
+            carry_heads: false,
             base: None,
         }
     }
@@ -294,6 +299,9 @@ impl VlmTrainConfig {
         }
         if !(0.0..=0.95).contains(&self.small_views) {
             return bad("small_views", "must be in 0..=0.95 (the share of views without a small object drawn again)");
+        }
+        if self.carry_heads && self.base.is_none() {
+            return bad("carry_heads", "needs a base stage (whose heads this stage starts from)");
         }
         if self.head_weights().any(|w| !(w >= 0.0 && w.is_finite())) {
             return bad("hop_weights", "must be finite and non-negative (and slot_weight, place_weight too)");

@@ -142,7 +142,11 @@ fn train_stages(
             };
             let ad = device.clone().autodiff();
             let vlm = LlavaOnevision::load(&dir, &ad)?;
-            Trainer::starting_from(cfg, vlm, &ad)?
+            let mut t = Trainer::starting_from(cfg, vlm, &ad)?;
+            if cfg.carry_heads {
+                t.load_heads(&dir)?;
+            }
+            t
         }
     };
     if c.size() > 1 {
@@ -205,6 +209,7 @@ fn train_stages(
     }
     if root {
         save_model(&t.model.valid().vlm, out)?;
+        t.save_heads(out)?;
         io::write_json(&out.join("training_log.json"), &log)?;
         // finished: the model is the stage's state from now on
         checkpoint::remove(out);

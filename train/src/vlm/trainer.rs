@@ -9,9 +9,15 @@ use burn::optim::{AdamWConfig, GradientsParams};
 use burn::tensor::Device;
 use model::data::synth::questions::{Kind, Qa};
 use model::error::{Error, Result};
+use model::io;
 use model::rng::Rng;
 use model::vlm::LlavaOnevision;
 use serde::{Deserialize, Serialize};
+use std::path::Path;
+
+/// The file beside a stage's model that keeps its training-only heads (auxiliary, slot, place:
+/// not part of the llava-hf files), for a next stage with `carry_heads`.
+pub const HEADS_FILE: &str = "heads.safetensors";
 
 /// One line of `training_log.json`, also what [`train`]'s progress callback sees after every step.
 #[derive(Clone, Debug, Serialize, Deserialize)]
@@ -155,6 +161,42 @@ impl Trainer {
             running: RunningAccuracy::default(),
             drawing: std::time::Duration::ZERO,
         })
+    }
+
+    /// Writes the auxiliary, slot and place heads to `dir`/[`HEADS_FILE`] (one flat tensor each).
+    pub fn save_heads(&self, dir: &Path) -> Result<()> {
+        let m = &self.model;
+        let named = [("aux", &m.aux), ("slots", &m.slots), ("places", &m.places)]
+            .map(|(name, head)| {
+                let flat = dist::flat_params(head);
+                (name.to_string(), vec![flat.len()], flat)
+            })
+            .to_vec();
+        io::write_f32(&dir.join(HEADS_FILE), named, None)
+    }
+
+    /// Replaces the auxiliary, slot and place heads with those [`Trainer::save_heads`] wrote to
+    /// `dir` (a model of the same shape's stage).
+    pub fn load_heads(&mut self, dir: &Path) -> Result<()> {
+        let path = dir.join(HEADS_FILE);
+        if !path.is_file() {
+            return Err(Error::invalid(
+                &path,
+                "is missing: carry_heads starts from the heads its base stage wrote beside its model (train the base \
+                 stage again with this version, or set carry_heads to false)",
+            ));
+        }
+        let (mut tensors, _) = io::read_f32(&path)?;
+        let mut take = |name: &str, head: burn::nn::Linear| {
+            let (_, flat) =
+                tensors.remove(name).ok_or_else(|| Error::invalid(&path, format!("tensor {name} is missing")))?;
+            dist::set_flat_params(head, &flat).map_err(|e| Error::invalid(&path, format!("{name}: {e}")))
+        };
+        let m = &mut self.model;
+        m.aux = take("aux", m.aux.clone())?;
+        m.slots = take("slots", m.slots.clone())?;
+        m.places = take("places", m.places.clone())?;
+        Ok(())
     }
 
     /// The data generator (held-out samples for evaluation come from it too).

@@ -54,6 +54,16 @@ pub struct LanguageTrainConfig {
     /// 10-25 against 90 % at 0.02), so the default is 0.02; at 240 iterations on the bench scenes
     /// 0.05 scores about a point higher (BENCHMARKS.md).
     pub lr_encoder: f64,
+    /// The encoder's rate is `lr_encoder` for a layer whose fan-in is at most this, and
+    /// `lr_encoder * lr_fan_in_ref / fan_in` above it (weight and bias alike; the scaling
+    /// adjustment is element-wise and keeps `lr_encoder`); 0: every tensor at `lr_encoder`, as in
+    /// the paper. Adam moves every weight by about its rate at each step, so a layer's output
+    /// moves by about rate x fan-in: the patch convolution (fan-in patch² x D: 12,288 for the
+    /// built-in model, 18,432-225,792 at LLaVA-OneVision's D = 1152) at the lifting layers' rate
+    /// threw the tokens far past the teacher's in the first steps (on `fox` at 1/8 the training
+    /// views' token L1 rose 0.594 -> 1.088 in 100 iterations; BENCHMARKS.md). Scaled, a step moves
+    /// the tokens by the same amount at every size.
+    pub lr_fan_in_ref: usize,
     /// Adam learning rate of the token mixer (`field.token_mixer`): its attention projections
     /// were fitted at 0.002 where they were measured (`encoder-probe`, BENCHMARKS.md).
     pub lr_mixer: f64,
@@ -108,6 +118,7 @@ impl Default for LanguageTrainConfig {
             lr_features: 0.05,
             lr_encoder: 0.02,
             lr_mixer: 0.002,
+            lr_fan_in_ref: 128,
             object_weight: 1.0,
             max_objects_per_step: 0,
             warmup_iters: 100,
@@ -123,6 +134,15 @@ impl Default for LanguageTrainConfig {
 }
 
 impl LanguageTrainConfig {
+    /// What multiplies `lr_encoder` for an encoder layer with `fan_in` inputs (`None`: an
+    /// element-wise tensor, the scaling adjustment); see [`lr_fan_in_ref`](Self::lr_fan_in_ref).
+    pub fn fan_in_factor(&self, fan_in: Option<usize>) -> f64 {
+        match fan_in {
+            Some(f) if self.lr_fan_in_ref > 0 && f > self.lr_fan_in_ref => self.lr_fan_in_ref as f64 / f as f64,
+            _ => 1.0,
+        }
+    }
+
     /// Refuses values out of range, naming the key.
     pub fn validate(&self) -> Result<()> {
         let bad = |key: &str, why: &str| Err(Error::input(format!("language config: {key} {why}")));
@@ -394,7 +414,14 @@ impl LanguageTrainer {
         let grads = dist::reduce_tensors(c, grads, &params.iter().map(|(_, p)| p.dims()).collect::<Vec<_>>())?;
         let warm = warmup_cosine(self.iter, self.cfg.iters, self.cfg.warmup_iters, 1.0, self.cfg.lr_final);
         let mut new = Vec::with_capacity(params.len());
-        for ((name, value), g) in self.scene.field.named().into_iter().zip(grads) {
+        let named = self.scene.field.named();
+        // a layer's fan-in: its weight's rows (`X.weight` [in, out]; `X.bias` takes X's)
+        let fan_in = |name: &str| {
+            let layer = name.strip_suffix(".weight").or_else(|| name.strip_suffix(".bias"))?;
+            let weight = format!("{layer}.weight");
+            named.iter().find(|(n, _)| *n == weight).map(|(_, t)| t.dims()[0])
+        };
+        for ((name, value), g) in named.clone().into_iter().zip(grads) {
             let Some(g) = g else {
                 new.push((name, value));
                 continue;
@@ -409,7 +436,7 @@ impl LanguageTrainer {
             let lr = warm
                 * match group {
                     ParamGroup::Features => self.cfg.lr_features,
-                    ParamGroup::Encoder => self.cfg.lr_encoder,
+                    ParamGroup::Encoder => self.cfg.lr_encoder * self.cfg.fan_in_factor(fan_in(&name)),
                     ParamGroup::Mixer => self.cfg.lr_mixer,
                 };
             let value = self.states.step(&self.adam, &name, lr, value, g);

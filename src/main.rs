@@ -8,6 +8,10 @@ mod ranks;
 use clap::Parser;
 use std::process::ExitCode;
 
+/// Large tensors' blocks mapped with huge pages and reused ([`model::alloc::KeepLarge`]).
+#[global_allocator]
+static ALLOC: model::alloc::KeepLarge = model::alloc::KeepLarge;
+
 fn main() -> ExitCode {
     model::alloc::keep_freed_memory();
     let cli = cmd::Cli::parse();

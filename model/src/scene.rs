@@ -121,22 +121,38 @@ impl LanguageScene {
         Ok(blend(features, weights)?)
     }
 
-    /// View-level tokens `[T, D]` with `field` and the kept weights of the view's token camera
-    /// (`blend_weights(&cfg.view_camera(cam))`): [`view_tokens`](Self::view_tokens), faster.
-    pub fn view_tokens_kept(&self, field: &LanguageField, weights: &Arc<BlendWeights>) -> Result<Tensor<2>> {
-        Ok(field.encoder.forward(self.blend_map(field.view_features.val(), weights)?))
+    /// The view-level map `[H, W, Cv]` with `field` and the kept weights of the view's token camera
+    /// (`blend_weights(&cfg.view_camera(cam))`): [`view_map`](Self::view_map), faster.
+    pub fn view_map_kept(&self, field: &LanguageField, weights: &Arc<BlendWeights>) -> Result<Tensor<3>> {
+        self.blend_map(field.view_features.val(), weights)
     }
 
-    /// Object-level tokens `[T, D]` with `field`, the kept weights of an object's crop camera and
-    /// its mask: [`object_tokens_with`](Self::object_tokens_with), faster.
+    /// View-level tokens `[T, D]` of [`view_map_kept`](Self::view_map_kept):
+    /// [`view_tokens`](Self::view_tokens), faster.
+    pub fn view_tokens_kept(&self, field: &LanguageField, weights: &Arc<BlendWeights>) -> Result<Tensor<2>> {
+        Ok(field.encoder.forward(self.view_map_kept(field, weights)?))
+    }
+
+    /// The masked object-level map `[r, r, Co]` with `field`, the kept weights of an object's crop
+    /// camera and its mask: [`object_map`](Self::object_map), faster.
+    pub fn object_map_kept(
+        &self,
+        field: &LanguageField,
+        weights: &Arc<BlendWeights>,
+        mask: &[f32],
+    ) -> Result<Tensor<3>> {
+        Ok(cut_out(self.blend_map(field.object_features.val(), weights)?, mask.to_vec()))
+    }
+
+    /// Object-level tokens `[T, D]` of [`object_map_kept`](Self::object_map_kept):
+    /// [`object_tokens_with`](Self::object_tokens_with), faster.
     pub fn object_tokens_kept(
         &self,
         field: &LanguageField,
         weights: &Arc<BlendWeights>,
         mask: &[f32],
     ) -> Result<Tensor<2>> {
-        let map = cut_out(self.blend_map(field.object_features.val(), weights)?, mask.to_vec());
-        Ok(field.encoder.forward_level(map, true))
+        Ok(field.encoder.forward_level(self.object_map_kept(field, weights, mask)?, true))
     }
 
     /// RGB, identity and alpha of a view.

@@ -54,6 +54,10 @@ struct Args {
     backend: Backend,
 }
 
+/// Large tensors' blocks mapped with huge pages and reused ([`model::alloc::KeepLarge`]).
+#[global_allocator]
+static ALLOC: model::alloc::KeepLarge = model::alloc::KeepLarge;
+
 fn main() -> std::process::ExitCode {
     model::alloc::keep_freed_memory();
     let a = Args::parse();

@@ -298,6 +298,10 @@ fn fmt_ms(v: Option<f64>) -> String {
     }
 }
 
+/// Large tensors' blocks mapped with huge pages and reused ([`model::alloc::KeepLarge`]).
+#[global_allocator]
+static ALLOC: model::alloc::KeepLarge = model::alloc::KeepLarge;
+
 fn main() {
     model::alloc::keep_freed_memory();
     let a = Args::parse();

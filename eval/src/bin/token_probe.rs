@@ -157,6 +157,10 @@ fn novel_views(scene: &Scene, ds: &model::data::Dataset, n: usize) -> Result<Vec
         .collect())
 }
 
+/// Large tensors' blocks mapped with huge pages and reused ([`model::alloc::KeepLarge`]).
+#[global_allocator]
+static ALLOC: model::alloc::KeepLarge = model::alloc::KeepLarge;
+
 fn main() -> std::process::ExitCode {
     model::alloc::keep_freed_memory();
     let a = Args::parse();

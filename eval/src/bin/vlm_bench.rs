@@ -177,6 +177,10 @@ fn memory_table(name: &str, cfg: &LlavaConfig) {
     );
 }
 
+/// Large tensors' blocks mapped with huge pages and reused ([`model::alloc::KeepLarge`]).
+#[global_allocator]
+static ALLOC: model::alloc::KeepLarge = model::alloc::KeepLarge;
+
 fn main() -> std::process::ExitCode {
     model::alloc::keep_freed_memory();
     let a = Args::parse();

@@ -191,6 +191,10 @@ fn field_bytes(session: &ChatSession) -> usize {
     session.scene.field.named().iter().map(|(_, t)| 4 * t.dims().iter().product::<usize>()).sum()
 }
 
+/// Large tensors' blocks mapped with huge pages and reused ([`model::alloc::KeepLarge`]).
+#[global_allocator]
+static ALLOC: model::alloc::KeepLarge = model::alloc::KeepLarge;
+
 fn main() -> std::process::ExitCode {
     model::alloc::keep_freed_memory();
     let a = Args::parse();

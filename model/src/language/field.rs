@@ -110,7 +110,7 @@ impl Encoder {
 
     /// Multiply-adds of the plain and of the folded last lifting layer + patch convolution for a
     /// `[H, W, C]` map: whether folding is cheaper.
-    fn fold_is_cheaper(&self, dims: &[usize; 3]) -> bool {
+    pub(crate) fn fold_is_cheaper(&self, dims: &[usize; 3]) -> bool {
         let Some(last) = self.lift_weights.last() else { return false };
         let [hidden, d] = last.val().dims();
         let (pixels, p, out) = (dims[0] * dims[1], self.patch(), self.dim());
@@ -124,7 +124,11 @@ impl Encoder {
     /// each but the last.
     fn lift(&self, map: Tensor<3>, keep_last: bool) -> Tensor<2> {
         let [h, w, c] = map.dims();
-        let mut x = map.reshape([h * w, c]);
+        self.lift_rows(map.reshape([h * w, c]), keep_last)
+    }
+
+    /// [`lift`](Self::lift) of pixels as rows: `[N, C]` -> `[N, width]`.
+    pub(crate) fn lift_rows(&self, mut x: Tensor<2>, keep_last: bool) -> Tensor<2> {
         let layers = self.lift_weights.len();
         let run = if keep_last { layers } else { layers - 1 };
         for (i, (wt, b)) in self.lift_weights.iter().zip(&self.lift_biases).enumerate().take(run) {

@@ -627,11 +627,10 @@ fn kept_blend_weights_give_the_rasterized_tokens_and_gradients() {
     }
 }
 
-/// Folding the last (linear) lifting layer into the patch convolution — what the encoder does when
-/// it is cheaper, as at LLaVA-OneVision's size — gives the plain encoder's tokens and gradients.
-#[test]
-fn the_folded_encoder_equals_the_plain_one_in_tokens_and_gradients() {
-    // hidden 4 < D 16: folding is cheaper (8,192 instead of 20,480 multiply-adds), as at real size
+/// A small encoder whose fold is cheaper than its plain path (hidden 4 < D 16: 8,192 instead of
+/// 20,480 multiply-adds, as at real size) on an autodiff device, a random `[8, 8, 3]` map and
+/// random `[T, D]` loss weights.
+fn folding_case(seed: u64, draw: u64) -> (LanguageConfig, Device, Encoder, Vec<f32>, Vec<f32>) {
     let cfg = LanguageConfig {
         view_channels: 3,
         object_channels: 3,
@@ -642,11 +641,20 @@ fn the_folded_encoder_equals_the_plain_one_in_tokens_and_gradients() {
         ..LanguageConfig::default()
     };
     let dev = Device::ndarray().autodiff();
-    let enc = Encoder::new(&cfg, 5, &dev);
-    let mut rng = Rng::new(8);
+    let enc = Encoder::new(&cfg, seed, &dev);
+    let mut rng = Rng::new(draw);
     let side = cfg.grid * cfg.patch;
     let map: Vec<f32> = (0..side * side * 3).map(|_| rng.normal()).collect();
     let weights: Vec<f32> = (0..cfg.tokens() * cfg.dim).map(|_| rng.normal()).collect();
+    (cfg, dev, enc, map, weights)
+}
+
+/// Folding the last (linear) lifting layer into the patch convolution — what the encoder does when
+/// it is cheaper, as at LLaVA-OneVision's size — gives the plain encoder's tokens and gradients.
+#[test]
+fn the_folded_encoder_equals_the_plain_one_in_tokens_and_gradients() {
+    let (cfg, dev, enc, map, weights) = folding_case(5, 8);
+    let side = cfg.grid * cfg.patch;
     let run = |folded: bool| {
         let m = Tensor::<3>::from_data(TensorData::new(map.clone(), [side, side, 3]), &dev);
         let t = if folded { enc.tokens_raw(m) } else { enc.tokens_raw_plain(m) };
@@ -667,6 +675,53 @@ fn the_folded_encoder_equals_the_plain_one_in_tokens_and_gradients() {
     close("patch weight gradient", &a.1, &b.1);
     close("last lifting weight gradient", &a.2, &b.2);
     close("first lifting weight gradient", &a.3, &b.3);
+}
+
+/// A masked object map through the frozen, folded encoder with the patches outside the mask
+/// encoded once (`FrozenEncoder::forward_object`, what the language stage runs at real size) gives
+/// the tokens of every patch encoded, and the same gradients (map, patch and lifting weights):
+/// on a mask whose object touches 4 of the 16 patches, and on one with no patch outside it.
+#[test]
+fn an_object_map_with_its_outside_patches_encoded_once_gives_every_patchs_tokens_and_gradients() {
+    let (cfg, dev, enc, features, weights) = folding_case(6, 9);
+    let side = cfg.grid * cfg.patch;
+    // an object over pixels x 2..5, y 1..4: it touches patches 1, 2, 5 and 6 of the 16
+    let mut blob = vec![0f32; side * side];
+    for y in 1..4 {
+        for x in 2..5 {
+            blob[y * side + x] = 1.0;
+        }
+    }
+    for mask in [blob, vec![1.0; side * side]] {
+        let run = |once: bool| {
+            let map = Tensor::<3>::from_data(TensorData::new(features.clone(), [side, side, 3]), &dev).require_grad();
+            let m = Tensor::<2>::from_data(TensorData::new(mask.clone(), [side, side]), &dev);
+            let frozen = model::language::FrozenEncoder::new(enc.clone());
+            let cut = model::language::mask_out(map.clone(), m);
+            let t = if once { frozen.forward_object(cut, &mask) } else { frozen.forward_level(cut, true) };
+            let w = Tensor::<2>::from_data(TensorData::new(weights.clone(), [cfg.tokens(), cfg.dim]), &dev);
+            let g = (t.clone() * w).sum().backward();
+            let grad = |p: &burn::module::Param<Tensor<2>>| host(p.val().grad(&g).expect("a gradient"));
+            let map_grad = host(map.grad(&g).expect("a map gradient").reshape([side * side, 3]));
+            (host(t), grad(&enc.patch_weight), grad(&enc.lift_weights[0]), map_grad)
+        };
+        let (a, b) = (run(true), run(false));
+        let close = |what: &str, x: &[f32], y: &[f32]| {
+            let scale = y.iter().fold(1e-6f32, |m, v| m.max(v.abs()));
+            let err = x.iter().zip(y).fold(0f32, |m, (p, q)| m.max((p - q).abs()));
+            assert!(err <= 1e-5 * scale.max(1.0), "{what}: patches once and all differ by {err} (scale {scale})");
+        };
+        close("tokens", &a.0, &b.0);
+        close("patch weight gradient", &a.1, &b.1);
+        close("first lifting weight gradient", &a.2, &b.2);
+        close("map gradient", &a.3, &b.3);
+        // the tokens of the patches outside the mask are one token, and differ from the object's
+        let row = |t: usize| &a.0[t * cfg.dim..(t + 1) * cfg.dim];
+        if mask.contains(&0.0) {
+            assert_eq!(row(0), row(15), "two patches outside the mask");
+            assert_ne!(row(0), row(5), "a patch outside and one inside the mask");
+        }
+    }
 }
 
 /// The encoder frozen for inference (its fold formed once, as `chat` and `lang-bench` use it)

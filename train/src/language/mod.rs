@@ -14,16 +14,16 @@ mod run;
 
 pub use run::*;
 
-use crate::ckpt::AdamStates;
+use crate::ckpt::{AdamStates, HostAdam};
 use crate::dist::{self, Collective, Solo};
 use crate::schedule::warmup_cosine;
 use crate::teacher::{TeacherObject, TeacherSet};
-use burn::optim::{Adam, AdamConfig};
+use burn::optim::Adam;
 use burn::tensor::{Device, Tensor, TensorData};
 use model::error::{Error, Result};
 use model::io;
 use model::language::field::ParamGroup;
-use model::language::{LanguageConfig, LanguageField};
+use model::language::{FrozenEncoder, LanguageConfig, LanguageField};
 use model::run::{GeometryRun, LanguageRun, LanguageState, StoredPath};
 use model::scene::LanguageScene;
 use model::splats::host;
@@ -203,6 +203,15 @@ pub struct LanguageTrainer {
     kept_bytes: usize,
     device: Device,
     adam: Adam,
+    /// The same Adam on the host, for CPU devices ([`AdamStates::step_on_host`]).
+    host_adam: HostAdam,
+}
+
+impl Drop for LanguageTrainer {
+    /// The large blocks kept for the steps go back to the system (see [`LanguageTrainer::new`]).
+    fn drop(&mut self) {
+        model::alloc::keep_large_blocks(0);
+    }
 }
 
 impl LanguageTrainer {
@@ -279,6 +288,10 @@ impl LanguageTrainer {
         device: &Device,
         n: usize,
     ) -> Self {
+        // each step makes and frees the same large buffers (1 GB each at real size): reuse them
+        if !splat_kernels::api::on_cube(device) {
+            model::alloc::keep_large_blocks(model::alloc::large_block_budget());
+        }
         Self {
             cfg,
             scene,
@@ -292,7 +305,8 @@ impl LanguageTrainer {
             targets: HashMap::new(),
             kept_bytes: 0,
             device: device.clone(),
-            adam: AdamConfig::new().with_epsilon(1e-15).build(),
+            adam: HostAdam::new(1e-15).config().build(),
+            host_adam: HostAdam::new(1e-15),
         }
     }
 
@@ -334,24 +348,41 @@ impl LanguageTrainer {
         self.cfg.kept_weights_mb > 0 && !splat_kernels::api::on_cube(&self.device)
     }
 
-    /// View-level tokens of training view `v` with `field`.
-    fn view_tokens(&mut self, field: &LanguageField, v: usize) -> Result<Tensor<2>> {
+    /// The view-level map of training view `v` with `field`.
+    fn view_map(&mut self, field: &LanguageField, v: usize) -> Result<Tensor<3>> {
         let cam = self.cameras[v];
         if !self.replay() {
-            return self.scene.view_tokens(field, &cam);
+            return self.scene.view_map(field, &cam);
         }
         let w = self.weights((v, None), &self.scene.cfg.view_camera(&cam))?;
-        self.scene.view_tokens_kept(field, &w)
+        self.scene.view_map_kept(field, &w)
     }
 
-    /// Object-level tokens of object `obj` of training view `v` with `field`.
-    fn object_tokens(&mut self, field: &LanguageField, v: usize, obj: &TeacherObject) -> Result<Tensor<2>> {
+    /// Object-level tokens of object `obj` of training view `v`: its masked map with `field`,
+    /// encoded by `enc` (which encodes the patches outside the mask once).
+    fn object_tokens(
+        &mut self,
+        field: &LanguageField,
+        enc: &FrozenEncoder,
+        v: usize,
+        obj: &TeacherObject,
+    ) -> Result<Tensor<2>> {
         let (oc, mask) = self.mask(v, obj)?;
-        if !self.replay() {
-            return self.scene.object_tokens_with(field, &oc, &mask);
-        }
-        let w = self.weights((v, Some(obj.id)), &oc)?;
-        self.scene.object_tokens_kept(field, &w, &mask)
+        let map = if self.replay() {
+            let w = self.weights((v, Some(obj.id)), &oc)?;
+            self.scene.object_map_kept(field, &w, &mask)?
+        } else {
+            self.scene.object_map(field, &oc, &mask)?
+        };
+        Ok(enc.forward_object(map, &mask))
+    }
+
+    /// `field`'s encoder frozen for the maps of one step or one evaluation: at LLaVA-OneVision's
+    /// size the folded patch convolution is formed once for all of them (and its gradient
+    /// taken once), not per map.
+    fn frozen(&self, field: &LanguageField) -> FrozenEncoder {
+        let side = self.cfg.field.map_size();
+        FrozenEncoder::for_maps(field.encoder.clone(), [side, side, self.cfg.field.view_channels])
     }
 
     /// The teacher's tokens of view `v` (`None`) or of its object, read from disk once (and kept
@@ -395,8 +426,9 @@ impl LanguageTrainer {
         // each view's loss enters as `size / views` of it: averaged over the ranks, the mean
         let part = c.size() as f32 / views.len() as f32;
         let (mut loss, mut stats) = (None::<Tensor<1>>, [0f64; 4]);
+        let enc = self.frozen(&field);
         for j in mine {
-            let (l, lv, lo, n) = self.view_loss(&field, views[j], self.iter * views.len() + j, &ad)?;
+            let (l, lv, lo, n) = self.view_loss(&field, &enc, views[j], self.iter * views.len() + j, &ad)?;
             stats[0] += host(l.clone())[0] as f64;
             stats[1] += lv as f64;
             stats[2] += lo as f64;
@@ -409,11 +441,14 @@ impl LanguageTrainer {
         }
         let loss = loss.expect("at least one view");
         c.sum_f64("the step's losses", &mut stats)?;
-        let grads = loss.backward();
-        let grads: Vec<Option<Tensor<2>>> = params.iter().map(|(_, p)| p.grad(&grads)).collect();
-        let grads = dist::reduce_tensors(c, grads, &params.iter().map(|(_, p)| p.dims()).collect::<Vec<_>>())?;
+        let mut grads = loss.backward();
+        // moved out of the gradients (a host Adam then owns each buffer: no copy of it)
+        let grads: Vec<Option<Tensor<2>>> = params.iter().map(|(_, p)| p.grad_remove(&mut grads)).collect();
+        let shapes: Vec<[usize; 2]> = params.iter().map(|(_, p)| p.dims()).collect();
+        drop((params, field, enc));
+        let grads = dist::reduce_tensors(c, grads, &shapes)?;
         let warm = warmup_cosine(self.iter, self.cfg.iters, self.cfg.warmup_iters, 1.0, self.cfg.lr_final);
-        let mut new = Vec::with_capacity(params.len());
+        let mut new = Vec::with_capacity(shapes.len());
         let named = self.scene.field.named();
         // a layer's fan-in: its weight's rows (`X.weight` [in, out]; `X.bias` takes X's)
         let fan_in = |name: &str| {
@@ -421,6 +456,7 @@ impl LanguageTrainer {
             let weight = format!("{layer}.weight");
             named.iter().find(|(n, _)| *n == weight).map(|(_, t)| t.dims()[0])
         };
+        let on_host = !splat_kernels::api::on_cube(&self.device);
         for ((name, value), g) in named.clone().into_iter().zip(grads) {
             let Some(g) = g else {
                 new.push((name, value));
@@ -439,7 +475,11 @@ impl LanguageTrainer {
                     ParamGroup::Encoder => self.cfg.lr_encoder * self.cfg.fan_in_factor(fan_in(&name)),
                     ParamGroup::Mixer => self.cfg.lr_mixer,
                 };
-            let value = self.states.step(&self.adam, &name, lr, value, g);
+            let value = if on_host {
+                self.states.step_on_host(&self.host_adam, &name, lr, value, g)
+            } else {
+                self.states.step(&self.adam, &name, lr, value, g)
+            };
             new.push((name, value));
         }
         self.scene.field = LanguageField::from_named(new)?;
@@ -459,6 +499,7 @@ impl LanguageTrainer {
     fn view_loss(
         &mut self,
         field: &LanguageField,
+        enc: &FrozenEncoder,
         v: usize,
         draw: usize,
         ad: &Device,
@@ -466,7 +507,7 @@ impl LanguageTrainer {
         let d = self.cfg.field.dim;
         let t = self.cfg.field.tokens();
         let target = |x: Arc<Vec<f32>>| Tensor::<2>::from_data(TensorData::new(x.to_vec(), [t, d]), ad);
-        let tokens = self.view_tokens(field, v)?;
+        let tokens = enc.forward_level(self.view_map(field, v)?, false);
         let lv = (tokens - target(self.target(v, None)?)).abs().mean();
         let mut loss = lv.clone();
         let mut objects = self.teacher.views[v].objects.clone();
@@ -478,7 +519,7 @@ impl LanguageTrainer {
         }
         let mut lo_sum: Option<Tensor<1>> = None;
         for obj in &objects {
-            let tok = self.object_tokens(field, v, obj)?;
+            let tok = self.object_tokens(field, enc, v, obj)?;
             let l = (tok - target(self.target(v, Some(obj.id))?)).abs().mean();
             lo_sum = Some(match lo_sum {
                 Some(s) => s + l,
@@ -506,7 +547,12 @@ impl LanguageTrainer {
     /// Mean token L1 over the training views `(view, object)` with the current field.
     pub fn token_l1(&mut self, views: &[usize]) -> Result<(f32, f32)> {
         let field = self.scene.field.clone();
-        self.l1_over(views, |t, v| t.view_tokens(&field, v), |t, v, obj| t.object_tokens(&field, v, obj))
+        let enc = self.frozen(&field);
+        self.l1_over(
+            views,
+            |t, v| Ok(enc.forward_level(t.view_map(&field, v)?, false)),
+            |t, v, obj| t.object_tokens(&field, &enc, v, obj),
+        )
     }
 
     /// [`token_l1`](Self::token_l1) of another scene on the same geometry, its own field and

@@ -9,7 +9,7 @@
 
 use chatsplat_tests::browser::{self, Browser};
 use chatsplat_tests::fixture::{self, Tabletop};
-use chatsplat_tests::http::{self, Reply};
+use chatsplat_tests::http::{self, Reply, Server};
 use glam::Vec3;
 use model::chat::{ChatSession, Target};
 use model::data::synth::questions::{Kind, ViewFacts, view_questions};
@@ -17,9 +17,8 @@ use model::data::synth::scene::Scene;
 use model::run::GeometryRun;
 use serde_json::{Value, json};
 use splat_kernels::Camera;
-use std::io::{BufRead, BufReader, Read};
+use std::io::Read;
 use std::path::Path;
-use std::process::{Child, Command, Stdio};
 use std::sync::Mutex;
 use std::time::{Duration, Instant};
 use viewer::camera::ViewCamera;
@@ -31,71 +30,6 @@ fn scene() -> Tabletop {
     fixture::tabletop(Path::new(env!("CARGO_TARGET_TMPDIR")))
 }
 
-/// A running `chatsplat serve` on a free loopback port.
-struct Server {
-    child: Child,
-    addr: String,
-    log: std::sync::Arc<Mutex<String>>,
-}
-
-impl Server {
-    fn start(run: &Path, extra: &[&str]) -> Server {
-        let mut child = Command::new(env!("CARGO_BIN_EXE_chatsplat"))
-            .args(["serve", "--addr", "127.0.0.1:0", "--run"])
-            .arg(run)
-            .args(extra)
-            .stdout(Stdio::piped())
-            .stderr(Stdio::piped())
-            .spawn()
-            .unwrap();
-        let log = std::sync::Arc::new(Mutex::new(String::new()));
-        let (err, l) = (child.stderr.take().unwrap(), log.clone());
-        std::thread::spawn(move || {
-            for line in BufReader::new(err).lines().map_while(|l| l.ok()) {
-                l.lock().unwrap().push_str(&format!("{line}\n"));
-            }
-        });
-        let mut out = BufReader::new(child.stdout.take().unwrap());
-        let mut line = String::new();
-        out.read_line(&mut line).unwrap();
-        let addr = line
-            .trim()
-            .strip_prefix("chatsplat viewer: http://")
-            .and_then(|a| a.strip_suffix('/'))
-            .unwrap_or_else(|| panic!("no URL on stdout ({line:?}); stderr: {}", log.lock().unwrap()))
-            .to_string();
-        Server { child, addr, log }
-    }
-
-    fn url(&self, path: &str) -> String {
-        format!("http://{}{path}", self.addr)
-    }
-
-    /// SIGTERM, as Ctrl-C would: the server must stop by itself, successfully.
-    fn stop(mut self) -> String {
-        Command::new("kill").args(["-TERM", &self.child.id().to_string()]).status().unwrap();
-        let t0 = Instant::now();
-        let status = loop {
-            if let Some(s) = self.child.try_wait().unwrap() {
-                break s;
-            }
-            assert!(t0.elapsed() < Duration::from_secs(30), "the server did not stop within 30 s");
-            std::thread::sleep(Duration::from_millis(50));
-        };
-        std::thread::sleep(Duration::from_millis(100));
-        let log = self.log.lock().unwrap().clone();
-        assert!(status.success(), "exit {status}; stderr:\n{log}");
-        log
-    }
-}
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.child.kill();
-        let _ = self.child.wait();
-    }
-}
-
 fn scene_json(data: &Path) -> Scene {
     model::io::read_json(&data.join("scene.json")).unwrap()
 }
@@ -104,17 +38,10 @@ fn ask(s: &Server, body: Value) -> Reply {
     http::post(&s.addr, "/api/ask", &body)
 }
 
-/// The answer text of an ask's event stream, after checking the stream's shape.
+/// The answer text of an ask's event stream, after checking the stream's shape and that it timed
+/// a first token.
 fn answer_of(r: &Reply) -> String {
-    assert_eq!(r.status, 200, "{}", r.text());
-    assert!(r.header("content-type").is_some_and(|t| t.starts_with("text/event-stream")));
-    let ev = r.events();
-    let names: Vec<&str> = ev.iter().map(|(n, _)| n.as_str()).collect();
-    assert_eq!(names.first(), Some(&"start"), "{names:?}");
-    assert_eq!(names.last(), Some(&"done"), "{names:?}");
-    let streamed: String = ev.iter().filter(|(n, _)| n == "token").map(|(_, v)| v["text"].as_str().unwrap()).collect();
-    let done = &ev.last().unwrap().1;
-    assert_eq!(done["text"].as_str().unwrap(), streamed, "the tokens streamed make the answer");
+    let (streamed, done) = http::streamed_answer(r);
     assert!(done["first_token_ms"].as_f64().unwrap() > 0.0 && done["tokens"].as_u64().unwrap() > 0);
     streamed
 }
@@ -133,7 +60,7 @@ fn rle_pixels(mask: &Value) -> Vec<usize> {
 fn serve_answers_like_the_library_and_refuses_bad_requests_by_name() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let t = scene();
-    let server = Server::start(&t.run, &[]);
+    let server = Server::start(env!("CARGO_BIN_EXE_chatsplat"), &t.run, &[]);
     let a = server.addr.clone();
     let dev = burn::tensor::Device::ndarray();
     let session = ChatSession::open(&GeometryRun::new(&t.run), None, &fixture::builtin_model(), &dev).unwrap();
@@ -361,7 +288,11 @@ fn serve_answers_like_the_library_and_refuses_bad_requests_by_name() {
 fn twenty_clients_at_once_are_answered_in_order_or_refused_and_a_gone_client_frees_the_model() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let t = scene();
-    let server = Server::start(&t.run, &["--queue", "8", "--allow-origin", "http://localhost:3000"]);
+    let server = Server::start(
+        env!("CARGO_BIN_EXE_chatsplat"),
+        &t.run,
+        &["--queue", "8", "--allow-origin", "http://localhost:3000"],
+    );
     let info = http::get(&server.addr, "/api/scene").json();
     let cam0 = info["views"][0]["camera"].clone();
     // an origin let in: its preflight and its request are answered, with the header browsers need
@@ -535,7 +466,7 @@ fn the_page_draws_the_scene_picks_in_red_and_answers_at_every_level() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let t = scene();
     let truth = scene_json(&t.data);
-    let server = Server::start(&t.run, &[]);
+    let server = Server::start(env!("CARGO_BIN_EXE_chatsplat"), &t.run, &[]);
     let mut b = Browser::launch(&exe, 1100, 700).unwrap();
     let t0 = Instant::now();
     b.goto(
@@ -678,7 +609,7 @@ fn the_page_draws_the_scene_picks_in_red_and_answers_at_every_level() {
                 ".map((r) => [r.name.replace(location.origin, ''), r.startTime.toFixed(0), r.duration.toFixed(0)]))"
             ))
             .unwrap_or_default();
-        panic!("{e}; the page: {page}; the server's log:\n{}", server.log.lock().unwrap());
+        panic!("{e}; the page: {page}; the server's log:\n{}", server.log());
     }
     let server_s = t_server.elapsed().as_secs_f64();
     assert_eq!(b.eval("window.chatsplat.mode").unwrap(), "server");

@@ -250,7 +250,8 @@ pub struct LanguageState {
     pub adam_time: BTreeMap<String, usize>,
     /// The teacher directory the field was trained on.
     pub teacher: StoredPath,
-    /// The teacher model (its directory, as a name).
+    /// The teacher model's directory (absolute since extraction records it so); a scene's
+    /// commands chat with it when no `--vlm` is given.
     pub teacher_model: String,
     /// Object crop margin (the teacher's).
     pub margin: f32,
@@ -421,7 +422,7 @@ pub struct NovelSource {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 #[serde(deny_unknown_fields)]
 pub struct TeacherIndex {
-    /// The teacher model directory, as a name.
+    /// The teacher model's directory (absolute in indexes written since 2026-12-02).
     pub teacher: String,
     /// The dataset the tokens were extracted from.
     pub data: StoredPath,

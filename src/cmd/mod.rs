@@ -153,8 +153,9 @@ pub struct SceneArgs {
     /// Language run directory (default: RUN/language).
     #[arg(long)]
     pub language: Option<PathBuf>,
-    /// LLaVA-OneVision directory, the one the teacher tokens came from (default: the built-in
-    /// model, see `--vlm` of `chatsplat demo`).
+    /// LLaVA-OneVision directory, the one the teacher tokens came from (default: the model the
+    /// language run was taught by, as `extract --vlm` named it; else the built-in model, see
+    /// `--vlm` of `chatsplat demo`).
     #[arg(long)]
     pub vlm: Option<PathBuf>,
     /// Compute backend.
@@ -171,9 +172,30 @@ impl SceneArgs {
         self.language.as_ref().map(LanguageRun::new).unwrap_or_else(|| self.geometry().language())
     }
 
+    /// The VLM to chat with: `--vlm`, else the model the language run was taught by when it is
+    /// still there (a warning when it is not), else the built-in model.
+    pub fn vlm_dir(&self) -> anyhow::Result<PathBuf> {
+        if self.vlm.is_some() {
+            return vlm_dir(self.vlm.as_ref());
+        }
+        // an unreadable language run is reported by whatever opens it next
+        if let Ok(state) = self.language().read_state() {
+            let taught = PathBuf::from(&state.teacher_model);
+            if taught.join("config.json").is_file() {
+                return Ok(taught);
+            }
+            eprintln!(
+                "warning: the language run was taught by {}, which is not there any more; trying the built-in \
+                    model (give --vlm DIR, the same model, if it is elsewhere)",
+                taught.display()
+            );
+        }
+        vlm_dir(None)
+    }
+
     /// Loads the scene and the VLM, reporting the time taken.
     pub fn open(&self) -> anyhow::Result<ChatSession> {
-        let vlm = vlm_dir(self.vlm.as_ref())?;
+        let vlm = self.vlm_dir()?;
         let t0 = std::time::Instant::now();
         let device = self.backend.device();
         let s = model::catch_backend("loading", || {

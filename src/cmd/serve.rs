@@ -38,7 +38,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         addr: a.addr,
         run: a.scene.run.clone(),
         language: a.scene.language.clone(),
-        vlm: super::vlm_dir(a.scene.vlm.as_ref())?,
+        vlm: a.scene.vlm_dir()?,
         backend: a.scene.backend,
         queue: a.queue,
         max_new_tokens: a.max_new_tokens,

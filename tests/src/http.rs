@@ -1,9 +1,12 @@
-//! A minimal HTTP/1.1 client for the viewer's tests (one request per connection), and a reader
-//! of server-sent events.
+//! A minimal HTTP/1.1 client for the viewer's tests (one request per connection), a reader of
+//! server-sent events, and a `chatsplat serve` process to talk to.
 
 use std::io::{BufRead, BufReader, Read, Write};
 use std::net::TcpStream;
-use std::time::Duration;
+use std::path::Path;
+use std::process::{Child, Command, Stdio};
+use std::sync::{Arc, Mutex};
+use std::time::{Duration, Instant};
 
 /// A response.
 #[derive(Debug)]
@@ -150,4 +153,91 @@ pub fn decode_png(bytes: &[u8]) -> (usize, usize, Vec<u8>) {
     assert_eq!(info.bit_depth, png::BitDepth::Eight);
     let rgb = buf[..w * h * ch].chunks(ch).flat_map(|p| [p[0], p[1], p[2]]).collect();
     (w, h, rgb)
+}
+
+/// A running `chatsplat serve` on a free loopback port.
+pub struct Server {
+    pub child: Child,
+    /// `host:port`.
+    pub addr: String,
+    log: Arc<Mutex<String>>,
+}
+
+impl Server {
+    /// `chatsplat serve --run RUN EXTRA..` of the binary `bin`, once it printed its URL.
+    pub fn start(bin: &str, run: &Path, extra: &[&str]) -> Server {
+        let mut child = Command::new(bin)
+            .args(["serve", "--addr", "127.0.0.1:0", "--run"])
+            .arg(run)
+            .args(extra)
+            .stdout(Stdio::piped())
+            .stderr(Stdio::piped())
+            .spawn()
+            .unwrap();
+        let log = Arc::new(Mutex::new(String::new()));
+        let (err, l) = (child.stderr.take().unwrap(), log.clone());
+        std::thread::spawn(move || {
+            for line in BufReader::new(err).lines().map_while(|l| l.ok()) {
+                l.lock().unwrap().push_str(&format!("{line}\n"));
+            }
+        });
+        let mut out = BufReader::new(child.stdout.take().unwrap());
+        let mut line = String::new();
+        out.read_line(&mut line).unwrap();
+        let addr = line
+            .trim()
+            .strip_prefix("chatsplat viewer: http://")
+            .and_then(|a| a.strip_suffix('/'))
+            .unwrap_or_else(|| panic!("no URL on stdout ({line:?}); stderr: {}", log.lock().unwrap()))
+            .to_string();
+        Server { child, addr, log }
+    }
+
+    /// What the server wrote to its standard error so far.
+    pub fn log(&self) -> String {
+        self.log.lock().unwrap().clone()
+    }
+
+    pub fn url(&self, path: &str) -> String {
+        format!("http://{}{path}", self.addr)
+    }
+
+    /// SIGTERM, as Ctrl-C would: the server must stop by itself, successfully.
+    pub fn stop(mut self) -> String {
+        Command::new("kill").args(["-TERM", &self.child.id().to_string()]).status().unwrap();
+        let t0 = Instant::now();
+        let status = loop {
+            if let Some(s) = self.child.try_wait().unwrap() {
+                break s;
+            }
+            assert!(t0.elapsed() < Duration::from_secs(30), "the server did not stop within 30 s");
+            std::thread::sleep(Duration::from_millis(50));
+        };
+        std::thread::sleep(Duration::from_millis(100));
+        let log = self.log.lock().unwrap().clone();
+        assert!(status.success(), "exit {status}; stderr:\n{log}");
+        log
+    }
+}
+
+impl Drop for Server {
+    fn drop(&mut self) {
+        let _ = self.child.kill();
+        let _ = self.child.wait();
+    }
+}
+
+/// The answer of an `/api/ask` event stream and its `done` event, after checking the stream's
+/// shape: a 200 event stream from `start` to `done`, whose tokens make the answer `done` holds.
+pub fn streamed_answer(r: &Reply) -> (String, serde_json::Value) {
+    assert_eq!(r.status, 200, "{}", r.text());
+    assert!(r.header("content-type").is_some_and(|t| t.starts_with("text/event-stream")));
+    let ev = r.events();
+    let names: Vec<&str> = ev.iter().map(|(n, _)| n.as_str()).collect();
+    assert_eq!(names.first(), Some(&"start"), "{names:?}");
+    assert_eq!(names.last(), Some(&"done"), "{names:?}");
+    let streamed: String = ev.iter().filter(|(n, _)| n == "token").map(|(_, v)| v["text"].as_str().unwrap()).collect();
+    let done = ev.last().unwrap().1.clone();
+    assert_eq!(done["text"].as_str().unwrap(), streamed, "the tokens streamed make the answer");
+    (streamed, done)
 }

@@ -425,7 +425,8 @@ pub fn extract(
         progress(vp.index + 1, total);
     }
     let index = TeacherIndex {
-        teacher: vlm.dir.display().to_string(),
+        // absolute: a scene's commands find the model from any directory
+        teacher: std::path::absolute(&vlm.dir).unwrap_or_else(|_| vlm.dir.clone()).display().to_string(),
         data: StoredPath::new(data, &out.dir),
         fingerprint,
         vision_feature_layer: vlm.cfg.vision_feature_layer,

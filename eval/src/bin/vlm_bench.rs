@@ -37,6 +37,10 @@ struct Args {
     /// memory instead of a directory (no download, no Python; a word-level tokenizer).
     #[arg(long)]
     random: Option<String>,
+    /// With `--random`: N layers in the vision tower and in the LLM instead of the published
+    /// depths (the widths and token shapes stay; the real-size tests run such a model with 1).
+    #[arg(long, value_name = "N", requires = "random", value_parser = clap::value_parser!(u64).range(1..=256))]
+    layers: Option<u64>,
     /// Transformers' timings of the same configuration (JSON from eval/bench/transformers_vlm.py),
     /// printed beside this port's as ratios.
     #[arg(long)]
@@ -128,26 +132,23 @@ fn print_reference(r: &Reference, timings: &[(Backend, Timing)]) {
     }
 }
 
-/// A random-weight LLaVA-OneVision of the published `size` configuration.
-fn random_model(size: &str, device: &burn::tensor::Device, half: bool) -> model::Result<LlavaOnevision> {
-    use model::vlm::tokenizer::{ChatTokenizer, word_level_tokenizer_json};
+/// A random-weight LLaVA-OneVision of the published `size` configuration, `layers` deep in the
+/// tower and the LLM when given ([`train::vlm::random_published`]).
+fn random_model(
+    size: &str,
+    layers: Option<usize>,
+    device: &burn::tensor::Device,
+    half: bool,
+) -> model::Result<LlavaOnevision> {
     let mut cfg = match size {
         "0.5b" => LlavaConfig::onevision_0_5b(),
         "7b" => LlavaConfig::onevision_7b(),
         other => return Err(model::Error::input(format!("--random {other}: expected 0.5b or 7b"))),
     };
-    let words = model::data::synth::questions::vocabulary();
-    let tokenizer = ChatTokenizer::from_json(&word_level_tokenizer_json(&words)?, 3)?;
-    cfg.image_token_id = tokenizer.image_token_id;
-    let processor = model::vlm::ProcessorConfig {
-        mean: [0.5; 3],
-        std: [0.5; 3],
-        rescale_factor: 1.0 / 255.0,
-        size: (384, 384),
-        resample: 3,
-        pinpoints: cfg.pinpoints.clone(),
-    };
-    Ok(LlavaOnevision::init_with(cfg, processor, tokenizer, 0, device, half))
+    if let Some(n) = layers {
+        (cfg.vision.num_layers, cfg.text.num_layers) = (n, n);
+    }
+    train::vlm::random_published(cfg, 0, device, half)
 }
 
 fn sync(t: Tensor<2>) {
@@ -198,12 +199,15 @@ fn main() -> std::process::ExitCode {
             return std::process::ExitCode::FAILURE;
         }
     };
+    let layers = a.layers.map(|n| n as usize);
     if let Some(out) = &a.save {
         let Some(size) = &a.random else {
             eprintln!("error: --save writes a --random model: pass --random 0.5b");
             return std::process::ExitCode::FAILURE;
         };
-        let saved = match random_model(size, &burn::tensor::Device::flex(), false) {
+        // drawn in f16 (written in bf16 anyway): the peak is the f16 model and one f32 copy for the
+        // writer, under twice the model's f32 size
+        let saved = match random_model(size, layers, &burn::tensor::Device::flex(), true) {
             Ok(m) => train::vlm::save_model_as(&m, out, true).map_err(|e| e.to_string()),
             Err(e) => Err(e.to_string()),
         };
@@ -240,7 +244,7 @@ fn main() -> std::process::ExitCode {
         let r = catch_backend("benchmark", || -> model::Result<Timing> {
             let device = backend.device();
             let m = match &a.random {
-                Some(size) => random_model(size, &device, a.half)?,
+                Some(size) => random_model(size, layers, &device, a.half)?,
                 None => LlavaOnevision::load_with(&dir, &device, a.half)?,
             };
             if let Some(gib) = eval::progress::peak_rss_gib() {

@@ -249,19 +249,20 @@ impl HfTensors {
         self.tensors.iter().map(|(_, _, v)| v.len()).sum()
     }
 
-    /// The safetensors file (`path` names it in errors), bf16 (how llava-hf checkpoints are
-    /// stored) or f32.
-    pub fn to_bytes(&self, path: &Path, as_bf16: bool) -> Result<Vec<u8>, VlmError> {
+    /// Writes the safetensors file `path`, bf16 (how llava-hf checkpoints are stored) or f32,
+    /// converting tensor by tensor and dropping each f32 copy as it goes, then streaming the file
+    /// out: the peak is these tensors once, not the tensors, their bytes and the whole file.
+    pub fn write(self, path: &Path, as_bf16: bool) -> Result<(), VlmError> {
         let bytes: Vec<(String, Vec<usize>, Vec<u8>)> = self
             .tensors
-            .iter()
+            .into_iter()
             .map(|(n, s, v)| {
                 let b = if as_bf16 {
                     v.iter().flat_map(|x| half::bf16::from_f32(*x).to_le_bytes()).collect()
                 } else {
                     v.iter().flat_map(|x| x.to_le_bytes()).collect()
                 };
-                (n.clone(), s.clone(), b)
+                (n, s, b)
             })
             .collect();
         let dtype = if as_bf16 { Dtype::BF16 } else { Dtype::F32 };
@@ -273,6 +274,6 @@ impl HfTensors {
         }
         let mut meta = std::collections::HashMap::new();
         meta.insert("format".to_string(), "pt".to_string());
-        safetensors::serialize(views, Some(meta)).map_err(|e| VlmError::weights(path, e.to_string()))
+        safetensors::serialize_to_file(views, Some(meta), path).map_err(|e| VlmError::weights(path, e.to_string()))
     }
 }

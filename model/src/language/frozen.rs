@@ -83,7 +83,10 @@ impl FrozenEncoder {
             index[t] = i as i64;
         }
         let device = map.device();
-        let ints = |v: Vec<i64>| Tensor::<1, Int>::from_data(TensorData::new(v.clone(), [v.len()]), &device);
+        let ints = |v: Vec<i64>| {
+            let n = v.len();
+            Tensor::<1, Int>::from_data(TensorData::new(v, [n]), &device)
+        };
         let n = rows.len();
         let patches = map.reshape([gh, p, gw, p, c]).swap_dims(1, 2).reshape([gh * gw, p * p * c]);
         let hidden = self.encoder.lift_rows(patches.select(0, ints(rows)).reshape([n * p * p, c]), false);

@@ -22,6 +22,9 @@ fn fixture() -> PathBuf {
     Path::new(env!("CARGO_MANIFEST_DIR")).join("../checkpoints/tiny-llava-ov")
 }
 
+/// A rewritten tensor of a teacher file: its shape and values, `None` to drop it.
+type Tensor16 = Option<(Vec<usize>, Vec<f32>)>;
+
 /// A dataset, its geometry run (the initial cloud, edited by `geometry`) and teacher tokens from
 /// the tiny fixture, in three scratch folders.
 pub(crate) struct Case {
@@ -68,62 +71,69 @@ impl Case {
     /// boxes)` the stored object boxes (`"id:x0,y0,x1,y1 ..."`); a tensor whose object is no longer
     /// boxed is dropped.
     fn edit_teacher(&self, tokens: impl Fn(usize, &str, &mut [f32]), boxes: impl Fn(usize, String) -> String) {
-        use safetensors::{Dtype, SafeTensors, tensor::TensorView};
-        let set = TeacherSet::open(&self.teacher).unwrap();
-        for (v, info) in set.views.iter().enumerate() {
-            let bytes = std::fs::read(&info.file).unwrap();
-            let (_, meta) = SafeTensors::read_metadata(&bytes).unwrap();
-            let mut meta = meta.metadata().clone().unwrap();
-            let kept = boxes(v, meta["boxes_xyxy"].clone());
-            let ids: Vec<String> = kept.split_whitespace().map(|b| b.split(':').next().unwrap().to_string()).collect();
-            meta.insert("boxes_xyxy".into(), kept);
-            let st = SafeTensors::deserialize(&bytes).unwrap();
-            let mut out: Vec<(String, Vec<usize>, Vec<u8>)> = Vec::new();
-            for (name, t) in st.tensors() {
-                if name.starts_with("object_") && !ids.iter().any(|id| name == format!("object_{id}")) {
-                    continue;
+        self.rewrite_teacher(
+            |v, meta| {
+                let kept = boxes(v, meta["boxes_xyxy"].clone());
+                meta.insert("boxes_xyxy".into(), kept);
+            },
+            |v, meta, name, shape, mut x| {
+                let boxed = |id: &str| name == format!("object_{id}");
+                let mut ids = meta["boxes_xyxy"].split_whitespace().map(|b| b.split(':').next().unwrap());
+                if name.starts_with("object_") && !ids.any(boxed) {
+                    return None;
                 }
-                let mut x: Vec<f32> =
-                    t.data().chunks_exact(2).map(|b| half::f16::from_le_bytes([b[0], b[1]]).to_f32()).collect();
-                tokens(v, &name, &mut x);
-                let b = x.iter().flat_map(|&f| half::f16::from_f32(f).to_le_bytes()).collect();
-                out.push((name, t.shape().to_vec(), b));
-            }
-            let views: Vec<(String, TensorView)> =
-                out.iter().map(|(n, s, b)| (n.clone(), TensorView::new(Dtype::F16, s.clone(), b).unwrap())).collect();
-            safetensors::serialize_to_file(views, Some(meta), &info.file).unwrap();
-        }
+                tokens(v, name, &mut x);
+                Some((shape, x))
+            },
+        );
     }
 
     /// Rewrites every teacher file at token width `dim`: `widen(token)` maps each token of the
     /// teacher's width to one of `dim` values; `teacher.json` says the new width.
     fn widen_teacher(&self, dim: usize, widen: impl Fn(&[f32]) -> Vec<f32>) {
+        let d = TeacherSet::open(&self.teacher).unwrap().index.dim;
+        self.rewrite_teacher(
+            |_, _| {},
+            |_, _, _, mut shape, x| {
+                *shape.last_mut().unwrap() = dim;
+                Some((shape, x.chunks_exact(d).flat_map(&widen).collect()))
+            },
+        );
+        let index = self.teacher.join("teacher.json");
+        let mut json: serde_json::Value = serde_json::from_slice(&std::fs::read(&index).unwrap()).unwrap();
+        json["dim"] = dim.into();
+        std::fs::write(&index, serde_json::to_vec_pretty(&json).unwrap()).unwrap();
+    }
+
+    /// Rewrites every teacher token file (f16): `meta(view, metadata)` edits a view's metadata
+    /// first, then `tensor(view, metadata, name, shape, values)` gives each tensor's new shape and
+    /// values, or `None` to drop it.
+    fn rewrite_teacher(
+        &self,
+        meta: impl Fn(usize, &mut std::collections::HashMap<String, String>),
+        tensor: impl Fn(usize, &std::collections::HashMap<String, String>, &str, Vec<usize>, Vec<f32>) -> Tensor16,
+    ) {
         use safetensors::{Dtype, SafeTensors, tensor::TensorView};
         let set = TeacherSet::open(&self.teacher).unwrap();
-        let d = set.index.dim;
-        for info in &set.views {
+        for (v, info) in set.views.iter().enumerate() {
             let bytes = std::fs::read(&info.file).unwrap();
-            let (_, meta) = SafeTensors::read_metadata(&bytes).unwrap();
-            let meta = meta.metadata().clone();
+            let (_, header) = SafeTensors::read_metadata(&bytes).unwrap();
+            let mut m = header.metadata().clone().unwrap_or_default();
+            meta(v, &mut m);
             let st = SafeTensors::deserialize(&bytes).unwrap();
             let mut out: Vec<(String, Vec<usize>, Vec<u8>)> = Vec::new();
             for (name, t) in st.tensors() {
                 let x: Vec<f32> =
                     t.data().chunks_exact(2).map(|b| half::f16::from_le_bytes([b[0], b[1]]).to_f32()).collect();
-                let wide: Vec<f32> = x.chunks_exact(d).flat_map(&widen).collect();
-                let b = wide.iter().flat_map(|&f| half::f16::from_f32(f).to_le_bytes()).collect();
-                let mut shape = t.shape().to_vec();
-                *shape.last_mut().unwrap() = dim;
-                out.push((name, shape, b));
+                if let Some((shape, x)) = tensor(v, &m, &name, t.shape().to_vec(), x) {
+                    let b = x.iter().flat_map(|&f| half::f16::from_f32(f).to_le_bytes()).collect();
+                    out.push((name, shape, b));
+                }
             }
             let views: Vec<(String, TensorView)> =
                 out.iter().map(|(n, s, b)| (n.clone(), TensorView::new(Dtype::F16, s.clone(), b).unwrap())).collect();
-            safetensors::serialize_to_file(views, meta, &info.file).unwrap();
+            safetensors::serialize_to_file(views, Some(m), &info.file).unwrap();
         }
-        let index = self.teacher.join("teacher.json");
-        let mut json: serde_json::Value = serde_json::from_slice(&std::fs::read(&index).unwrap()).unwrap();
-        json["dim"] = dim.into();
-        std::fs::write(&index, serde_json::to_vec_pretty(&json).unwrap()).unwrap();
     }
 
     /// Trains the language stage into `run/language` with `cfg`.

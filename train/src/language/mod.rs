@@ -18,7 +18,6 @@ use crate::ckpt::{AdamStates, HostAdam};
 use crate::dist::{self, Collective, Solo};
 use crate::schedule::warmup_cosine;
 use crate::teacher::{TeacherObject, TeacherSet};
-use burn::optim::Adam;
 use burn::tensor::{Device, Tensor, TensorData};
 use model::error::{Error, Result};
 use model::io;
@@ -202,9 +201,9 @@ pub struct LanguageTrainer {
     /// Bytes held by `kept` and `targets` together (capped by `kept_weights_mb`).
     kept_bytes: usize,
     device: Device,
-    adam: Adam,
-    /// The same Adam on the host, for CPU devices ([`AdamStates::step_on_host`]).
-    host_adam: HostAdam,
+    /// The optimizer: on the host for CPU devices ([`AdamStates::step_on_host`]), else burn's
+    /// Adam of the same settings.
+    adam: HostAdam,
 }
 
 impl Drop for LanguageTrainer {
@@ -305,8 +304,7 @@ impl LanguageTrainer {
             targets: HashMap::new(),
             kept_bytes: 0,
             device: device.clone(),
-            adam: HostAdam::new(1e-15).config().build(),
-            host_adam: HostAdam::new(1e-15),
+            adam: HostAdam::new(1e-15),
         }
     }
 
@@ -476,9 +474,9 @@ impl LanguageTrainer {
                     ParamGroup::Mixer => self.cfg.lr_mixer,
                 };
             let value = if on_host {
-                self.states.step_on_host(&self.host_adam, &name, lr, value, g)
+                self.states.step_on_host(&self.adam, &name, lr, value, g)
             } else {
-                self.states.step(&self.adam, &name, lr, value, g)
+                self.states.step(&self.adam.config().build(), &name, lr, value, g)
             };
             new.push((name, value));
         }

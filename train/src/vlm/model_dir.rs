@@ -5,8 +5,8 @@ use burn::tensor::Device;
 use model::data::synth::questions::vocabulary;
 use model::error::Result;
 use model::io;
-use model::vlm::LlavaOnevision;
 use model::vlm::tokenizer::{ChatTokenizer, word_level_tokenizer_json};
+use model::vlm::{LlavaConfig, LlavaOnevision, ProcessorConfig};
 use std::path::Path;
 
 /// A fresh tabletop VLM of `cfg`'s shape, with its word-level tokenizer.
@@ -15,6 +15,30 @@ pub fn init_model(cfg: &VlmTrainConfig, device: &Device) -> Result<LlavaOnevisio
     let tokenizer = ChatTokenizer::from_json(&json, 3)?;
     let llava = cfg.llava_config(tokenizer.vocab_size());
     Ok(LlavaOnevision::init(llava, cfg.processor(), tokenizer, cfg.seed, device))
+}
+
+/// A random-weight LLaVA-OneVision of a published architecture (`cfg`, for example
+/// [`LlavaConfig::onevision_0_5b`], with whatever depths the caller set), the synthetic questions'
+/// word-level tokenizer and SigLIP's processor (mean and std 0.5, `image_size` squares): what
+/// `vlm-bench --random` times and the real-size tests run through every stage. The vocabulary is
+/// raised to the tokenizer's where it is smaller (set `cfg.text.vocab_size = 0` for exactly the
+/// tokenizer's), and generation stops on the tokenizer's stop tokens. With `half` the weights are
+/// held in f16 as they are drawn.
+pub fn random_published(mut cfg: LlavaConfig, seed: u64, device: &Device, half: bool) -> Result<LlavaOnevision> {
+    let tokenizer = ChatTokenizer::from_json(&word_level_tokenizer_json(&vocabulary())?, 3)?;
+    cfg.image_token_id = tokenizer.image_token_id;
+    cfg.text.vocab_size = cfg.text.vocab_size.max(tokenizer.vocab_size());
+    cfg.text.eos_token_ids = tokenizer.stop_ids.clone();
+    let side = cfg.vision.image_size;
+    let processor = ProcessorConfig {
+        mean: [0.5; 3],
+        std: [0.5; 3],
+        rescale_factor: 1.0 / 255.0,
+        size: (side, side),
+        resample: 3,
+        pinpoints: cfg.pinpoints.clone(),
+    };
+    Ok(LlavaOnevision::init_with(cfg, processor, tokenizer, seed, device, half))
 }
 
 /// Writes a model directory a llava-hf loader reads: `config.json`, `processor_config.json`,
@@ -40,7 +64,8 @@ pub fn save_model_as(vlm: &LlavaOnevision, dir: &Path, bf16: bool) -> Result<usi
     let gen_cfg = serde_json::json!({"eos_token_id": vlm.cfg.text.eos_token_ids, "pad_token_id": 0});
     io::write_json(&dir.join("generation_config.json"), &gen_cfg)?;
     let tensors = vlm.export();
+    let count = tensors.count();
     let weights = dir.join("model.safetensors");
-    io::write_atomic(&weights, &tensors.to_bytes(&weights, bf16)?)?;
-    Ok(tensors.count())
+    io::write_atomic_with(&weights, |tmp| Ok(tensors.write(tmp, bf16)?))?;
+    Ok(count)
 }

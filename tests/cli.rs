@@ -113,15 +113,7 @@ fn ask_streams_an_answer_from_the_tiny_vlm_and_rejects_bad_paths() {
         .unwrap();
     assert!(st.status.success(), "{}", String::from_utf8_lossy(&st.stderr));
     let err = String::from_utf8_lossy(&st.stderr);
-    let n: usize = err
-        .lines()
-        .find_map(|l| {
-            l.split(" prompt tokens")
-                .next()
-                .filter(|_| l.contains(" prompt tokens"))
-                .and_then(|s| s.trim().parse().ok())
-        })
-        .unwrap_or_else(|| panic!("no prompt token count in {err}"));
+    let n = chatsplat_tests::prompt_tokens(&err);
     assert!(n > 2 * 730 && n < 2 * 730 + 40, "two base views + newline = 1460 image tokens plus the text, got {n}");
 
     let st = chatsplat()

@@ -65,14 +65,6 @@ fn path(p: &Path) -> &str {
     p.to_str().expect("the scratch paths are UTF-8")
 }
 
-/// The `N` of "N prompt tokens" in an answer's report on standard error.
-fn prompt_tokens(o: &Output) -> usize {
-    let err = String::from_utf8_lossy(&o.stderr);
-    err.lines()
-        .find_map(|l| l.split_once(" prompt tokens").and_then(|(n, _)| n.split_whitespace().last()?.parse().ok()))
-        .unwrap_or_else(|| panic!("no prompt token count in {err}"))
-}
-
 /// The four figures of train-language's "token L1 on training views: view A -> B, object C -> D".
 fn token_l1(out: &str) -> [f64; 4] {
     let line = out.lines().find(|l| l.starts_with("token L1 on training views")).unwrap_or_else(|| panic!("{out}"));
@@ -152,7 +144,7 @@ fn a_real_shape_llava_onevision_runs_through_every_stage_and_its_front_ends_agre
     let n = NEW_TOKENS.to_string();
     let ask = |extra: &[&str], q: &str| {
         let o = chatsplat(&[&["ask", "--run", path(&run), "--max-new-tokens", &n][..], extra, &[q]].concat(), None);
-        (prompt_tokens(&o), text(&o).trim().to_string())
+        (chatsplat_tests::prompt_tokens(&String::from_utf8_lossy(&o.stderr)), text(&o).trim().to_string())
     };
     let (xs, ys) = (x.to_string(), y.to_string());
     let (vt, view_answer) = ask(&["--view", "0"], VIEW_Q);

@@ -214,7 +214,7 @@ impl Server {
             std::thread::sleep(Duration::from_millis(50));
         };
         std::thread::sleep(Duration::from_millis(100));
-        let log = self.log.lock().unwrap().clone();
+        let log = self.log();
         assert!(status.success(), "exit {status}; stderr:\n{log}");
         log
     }

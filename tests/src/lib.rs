@@ -172,6 +172,14 @@ pub fn fuzz_scene(seed: u64) -> Scene {
     s
 }
 
+/// The `N` of "N prompt tokens" in the report an answer prints on standard error (`ask`, `chat`).
+pub fn prompt_tokens(stderr: &str) -> usize {
+    stderr
+        .lines()
+        .find_map(|l| l.split_once(" prompt tokens").and_then(|(n, _)| n.split_whitespace().last()?.parse().ok()))
+        .unwrap_or_else(|| panic!("no prompt token count in {stderr}"))
+}
+
 /// A scratch path for one test (not created; `tag` may end in a file extension): unique to this
 /// process and call, removed with everything under it when the [`Scratch`] is dropped, unless the
 /// test is failing (then it is kept, to look at).

@@ -681,6 +681,12 @@ impl LlavaConfig {
 }
 
 impl ProcessorConfig {
+    /// SigLIP's preprocessing (pixels rescaled by 1/255, then mean and std 0.5 per channel,
+    /// bicubic resampling) to `side` squares, with the anyres `pinpoints`.
+    pub fn siglip(side: usize, pinpoints: Vec<(usize, usize)>) -> Self {
+        Self { mean: [0.5; 3], std: [0.5; 3], rescale_factor: 1.0 / 255.0, size: (side, side), resample: 3, pinpoints }
+    }
+
     /// `processor_config.json` in the transformers-5 layout (the image processor entry holds
     /// these settings).
     pub fn to_hf_json(&self, model: &LlavaConfig) -> Value {

@@ -232,14 +232,7 @@ impl VlmTrainConfig {
     /// The image processor: the tower's size, SigLIP's normalisation, Pillow bicubic.
     pub fn processor(&self) -> ProcessorConfig {
         let s = self.model.image_size;
-        ProcessorConfig {
-            mean: [0.5; 3],
-            std: [0.5; 3],
-            rescale_factor: 1.0 / 255.0,
-            size: (s, s),
-            resample: 3,
-            pinpoints: vec![(s, s)],
-        }
+        ProcessorConfig::siglip(s, vec![(s, s)])
     }
 
     /// Refuses values out of range, naming the key.

@@ -11,8 +11,7 @@ use std::path::Path;
 
 /// A fresh tabletop VLM of `cfg`'s shape, with its word-level tokenizer.
 pub fn init_model(cfg: &VlmTrainConfig, device: &Device) -> Result<LlavaOnevision> {
-    let json = word_level_tokenizer_json(&vocabulary())?;
-    let tokenizer = ChatTokenizer::from_json(&json, 3)?;
+    let tokenizer = synthetic_tokenizer()?;
     let llava = cfg.llava_config(tokenizer.vocab_size());
     Ok(LlavaOnevision::init(llava, cfg.processor(), tokenizer, cfg.seed, device))
 }
@@ -25,20 +24,17 @@ pub fn init_model(cfg: &VlmTrainConfig, device: &Device) -> Result<LlavaOnevisio
 /// tokenizer's), and generation stops on the tokenizer's stop tokens. With `half` the weights are
 /// held in f16 as they are drawn.
 pub fn random_published(mut cfg: LlavaConfig, seed: u64, device: &Device, half: bool) -> Result<LlavaOnevision> {
-    let tokenizer = ChatTokenizer::from_json(&word_level_tokenizer_json(&vocabulary())?, 3)?;
+    let tokenizer = synthetic_tokenizer()?;
     cfg.image_token_id = tokenizer.image_token_id;
     cfg.text.vocab_size = cfg.text.vocab_size.max(tokenizer.vocab_size());
     cfg.text.eos_token_ids = tokenizer.stop_ids.clone();
-    let side = cfg.vision.image_size;
-    let processor = ProcessorConfig {
-        mean: [0.5; 3],
-        std: [0.5; 3],
-        rescale_factor: 1.0 / 255.0,
-        size: (side, side),
-        resample: 3,
-        pinpoints: cfg.pinpoints.clone(),
-    };
+    let processor = ProcessorConfig::siglip(cfg.vision.image_size, cfg.pinpoints.clone());
     Ok(LlavaOnevision::init_with(cfg, processor, tokenizer, seed, device, half))
+}
+
+/// The word-level tokenizer of the synthetic questions' vocabulary.
+fn synthetic_tokenizer() -> Result<ChatTokenizer> {
+    Ok(ChatTokenizer::from_json(&word_level_tokenizer_json(&vocabulary())?, 3)?)
 }
 
 /// Writes a model directory a llava-hf loader reads: `config.json`, `processor_config.json`,

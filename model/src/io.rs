@@ -3,7 +3,6 @@
 //! one, never half of one). JSON in and out with errors naming the file; f32 safetensors.
 
 use crate::error::{Error, IoContext, Result};
-use safetensors::tensor::TensorView;
 use safetensors::{Dtype, SafeTensors};
 use serde::Serialize;
 use serde::de::DeserializeOwned;
@@ -74,24 +73,59 @@ pub fn read_config<T: DeserializeOwned>(path: &Path) -> Result<T> {
 /// tensor) and nothing is written: [`read_f32`] would refuse the file, so a file already there is
 /// better kept.
 pub fn write_f32(path: &Path, tensors: Named, meta: Option<HashMap<String, String>>) -> Result<()> {
-    for (name, _, v) in &tensors {
+    for (name, shape, v) in &tensors {
         if let Some(i) = v.iter().position(|x| !x.is_finite()) {
             return Err(Error::invalid(
                 path,
                 format!("not written: {name} holds a non-finite value ({}) at flat index {i}", v[i]),
             ));
         }
+        if shape.iter().product::<usize>() != v.len() {
+            return Err(Error::invalid(
+                path,
+                format!("not written: {name} has shape {shape:?} but {} values", v.len()),
+            ));
+        }
     }
-    let bytes: Vec<(String, Vec<usize>, Vec<u8>)> =
-        tensors.into_iter().map(|(n, s, v)| (n, s, v.iter().flat_map(|x| x.to_le_bytes()).collect())).collect();
-    let mut views = Vec::with_capacity(bytes.len());
-    for (n, s, b) in &bytes {
-        let view = TensorView::new(Dtype::F32, s.clone(), b)
-            .map_err(|e| Error::invalid(path, format!("tensor {n} of shape {s:?}: {e}")))?;
-        views.push((n.clone(), view));
+    let views = tensors.iter().map(|(n, shape, values)| (n.as_str(), F32Bytes { shape, values }));
+    write_atomic_with(path, |tmp| {
+        safetensors::serialize_to_file(views, meta, tmp).map_err(|e| Error::invalid(tmp, format!("cannot write: {e}")))
+    })
+}
+
+/// An f32 tensor handed to safetensors as its little-endian bytes without copying them: the file
+/// is streamed out tensor by tensor, so writing holds the tensors once (not also their bytes and
+/// the whole file: at LLaVA-OneVision's size a language checkpoint is 3 GB).
+struct F32Bytes<'a> {
+    shape: &'a [usize],
+    values: &'a [f32],
+}
+
+impl safetensors::View for F32Bytes<'_> {
+    fn dtype(&self) -> Dtype {
+        Dtype::F32
     }
-    let out = safetensors::serialize(views, meta).map_err(|e| Error::invalid(path, e.to_string()))?;
-    write_atomic(path, &out)
+
+    fn shape(&self) -> &[usize] {
+        self.shape
+    }
+
+    fn data(&self) -> std::borrow::Cow<'_, [u8]> {
+        if cfg!(target_endian = "little") {
+            // SAFETY: the byte slice covers exactly the values' memory, which it only reads (any
+            // bytes are valid u8), for as long as the borrowed values live.
+            let bytes = unsafe {
+                std::slice::from_raw_parts(self.values.as_ptr().cast::<u8>(), std::mem::size_of_val(self.values))
+            };
+            std::borrow::Cow::Borrowed(bytes)
+        } else {
+            std::borrow::Cow::Owned(self.values.iter().flat_map(|x| x.to_le_bytes()).collect())
+        }
+    }
+
+    fn data_len(&self) -> usize {
+        std::mem::size_of_val(self.values)
+    }
 }
 
 /// Reads every f32 tensor of a safetensors file and its metadata. Non-finite values are refused
@@ -142,4 +176,48 @@ pub fn relative_to(to: &Path, base: &Path) -> PathBuf {
         out.push(c);
     }
     if out.as_os_str().is_empty() { PathBuf::from(".") } else { out }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+    use safetensors::tensor::TensorView as TensorViewOf;
+
+    /// The streamed file is byte for byte what safetensors makes from the tensors' bytes in memory
+    /// (so files written before read the same), reads back bit for bit with its metadata, and a
+    /// tensor whose shape does not match its values is refused with the file left as it was.
+    #[test]
+    fn f32_tensors_stream_to_the_same_file_and_a_mis_shaped_one_is_refused() {
+        let dir = std::env::temp_dir().join(format!("chatsplat-io-{}", std::process::id()));
+        create_dir(&dir).unwrap();
+        let path = dir.join("t.safetensors");
+        let named: Named = vec![
+            ("b".into(), vec![2, 3], vec![1.5, -0.0, 3.25e-30, f32::MAX, -7.0, 0.1]),
+            ("a".into(), vec![4], vec![9.0, 8.0, 7.0, f32::MIN_POSITIVE]),
+        ];
+        let meta = HashMap::from([("k".to_string(), "v".to_string())]);
+        write_f32(&path, named.clone(), Some(meta.clone())).unwrap();
+        let bytes: Vec<(String, Vec<usize>, Vec<u8>)> = named
+            .iter()
+            .map(|(n, s, v)| (n.clone(), s.clone(), v.iter().flat_map(|x| x.to_le_bytes()).collect()))
+            .collect();
+        let views = bytes.iter().map(|(n, s, b)| (n.clone(), TensorViewOf::new(Dtype::F32, s.clone(), b).unwrap()));
+        let in_memory = safetensors::serialize(views, Some(meta.clone())).unwrap();
+        assert_eq!(std::fs::read(&path).unwrap(), in_memory, "the streamed file differs from the in-memory one");
+        let (back, m) = read_f32(&path).unwrap();
+        assert_eq!(m, meta);
+        for (n, s, v) in &named {
+            let (bs, bv) = &back[n];
+            assert_eq!(bs, s);
+            assert_eq!(
+                bv.iter().map(|x| x.to_bits()).collect::<Vec<_>>(),
+                v.iter().map(|x| x.to_bits()).collect::<Vec<_>>()
+            );
+        }
+        let bad: Named = vec![("c".into(), vec![2, 2], vec![1.0; 3])];
+        let e = write_f32(&path, bad, None).unwrap_err().to_string();
+        assert!(e.contains("t.safetensors") && e.contains("shape [2, 2] but 3 values"), "{e}");
+        assert_eq!(std::fs::read(&path).unwrap(), in_memory, "a refused write changed the file");
+        std::fs::remove_dir_all(&dir).unwrap();
+    }
 }

@@ -3,6 +3,7 @@
 //! one, never half of one). JSON in and out with errors naming the file; f32 safetensors.
 
 use crate::error::{Error, IoContext, Result};
+use crate::vlm::weights::F32View;
 use safetensors::{Dtype, SafeTensors};
 use serde::Serialize;
 use serde::de::DeserializeOwned;
@@ -87,45 +88,10 @@ pub fn write_f32(path: &Path, tensors: Named, meta: Option<HashMap<String, Strin
             ));
         }
     }
-    let views = tensors.iter().map(|(n, shape, values)| (n.as_str(), F32Bytes { shape, values }));
+    let views = tensors.iter().map(|(n, shape, values)| (n.as_str(), F32View { shape, values, as_bf16: false }));
     write_atomic_with(path, |tmp| {
         safetensors::serialize_to_file(views, meta, tmp).map_err(|e| Error::invalid(tmp, format!("cannot write: {e}")))
     })
-}
-
-/// An f32 tensor handed to safetensors as its little-endian bytes without copying them: the file
-/// is streamed out tensor by tensor, so writing holds the tensors once (not also their bytes and
-/// the whole file: at LLaVA-OneVision's size a language checkpoint is 3 GB).
-struct F32Bytes<'a> {
-    shape: &'a [usize],
-    values: &'a [f32],
-}
-
-impl safetensors::View for F32Bytes<'_> {
-    fn dtype(&self) -> Dtype {
-        Dtype::F32
-    }
-
-    fn shape(&self) -> &[usize] {
-        self.shape
-    }
-
-    fn data(&self) -> std::borrow::Cow<'_, [u8]> {
-        if cfg!(target_endian = "little") {
-            // SAFETY: the byte slice covers exactly the values' memory, which it only reads (any
-            // bytes are valid u8), for as long as the borrowed values live.
-            let bytes = unsafe {
-                std::slice::from_raw_parts(self.values.as_ptr().cast::<u8>(), std::mem::size_of_val(self.values))
-            };
-            std::borrow::Cow::Borrowed(bytes)
-        } else {
-            std::borrow::Cow::Owned(self.values.iter().flat_map(|x| x.to_le_bytes()).collect())
-        }
-    }
-
-    fn data_len(&self) -> usize {
-        std::mem::size_of_val(self.values)
-    }
 }
 
 /// Reads every f32 tensor of a safetensors file and its metadata. Non-finite values are refused
@@ -181,7 +147,7 @@ pub fn relative_to(to: &Path, base: &Path) -> PathBuf {
 #[cfg(test)]
 mod tests {
     use super::*;
-    use safetensors::tensor::TensorView as TensorViewOf;
+    use safetensors::tensor::TensorView;
 
     /// The streamed file is byte for byte what safetensors makes from the tensors' bytes in memory
     /// (so files written before read the same), reads back bit for bit with its metadata, and a
@@ -201,7 +167,7 @@ mod tests {
             .iter()
             .map(|(n, s, v)| (n.clone(), s.clone(), v.iter().flat_map(|x| x.to_le_bytes()).collect()))
             .collect();
-        let views = bytes.iter().map(|(n, s, b)| (n.clone(), TensorViewOf::new(Dtype::F32, s.clone(), b).unwrap()));
+        let views = bytes.iter().map(|(n, s, b)| (n.clone(), TensorView::new(Dtype::F32, s.clone(), b).unwrap()));
         let in_memory = safetensors::serialize(views, Some(meta.clone())).unwrap();
         assert_eq!(std::fs::read(&path).unwrap(), in_memory, "the streamed file differs from the in-memory one");
         let (back, m) = read_f32(&path).unwrap();

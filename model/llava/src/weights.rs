@@ -250,30 +250,100 @@ impl HfTensors {
     }
 
     /// Writes the safetensors file `path`, bf16 (how llava-hf checkpoints are stored) or f32,
-    /// converting tensor by tensor and dropping each f32 copy as it goes, then streaming the file
-    /// out: the peak is these tensors once, not the tensors, their bytes and the whole file.
+    /// streaming it out tensor by tensor ([`F32View`]): the peak is these tensors once and one
+    /// tensor's bf16 bytes, not the tensors, their bytes and the whole file.
     pub fn write(self, path: &Path, as_bf16: bool) -> Result<(), VlmError> {
-        let bytes: Vec<(String, Vec<usize>, Vec<u8>)> = self
-            .tensors
-            .into_iter()
-            .map(|(n, s, v)| {
-                let b = if as_bf16 {
-                    v.iter().flat_map(|x| half::bf16::from_f32(*x).to_le_bytes()).collect()
-                } else {
-                    v.iter().flat_map(|x| x.to_le_bytes()).collect()
-                };
-                (n, s, b)
-            })
-            .collect();
-        let dtype = if as_bf16 { Dtype::BF16 } else { Dtype::F32 };
-        let mut views = Vec::with_capacity(bytes.len());
-        for (n, s, b) in &bytes {
-            let view = safetensors::tensor::TensorView::new(dtype, s.clone(), b)
-                .map_err(|e| VlmError::weights(path, format!("tensor {n} of shape {s:?}: {e}")))?;
-            views.push((n.clone(), view));
+        for (n, s, v) in &self.tensors {
+            if s.iter().product::<usize>() != v.len() {
+                return Err(VlmError::weights(path, format!("tensor {n} has shape {s:?} but {} values", v.len())));
+            }
         }
+        let views = self.tensors.iter().map(|(n, shape, values)| (n.as_str(), F32View { shape, values, as_bf16 }));
         let mut meta = std::collections::HashMap::new();
         meta.insert("format".to_string(), "pt".to_string());
         safetensors::serialize_to_file(views, Some(meta), path).map_err(|e| VlmError::weights(path, e.to_string()))
+    }
+}
+
+/// An f32 tensor handed to safetensors as it is written: as f32, its own memory read as
+/// little-endian bytes (no copy), or as bf16, converted when the writer reaches it (one tensor's
+/// bytes at a time). `shape` must hold `values.len()` elements.
+pub struct F32View<'a> {
+    pub shape: &'a [usize],
+    pub values: &'a [f32],
+    pub as_bf16: bool,
+}
+
+impl safetensors::View for F32View<'_> {
+    fn dtype(&self) -> Dtype {
+        if self.as_bf16 { Dtype::BF16 } else { Dtype::F32 }
+    }
+
+    fn shape(&self) -> &[usize] {
+        self.shape
+    }
+
+    fn data(&self) -> std::borrow::Cow<'_, [u8]> {
+        use std::borrow::Cow;
+        if self.as_bf16 {
+            Cow::Owned(self.values.iter().flat_map(|x| half::bf16::from_f32(*x).to_le_bytes()).collect())
+        } else if cfg!(target_endian = "little") {
+            // SAFETY: the byte slice covers exactly the values' memory, which it only reads (any
+            // bytes are valid u8), for as long as the borrowed values live.
+            let bytes = unsafe {
+                std::slice::from_raw_parts(self.values.as_ptr().cast::<u8>(), std::mem::size_of_val(self.values))
+            };
+            Cow::Borrowed(bytes)
+        } else {
+            Cow::Owned(self.values.iter().flat_map(|x| x.to_le_bytes()).collect())
+        }
+    }
+
+    fn data_len(&self) -> usize {
+        self.values.len() * if self.as_bf16 { 2 } else { 4 }
+    }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// Both dtypes stream to the file safetensors makes in memory from the converted bytes, read
+    /// back through the loader as those values (bf16: rounded to nearest), and a tensor whose
+    /// shape does not hold its values is refused before anything is written.
+    #[test]
+    fn tensors_stream_as_bf16_or_f32_and_read_back() {
+        let dir = std::env::temp_dir().join(format!("llava-weights-{}", std::process::id()));
+        std::fs::create_dir_all(&dir).unwrap();
+        let path = dir.join("model.safetensors");
+        let values = vec![1.0f32, -2.5, 0.1, 3.0e-3, 65504.0, -1.0e-30];
+        let tensors = || HfTensors { tensors: vec![("a.weight".into(), vec![2, 3], values.clone())] };
+        let device = Device::flex();
+        for as_bf16 in [true, false] {
+            tensors().write(&path, as_bf16).unwrap();
+            let bytes: Vec<u8> = if as_bf16 {
+                values.iter().flat_map(|x| half::bf16::from_f32(*x).to_le_bytes()).collect()
+            } else {
+                values.iter().flat_map(|x| x.to_le_bytes()).collect()
+            };
+            let dtype = if as_bf16 { Dtype::BF16 } else { Dtype::F32 };
+            let view = safetensors::tensor::TensorView::new(dtype, vec![2, 3], &bytes).unwrap();
+            let meta = std::collections::HashMap::from([("format".to_string(), "pt".to_string())]);
+            let in_memory = safetensors::serialize([("a.weight", view)], Some(meta)).unwrap();
+            assert_eq!(std::fs::read(&path).unwrap(), in_memory, "bf16 {as_bf16}: the streamed file differs");
+            let back = WeightStore::open(&dir, &device).unwrap().host("a.weight", &[2, 3]).unwrap();
+            let want: Vec<f32> = if as_bf16 {
+                values.iter().map(|x| half::bf16::from_f32(*x).to_f32()).collect()
+            } else {
+                values.clone()
+            };
+            assert_eq!(back, want, "bf16 {as_bf16}");
+        }
+        let before = std::fs::read(&path).unwrap();
+        let bad = HfTensors { tensors: vec![("b".into(), vec![4], vec![1.0; 3])] };
+        let e = bad.write(&path, true).unwrap_err().to_string();
+        assert!(e.contains("model.safetensors") && e.contains("shape [4] but 3 values"), "{e}");
+        assert_eq!(std::fs::read(&path).unwrap(), before);
+        std::fs::remove_dir_all(&dir).unwrap();
     }
 }

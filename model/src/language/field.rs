@@ -120,14 +120,8 @@ impl Encoder {
         folded < plain
     }
 
-    /// Runs the lifting layers (all, or all but the last): `[H, W, C]` -> `[H * W, width]`, GELU after
-    /// each but the last.
-    fn lift(&self, map: Tensor<3>, keep_last: bool) -> Tensor<2> {
-        let [h, w, c] = map.dims();
-        self.lift_rows(map.reshape([h * w, c]), keep_last)
-    }
-
-    /// [`lift`](Self::lift) of pixels as rows: `[N, C]` -> `[N, width]`.
+    /// Runs the lifting layers (all, or all but the last) on pixels as rows: `[N, C]` -> `[N, width]`,
+    /// GELU after each but the last.
     pub(crate) fn lift_rows(&self, mut x: Tensor<2>, keep_last: bool) -> Tensor<2> {
         let layers = self.lift_weights.len();
         let run = if keep_last { layers } else { layers - 1 };
@@ -140,20 +134,29 @@ impl Encoder {
         x
     }
 
-    /// `[H * W, d]` per-pixel features -> `[T, patch² x d]` patch rows, pixel-major.
-    fn patch_rows(&self, x: Tensor<2>, h: usize, w: usize) -> Tensor<2> {
-        let d = x.dims()[1];
+    /// A map's pixels in patch order: `[H, W, C]` -> `[H * W, C]`, patch by patch (row-major over
+    /// the token grid), each patch's pixels row-major, so `[T, patch² x C]` is a free reshape. The
+    /// lifting layers work per pixel, so they run after this reordering: it then moves the map's
+    /// C channels, not the lifted width (at LLaVA-OneVision's size 32 instead of 128 per pixel).
+    pub(crate) fn patch_order(&self, map: Tensor<3>) -> Tensor<2> {
+        let [h, w, c] = map.dims();
         let p = self.patch();
         let (gh, gw) = (h / p, w / p);
         assert_eq!((gh * p, gw * p), (h, w), "Encoder: a {h}x{w} map is not a whole number of {p}x{p} patches");
-        x.reshape([gh, p, gw, p, d]).swap_dims(1, 2).reshape([gh * gw, p * p * d])
+        map.reshape([gh, p, gw, p, c]).swap_dims(1, 2).reshape([h * w, c])
+    }
+
+    /// Lifted pixels in [`patch_order`](Self::patch_order) `[T * patch², d]` -> `[T, patch² x d]` rows.
+    fn patch_rows(&self, x: Tensor<2>) -> Tensor<2> {
+        let [n, d] = x.dims();
+        let pp = self.patch() * self.patch();
+        x.reshape([n / pp, pp * d])
     }
 
     /// [`Encoder::tokens_raw`] as written: every lifting layer per pixel, then the patch matmul.
     pub fn tokens_raw_plain(&self, map: Tensor<3>) -> Tensor<2> {
-        let [h, w, _] = map.dims();
-        let x = self.lift(map, true);
-        self.patch_rows(x, h, w).matmul(self.patch_weight.val()) + self.patch_bias.val()
+        let x = self.lift_rows(self.patch_order(map), true);
+        self.patch_rows(x).matmul(self.patch_weight.val()) + self.patch_bias.val()
     }
 
     /// [`Encoder::tokens_raw`] with the last lifting layer folded into the patch convolution
@@ -166,26 +169,30 @@ impl Encoder {
 
     /// The last lifting layer `(W, b)` folded into the patch weight `P` (`[patch², D, out]` by
     /// pixel): `P'[pixel] = W P[pixel]` as `[patch² x hidden, out]` and the bias
-    /// `b Σ_pixel P[pixel] + c` as `[1, out]`.
+    /// `Σ_pixel b P[pixel] + c` as `[1, out]`.
+    ///
+    /// `b` rides along as one more row of `W`, so one product makes both and its gradient reaches
+    /// `P` once: summing `P` over the pixels instead would, backward, spread the bias gradient
+    /// over a tensor of `P`'s size (1 GB at LLaVA-OneVision's size) and add it to `P`'s.
     pub(crate) fn folded_patch(&self) -> (Tensor<2>, Tensor<2>) {
         let (last_w, last_b) = (
             self.lift_weights.last().expect("folding needs a lifting layer").val(),
             self.lift_biases.last().expect("a bias per lifting layer").val(),
         );
         let [hidden, d] = last_w.dims();
-        let (p, out) = (self.patch(), self.dim());
-        let per_pixel = self.patch_weight.val().reshape([p * p, d, out]);
-        let folded = last_w.unsqueeze_dim::<3>(0).matmul(per_pixel.clone()).reshape([p * p * hidden, out]);
-        let bias = last_b.matmul(per_pixel.sum_dim(0).reshape([d, out])) + self.patch_bias.val();
+        let (pp, out) = (self.patch() * self.patch(), self.dim());
+        let per_pixel = self.patch_weight.val().reshape([pp, d, out]);
+        let both = Tensor::cat(vec![last_w, last_b], 0).unsqueeze_dim::<3>(0).matmul(per_pixel);
+        let folded = both.clone().slice([0..pp, 0..hidden, 0..out]).reshape([pp * hidden, out]);
+        let bias = both.slice([0..pp, hidden..hidden + 1, 0..out]).sum_dim(0).reshape([1, out]) + self.patch_bias.val();
         (folded, bias)
     }
 
     /// Tokens before the scaling adjustment through a folded patch convolution
     /// ([`folded_patch`](Self::folded_patch)): every lifting layer but the last, then one matmul.
     pub(crate) fn tokens_raw_with_fold(&self, map: Tensor<3>, weight: Tensor<2>, bias: Tensor<2>) -> Tensor<2> {
-        let [h, w, _] = map.dims();
-        let x = self.lift(map, false);
-        self.patch_rows(x, h, w).matmul(weight) + bias
+        let x = self.lift_rows(self.patch_order(map), false);
+        self.patch_rows(x).matmul(weight) + bias
     }
 
     /// Encodes a rendered view-level map `[H, W, C]` into tokens `[T, D]` (scaling adjustment applied).
@@ -384,6 +391,25 @@ impl LanguageField {
         ];
         out.extend(self.encoder.named().into_iter().map(|(n, t)| (format!("encoder.{n}"), t)));
         out
+    }
+
+    /// A field of no Gaussians with an empty encoder: it stands in while a trainer holds the
+    /// field's tensors alone, so that an optimizer on the host owns their buffers and updates
+    /// them in place instead of copying them (at LLaVA-OneVision's size the patch weight is 1 GB).
+    pub fn hollow(device: &Device) -> Self {
+        let empty = || Param::from_tensor(Tensor::<2>::zeros([0, 0], device));
+        let encoder = Encoder {
+            lift_weights: Vec::new(),
+            lift_biases: Vec::new(),
+            patch_weight: empty(),
+            patch_bias: empty(),
+            mixer: None,
+            scale: None,
+            shift: None,
+            object_scale: None,
+            object_shift: None,
+        };
+        Self { view_features: empty(), object_features: empty(), encoder }
     }
 
     /// Rebuilds from [`named`](Self::named) tensors.

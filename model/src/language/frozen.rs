@@ -88,7 +88,7 @@ impl FrozenEncoder {
             Tensor::<1, Int>::from_data(TensorData::new(v, [n]), &device)
         };
         let n = rows.len();
-        let patches = map.reshape([gh, p, gw, p, c]).swap_dims(1, 2).reshape([gh * gw, p * p * c]);
+        let patches = self.encoder.patch_order(map).reshape([gh * gw, p * p * c]);
         let hidden = self.encoder.lift_rows(patches.select(0, ints(rows)).reshape([n * p * p, c]), false);
         let width = hidden.dims()[1];
         let encoded = hidden.reshape([n, p * p * width]).matmul(weight.clone()) + bias.clone();

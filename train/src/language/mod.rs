@@ -447,15 +447,18 @@ impl LanguageTrainer {
         let grads = dist::reduce_tensors(c, grads, &shapes)?;
         let warm = warmup_cosine(self.iter, self.cfg.iters, self.cfg.warmup_iters, 1.0, self.cfg.lr_final);
         let mut new = Vec::with_capacity(shapes.len());
-        let named = self.scene.field.named();
+        // the field gives its tensors up (a hollow one stands in until the new values are in), so
+        // that no second reference keeps the host Adam from updating each buffer in place
+        let named = std::mem::replace(&mut self.scene.field, LanguageField::hollow(&self.device)).named();
         // a layer's fan-in: its weight's rows (`X.weight` [in, out]; `X.bias` takes X's)
         let fan_in = |name: &str| {
             let layer = name.strip_suffix(".weight").or_else(|| name.strip_suffix(".bias"))?;
             let weight = format!("{layer}.weight");
             named.iter().find(|(n, _)| *n == weight).map(|(_, t)| t.dims()[0])
         };
+        let fan_ins: Vec<Option<usize>> = named.iter().map(|(n, _)| fan_in(n)).collect();
         let on_host = !splat_kernels::api::on_cube(&self.device);
-        for ((name, value), g) in named.clone().into_iter().zip(grads) {
+        for (((name, value), g), fan_in) in named.into_iter().zip(grads).zip(fan_ins) {
             let Some(g) = g else {
                 new.push((name, value));
                 continue;
@@ -470,7 +473,7 @@ impl LanguageTrainer {
             let lr = warm
                 * match group {
                     ParamGroup::Features => self.cfg.lr_features,
-                    ParamGroup::Encoder => self.cfg.lr_encoder * self.cfg.fan_in_factor(fan_in(&name)),
+                    ParamGroup::Encoder => self.cfg.lr_encoder * self.cfg.fan_in_factor(fan_in),
                     ParamGroup::Mixer => self.cfg.lr_mixer,
                 };
             let value = if on_host {

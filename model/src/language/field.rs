@@ -102,8 +102,8 @@ impl Encoder {
     /// the patch convolution: one matmul per patch over `patch² x hidden` inputs instead of
     /// `patch² x D`. At LLaVA-OneVision's size (hidden 128, D 1152, 14x14 patches) that is 54
     /// instead of 211 G multiply-adds per 378x378 view, so it is taken whenever it is cheaper
-    /// (never for the built-in model, whose hidden width equals D); [`Encoder::tokens_raw_plain`]
-    /// is the unfolded twin.
+    /// (the built-in model's too: D 192 against 144 tokens); [`Encoder::tokens_raw_plain`] is the
+    /// unfolded twin.
     pub fn tokens_raw(&self, map: Tensor<3>) -> Tensor<2> {
         if self.fold_is_cheaper(&map.dims()) { self.tokens_raw_folded(map) } else { self.tokens_raw_plain(map) }
     }
@@ -135,15 +135,25 @@ impl Encoder {
     }
 
     /// A map's pixels in patch order: `[H, W, C]` -> `[H * W, C]`, patch by patch (row-major over
-    /// the token grid), each patch's pixels row-major, so `[T, patch² x C]` is a free reshape. The
-    /// lifting layers work per pixel, so they run after this reordering: it then moves the map's
-    /// C channels, not the lifted width (at LLaVA-OneVision's size 32 instead of 128 per pixel).
+    /// the token grid), each patch's pixels row-major, so `[T, patch² x C]` is a free reshape.
     pub(crate) fn patch_order(&self, map: Tensor<3>) -> Tensor<2> {
         let [h, w, c] = map.dims();
         let p = self.patch();
         let (gh, gw) = (h / p, w / p);
         assert_eq!((gh * p, gw * p), (h, w), "Encoder: a {h}x{w} map is not a whole number of {p}x{p} patches");
         map.reshape([gh, p, gw, p, c]).swap_dims(1, 2).reshape([h * w, c])
+    }
+
+    /// A view map's pixels lifted ([`lift_rows`](Self::lift_rows)), then put in
+    /// [`patch_order`](Self::patch_order). Lifting first moves the lifted width, not the map's
+    /// channels, but the weight gradients then sum over the pixels in the order the built-in
+    /// model was trained with (reordered first, its demo field changed by rounding and one
+    /// borderline answer of 215 with it).
+    fn lifted_in_patch_order(&self, map: Tensor<3>, keep_last: bool) -> Tensor<2> {
+        let [h, w, c] = map.dims();
+        let x = self.lift_rows(map.reshape([h * w, c]), keep_last);
+        let d = x.dims()[1];
+        self.patch_order(x.reshape([h, w, d]))
     }
 
     /// Lifted pixels in [`patch_order`](Self::patch_order) `[T * patch², d]` -> `[T, patch² x d]` rows.
@@ -155,8 +165,7 @@ impl Encoder {
 
     /// [`Encoder::tokens_raw`] as written: every lifting layer per pixel, then the patch matmul.
     pub fn tokens_raw_plain(&self, map: Tensor<3>) -> Tensor<2> {
-        let x = self.lift_rows(self.patch_order(map), true);
-        self.patch_rows(x).matmul(self.patch_weight.val()) + self.patch_bias.val()
+        self.patch_rows(self.lifted_in_patch_order(map, true)).matmul(self.patch_weight.val()) + self.patch_bias.val()
     }
 
     /// [`Encoder::tokens_raw`] with the last lifting layer folded into the patch convolution
@@ -169,12 +178,22 @@ impl Encoder {
 
     /// The last lifting layer `(W, b)` folded into the patch weight `P` (`[patch², D, out]` by
     /// pixel): `P'[pixel] = W P[pixel]` as `[patch² x hidden, out]` and the bias
-    /// `Σ_pixel b P[pixel] + c` as `[1, out]`.
+    /// `b Σ_pixel P[pixel] + c` as `[1, out]`.
     ///
-    /// `b` rides along as one more row of `W`, so one product makes both and its gradient reaches
-    /// `P` once: summing `P` over the pixels instead would, backward, spread the bias gradient
-    /// over a tensor of `P`'s size (1 GB at LLaVA-OneVision's size) and add it to `P`'s.
+    /// Where `P` is large (LLaVA-OneVision's: 1 GB), `b` rides along as one more row of `W`
+    /// instead, the bias summed as `Σ_pixel (b P[pixel]) + c`: one product makes both and its
+    /// gradient reaches `P` once, where summing `P` over the pixels would, backward, spread the
+    /// bias gradient over a tensor of `P`'s size and add it to `P`'s. The two differ by rounding
+    /// only; small encoders (the built-in model's, 9 MB) keep the sum, and so their figures.
     pub(crate) fn folded_patch(&self) -> (Tensor<2>, Tensor<2>) {
+        /// Elements of `P` from which the bias rides along in the product (32 MB of f32).
+        const BIAS_IN_PRODUCT: usize = 1 << 23;
+        let elements = self.patch_weight.val().dims().iter().product::<usize>();
+        self.fold(elements >= BIAS_IN_PRODUCT)
+    }
+
+    /// [`folded_patch`](Self::folded_patch) with the bias summed over `P` or carried in the product.
+    fn fold(&self, bias_in_product: bool) -> (Tensor<2>, Tensor<2>) {
         let (last_w, last_b) = (
             self.lift_weights.last().expect("folding needs a lifting layer").val(),
             self.lift_biases.last().expect("a bias per lifting layer").val(),
@@ -182,6 +201,11 @@ impl Encoder {
         let [hidden, d] = last_w.dims();
         let (pp, out) = (self.patch() * self.patch(), self.dim());
         let per_pixel = self.patch_weight.val().reshape([pp, d, out]);
+        if !bias_in_product {
+            let folded = last_w.unsqueeze_dim::<3>(0).matmul(per_pixel.clone()).reshape([pp * hidden, out]);
+            let bias = last_b.matmul(per_pixel.sum_dim(0).reshape([d, out])) + self.patch_bias.val();
+            return (folded, bias);
+        }
         let both = Tensor::cat(vec![last_w, last_b], 0).unsqueeze_dim::<3>(0).matmul(per_pixel);
         let folded = both.clone().slice([0..pp, 0..hidden, 0..out]).reshape([pp * hidden, out]);
         let bias = both.slice([0..pp, hidden..hidden + 1, 0..out]).sum_dim(0).reshape([1, out]) + self.patch_bias.val();
@@ -191,8 +215,7 @@ impl Encoder {
     /// Tokens before the scaling adjustment through a folded patch convolution
     /// ([`folded_patch`](Self::folded_patch)): every lifting layer but the last, then one matmul.
     pub(crate) fn tokens_raw_with_fold(&self, map: Tensor<3>, weight: Tensor<2>, bias: Tensor<2>) -> Tensor<2> {
-        let x = self.lift_rows(self.patch_order(map), false);
-        self.patch_rows(x).matmul(weight) + bias
+        self.patch_rows(self.lifted_in_patch_order(map, false)).matmul(weight) + bias
     }
 
     /// Encodes a rendered view-level map `[H, W, C]` into tokens `[T, D]` (scaling adjustment applied).
@@ -448,4 +471,54 @@ impl LanguageField {
 /// MaskOut (paper Eq. 7): zeroes the map outside the mask. `map` `[H, W, C]`, `mask` `[H, W]` of 0/1.
 pub fn mask_out(map: Tensor<3>, mask: Tensor<2>) -> Tensor<3> {
     map * mask.unsqueeze_dim::<3>(2)
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// The fold's two bias forms (summed over the patch weight, or carried as a row of the last
+    /// lifting weight) give the same folded weight and bias, and the same gradients of every
+    /// encoder tensor through a weighted sum of both.
+    #[test]
+    fn the_folds_bias_forms_agree_in_values_and_gradients() {
+        let cfg = LanguageConfig {
+            view_channels: 3,
+            object_channels: 3,
+            hidden: 5,
+            dim: 7,
+            grid: 2,
+            patch: 3,
+            ..Default::default()
+        };
+        let dev = Device::ndarray().autodiff();
+        let enc = Encoder::new(&cfg, 11, &dev);
+        let mut rng = Rng::new(4);
+        let mut weights = |rows: usize, cols: usize| uniform(&mut rng, rows, cols, 1.0, &dev);
+        let (wf, wb) = (weights(9 * 5, 7), weights(1, 7));
+        let run = |in_product: bool| {
+            let (folded, bias) = enc.fold(in_product);
+            let g = ((folded.clone() * wf.clone()).sum() + (bias.clone() * wb.clone()).sum()).backward();
+            let grad =
+                |p: &Param<Tensor<2>>| p.val().grad(&g).expect("a gradient").into_data().to_vec::<f32>().unwrap();
+            let mut out = vec![folded.into_data().to_vec::<f32>().unwrap(), bias.into_data().to_vec::<f32>().unwrap()];
+            out.extend([&enc.patch_weight, &enc.patch_bias, &enc.lift_weights[1], &enc.lift_biases[1]].map(grad));
+            out
+        };
+        let (a, b) = (run(true), run(false));
+        let what = [
+            "folded weight",
+            "bias",
+            "patch weight grad",
+            "patch bias grad",
+            "last lift weight grad",
+            "last lift bias grad",
+        ];
+        for ((name, x), y) in what.iter().zip(&a).zip(&b) {
+            let scale = y.iter().fold(1f32, |m, v| m.max(v.abs()));
+            let err = x.iter().zip(y).fold(0f32, |m, (p, q)| m.max((p - q).abs()));
+            assert!(err <= 1e-5 * scale, "{name}: the two bias forms differ by {err} (scale {scale})");
+        }
+        assert_ne!(a[1], vec![0.0; 7], "a zero bias would not test its two forms");
+    }
 }

@@ -6,18 +6,15 @@
 //! scene and `OUT/report.json`, every scene of the manifest merged (done or pending).
 
 use super::SceneArgs;
+use super::bars::Bars;
 use super::vqa::Scoring;
-use crate::ranks::Ranks;
 use anyhow::{Context, bail};
 use model::Backend;
-use model::data::LoadOptions;
 use model::run::{GeometryRun, LanguageRun, TeacherDir};
 use serde::Deserialize;
 use std::path::{Path, PathBuf};
 use toml::Spanned;
-use train::geometry::GeometryConfig;
-use train::language::LanguageTrainConfig;
-use train::teacher::ExtractOptions;
+use train::pipeline::{Recipe, TeacherModel, train_scene};
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -224,44 +221,30 @@ fn run_scene(plan: &Plan, s: &Scene, d: &SceneDirs, shard: &str) -> anyhow::Resu
     let lang: LanguageRun = d.run.language();
     let mut seconds = serde_json::Map::new();
     let mut resumed = serde_json::Map::new();
-    let mut time = |name: &str, t0: std::time::Instant| {
-        seconds.insert(name.into(), serde_json::json!((t0.elapsed().as_secs_f64() * 10.0).round() / 10.0));
+    // a checkpoint every tenth of each stage: a killed worker loses at most that
+    let mut recipe = Recipe::short(s.geometry_iters, s.language_iters);
+    recipe.geometry.checkpoint_every = (s.geometry_iters / 10).max(1);
+    recipe.language.checkpoint_every = (s.language_iters / 10).max(1);
+    recipe.teacher.tower_tail = plan.tower_tail;
+    let vlm = super::vlm_dir(plan.vlm.as_ref())?;
+    let dirs = train::pipeline::SceneDirs {
+        data: s.data.clone(),
+        run: d.run.clone(),
+        teacher: d.teacher.clone(),
+        language: lang.clone(),
     };
-    let t0 = std::time::Instant::now();
-    if !d.run.metrics().is_file() {
-        // a checkpoint every tenth of the run: a killed worker loses at most that
-        let geometry = GeometryConfig {
-            checkpoint_every: (s.geometry_iters / 10).max(1),
-            ..GeometryConfig::short(s.geometry_iters)
-        };
-        let resume = d.run.checkpoint().is_file() && d.run.state().is_file();
-        if resume {
-            resumed.insert("geometry".into(), d.run.read_state()?.iter.into());
-        }
-        super::train::fit(&s.data, &LoadOptions::default(), &d.run, geometry, plan.backend, resume)?;
+    let mut bars = Bars::new(plan.backend);
+    // resumable: finished stages are skipped, views already extracted kept
+    let trained = train_scene(TeacherModel::Dir(&vlm), &dirs, &recipe, &plan.backend.device(), true, &mut bars)?;
+    for (stage, secs) in &trained.seconds {
+        seconds.insert(stage.name().into(), serde_json::json!((secs * 10.0).round() / 10.0));
     }
-    time("geometry", t0);
-    let t0 = std::time::Instant::now();
-    if !lang.metrics().is_file() {
-        // resumable: views already extracted are kept
-        let vlm = super::vlm_dir(plan.vlm.as_ref())?;
-        let eo = ExtractOptions { tower_tail: plan.tower_tail, ..Default::default() };
-        super::extract::teacher(&vlm, &s.data, &d.teacher, &eo, plan.backend)?;
-        time("teacher", t0);
-        let t0 = std::time::Instant::now();
-        let mut cfg = LanguageTrainConfig {
-            iters: s.language_iters,
-            warmup_iters: (s.language_iters / 10).max(1),
-            checkpoint_every: (s.language_iters / 10).max(1),
-            ..Default::default()
-        };
-        cfg.field.patch = 0; // maps at the views' own resolution, as the demo
-        let resume = lang.checkpoint().is_file() && lang.state().is_file();
-        if resume {
-            resumed.insert("language".into(), lang.read_state()?.iter.into());
+    let geometry_from = trained.geometry.as_ref().and_then(|g| g.resumed_from);
+    let language_from = trained.language.as_ref().and_then(|l| l.resumed_from);
+    for (stage, from) in [("geometry", geometry_from), ("language", language_from)] {
+        if let Some(at) = from {
+            resumed.insert(stage.into(), at.into());
         }
-        super::train_language::fit(&d.run, &d.teacher.dir, &lang, cfg, plan.backend, resume, &Ranks::Solo)?;
-        time("language", t0);
     }
     let t0 = std::time::Instant::now();
     let vqa = match &s.questions {
@@ -274,7 +257,7 @@ fn run_scene(plan: &Plan, s: &Scene, d: &SceneDirs, shard: &str) -> anyhow::Resu
             let qf = model::vqa::load_questions(q)?;
             let summary =
                 super::vqa::score(&scene.open()?, (q, &qf), &d.dir.join("vqa.json"), &scoring, grader.as_ref())?;
-            time("vqa", t0);
+            seconds.insert("vqa".into(), serde_json::json!((t0.elapsed().as_secs_f64() * 10.0).round() / 10.0));
             let level = |l: eval::score::LevelSummary| serde_json::json!({"mean": l.mean, "questions": l.count});
             serde_json::json!({
                 "view": level(summary.view), "object": level(summary.object), "scene": level(summary.scene),

@@ -4,19 +4,16 @@
 //! are loaded once for the questions and the question file.
 
 use super::SceneArgs;
+use super::bars::Bars;
 use super::vqa::Scoring;
-use crate::ranks::Ranks;
 use model::Backend;
 use model::chat::Target;
-use model::data::LoadOptions;
 use model::data::synth::SynthOptions;
-use model::run::{GeometryRun, TeacherDir};
+use model::run::GeometryRun;
 use model::vlm::GenerateOptions;
 use model::vqa::{Level, load_questions};
 use std::path::PathBuf;
-use train::geometry::GeometryConfig;
-use train::language::LanguageTrainConfig;
-use train::teacher::ExtractOptions;
+use train::pipeline::{Recipe, SceneDirs, Stage, TeacherModel, train_scene};
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -48,7 +45,7 @@ fn step(n: usize, what: &str) {
 pub fn run(a: Args) -> anyhow::Result<()> {
     let vlm = super::vlm_dir(a.vlm.as_ref())?;
     let (data, run) = (a.out.join("data"), GeometryRun::new(a.out.join("run")));
-    let (lang, teacher) = (run.language(), TeacherDir::new(data.join("teacher")));
+    let lang = run.language();
     model::io::create_dir(&a.out)?;
     // views the size the model reads (the built-in: no resampling between render and tower)
     let side = model::vlm::config::read_llava_config(&vlm)?.vision.image_size.min(MAX_SIDE) as u32;
@@ -56,24 +53,17 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     let scene = SynthOptions { views: 32, width: side, height: side, ..Default::default() };
     super::synth::write(&data, &scene)?;
 
-    step(2, "geometry stage: 3DGS + identity field");
-    let geometry = GeometryConfig::short(a.iters);
+    let recipe = Recipe::short(a.iters, a.language_iters);
     // the demo's settings, as files a user can give to `--config`
-    model::io::write_json(&a.out.join("geometry_config.json"), &geometry)?;
-    super::train::fit(&data, &LoadOptions::default(), &run, geometry, a.backend, false)?;
-
-    step(3, "teacher tokens (SigLIP features of every training view and masked object)");
-    super::extract::teacher(&vlm, &data, &teacher, &ExtractOptions::default(), a.backend)?;
-
-    step(4, "language field, encoder and scaling adjustment");
-    let mut language = LanguageTrainConfig {
-        iters: a.language_iters,
-        warmup_iters: (a.language_iters / 10).max(1),
-        ..Default::default()
-    };
-    language.field.patch = 0; // render maps at the views' own resolution
-    model::io::write_json(&a.out.join("language_config.json"), &language)?;
-    super::train_language::fit(&run, &teacher.dir, &lang, language, a.backend, false, &Ranks::Solo)?;
+    model::io::write_json(&a.out.join("geometry_config.json"), &recipe.geometry)?;
+    model::io::write_json(&a.out.join("language_config.json"), &recipe.language)?;
+    let mut bars = Bars::with_heading(a.backend, |stage| match stage {
+        Stage::Geometry => step(2, "geometry stage: 3DGS + identity field"),
+        Stage::Teacher => step(3, "teacher tokens (SigLIP features of every training view and masked object)"),
+        Stage::Language => step(4, "language field, encoder and scaling adjustment"),
+    });
+    let dirs = SceneDirs::beside(&data, &run.dir);
+    train_scene(TeacherModel::Dir(&vlm), &dirs, &recipe, &a.backend.device(), false, &mut bars)?;
 
     step(5, "chat: view, object (click) and scene level");
     let scene = SceneArgs { run: run.dir.clone(), language: None, vlm: Some(vlm), backend: a.backend };

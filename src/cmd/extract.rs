@@ -1,11 +1,12 @@
 //! `chatsplat extract`: teacher tokens of every training view and masked object.
 
+use super::bars::Bars;
 use anyhow::bail;
-use eval::progress::Progress;
 use model::Backend;
 use model::data::LoadOptions;
 use model::run::TeacherDir;
 use std::path::{Path, PathBuf};
+use train::pipeline::{Observer, Stage};
 use train::teacher::{ExtractOptions, NovelViews, extract};
 
 #[derive(clap::Args)]
@@ -88,7 +89,9 @@ pub fn teacher(
 ) -> anyhow::Result<()> {
     let device = backend.device();
     let m = model::catch_backend("loading the model", || model::vlm::LlavaOnevision::load(vlm_dir, &device))??;
-    let bar = Progress::new("extract", "views");
+    // the plan and the progress both report to the bars, one after the other
+    let bars = std::cell::RefCell::new(Bars::new(backend));
+    bars.borrow_mut().start(Stage::Teacher, None);
     let t0 = std::time::Instant::now();
     let summary = model::catch_backend("extraction", || {
         extract(
@@ -96,41 +99,10 @@ pub fn teacher(
             data,
             out,
             opts,
-            |plan| {
-                let objects: usize = plan.views.iter().map(|v| v.objects.len()).sum();
-                let novel = opts.novel.as_ref().map_or(0, |n| n.count);
-                let views = match novel {
-                    0 => format!("{} training views", plan.views.len()),
-                    n => format!("{} training views + {n} novel views", plan.views.len() - n),
-                };
-                eprintln!(
-                    "{views} + {objects} object crops -> {} images of {}x{} tokens; about {:.1} MB of f16 in {}",
-                    plan.views.len() + objects,
-                    plan.tokens_per_image,
-                    plan.dim,
-                    plan.bytes as f64 / 1e6,
-                    out.dir.display()
-                );
-            },
-            |done, total| bar.update(done, total),
+            |plan| bars.borrow_mut().teacher_plan(plan, opts, out),
+            |done, total| bars.borrow_mut().teacher(done, total),
         )
     })??;
-    let to = if summary.indexed {
-        out.index().display().to_string()
-    } else {
-        format!(
-            "{} ({} of {} views done: the index waits for the other shards)",
-            out.dir.display(),
-            summary.views_done,
-            summary.views
-        )
-    };
-    println!(
-        "teacher tokens: {} view files written, {} already complete (skipped), {} images encoded in {:.1} s -> {to}",
-        summary.written,
-        summary.skipped,
-        summary.images,
-        t0.elapsed().as_secs_f64(),
-    );
+    bars.borrow_mut().teacher_done(&summary, t0.elapsed().as_secs_f64(), out);
     Ok(())
 }

@@ -1,6 +1,7 @@
 //! The subcommands, one file each, in the order of the pipeline, and the arguments they share.
 
 mod ask;
+mod bars;
 mod batch;
 mod chat;
 mod demo;

@@ -1,12 +1,13 @@
 //! `chatsplat train`: the geometry stage.
 
+use super::bars::Bars;
 use anyhow::bail;
-use eval::progress::Progress;
 use model::Backend;
-use model::data::{Background, LoadOptions, colmap, load_any};
+use model::data::{Background, LoadOptions};
 use model::run::GeometryRun;
 use std::path::{Path, PathBuf};
 use train::geometry::{GeometryConfig, run as train_geometry};
+use train::pipeline::{Observer, Stage, load_for_geometry};
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -78,46 +79,14 @@ pub fn fit(
     resume: bool,
 ) -> anyhow::Result<()> {
     cfg.validate()?;
-    // COLMAP projects initialise from their sparse points.
-    let (ds, points) = if data.join("sparse").is_dir() && !data.join("poses_bounds.npy").is_file() {
-        let (ds, p) = colmap::load(data, load)?;
-        (ds, Some(p))
-    } else {
-        (load_any(data, load)?, None)
-    };
-    let cam = &ds.train[0].camera;
-    eprintln!(
-        "{}: {} training / {} held-out views of {}x{}",
-        data.display(),
-        ds.train.len(),
-        ds.test.len(),
-        cam.width,
-        cam.height
-    );
+    let (ds, points) = load_for_geometry(data, load)?;
+    let mut bars = Bars::new(backend);
+    bars.start(Stage::Geometry, None);
+    bars.dataset(data, &ds);
     let device = backend.device();
-    let bar = Progress::new("train", "it");
-    let mut last = std::time::Instant::now();
     let s = model::catch_backend("training", || {
-        train_geometry(&ds, points.as_ref(), data, load, out, cfg, &device, resume, |p| {
-            if last.elapsed().as_millis() > 250 || p.iter == p.iters {
-                bar.update_with(p.iter, p.iters, &format!("loss {:.4} psnr {:.2} N {}", p.loss, p.psnr, p.gaussians));
-                last = std::time::Instant::now();
-            }
-        })
+        train_geometry(&ds, points.as_ref(), data, load, out, cfg, &device, resume, |p| bars.geometry(&p))
     })??;
-    if let Some(at) = s.resumed_from {
-        println!("resumed from iteration {at}");
-    }
-    println!(
-        "{} Gaussians; {} views: PSNR {:.2} dB, SSIM {:.4}{}; {:.3} s/iter on {} -> {}",
-        s.gaussians,
-        s.eval.views,
-        s.eval.psnr,
-        s.eval.ssim,
-        s.eval.miou.map(|m| format!(", identity mIoU {m:.3}")).unwrap_or_default(),
-        s.seconds_per_iter,
-        backend,
-        out.dir.display()
-    );
+    bars.geometry_done(&s, out);
     Ok(())
 }

@@ -1,11 +1,12 @@
 //! `chatsplat train-language`: the language stage.
 
+use super::bars::Bars;
 use anyhow::bail;
-use eval::progress::Progress;
 use model::Backend;
 use model::run::{GeometryRun, LanguageRun};
 use std::path::{Path, PathBuf};
 use train::language::{LanguageTrainConfig, run as train_field};
+use train::pipeline::{Observer, Stage};
 
 #[derive(clap::Args)]
 pub struct Args {
@@ -83,7 +84,6 @@ pub fn fit(
     ranks: &crate::ranks::Ranks,
 ) -> anyhow::Result<()> {
     cfg.validate()?;
-    let cfg_tolerance = cfg.compact_tolerance;
     let device = backend.device();
     let c = ranks.collective();
     if c.size() > 1 && c.is_root() {
@@ -93,56 +93,16 @@ pub fn fit(
             cfg.views_per_step
         );
     }
-    let bar = Progress::new("language", "it");
+    let mut bars = Bars::new(backend);
+    bars.start(Stage::Language, None);
+    let shown = cfg.clone();
     let t0 = std::time::Instant::now();
     let s = model::catch_backend("language training", || {
-        train_field(geometry, teacher, out, cfg, &device, resume, c, |p| {
-            if p.iter % 5 == 0 || p.iter == p.iters {
-                let s = p.step;
-                let msg = format!("loss {:.4} view {:.4} obj {:.4} ({})", s.loss, s.view_l1, s.object_l1, s.objects);
-                bar.update_with(p.iter, p.iters, &msg);
-            }
-        })
+        train_field(geometry, teacher, out, cfg, &device, resume, c, |p| bars.language(&p))
     })??;
     ranks.report(t0.elapsed().as_secs_f64());
-    if !c.is_root() {
-        return Ok(());
-    }
-    if let Some(at) = s.resumed_from {
-        eprintln!("resumed from iteration {at}");
-    }
-    println!(
-        "token L1 on training views: view {:.4} -> {:.4}, object {:.4} -> {:.4}; {:.3} s/iter; {} of {} \
-            Gaussians reached a language map -> {}",
-        s.before.0,
-        s.after.0,
-        s.before.1,
-        s.after.1,
-        s.seconds_per_iter,
-        s.gaussians_used,
-        s.gaussians,
-        out.dir.display()
-    );
-    if let Some(c) = &s.compaction {
-        println!(
-            "compact: the language maps keep {} of {} Gaussians ({:.0} %); training token L1 view {:.4} -> {:.4}, \
-                object {:.4} -> {:.4} (within {} %) -> {}",
-            c.kept.len(),
-            c.gaussians,
-            100.0 * c.kept.len() as f64 / c.gaussians.max(1) as f64,
-            c.token_l1_full.0,
-            c.token_l1_kept.0,
-            c.token_l1_full.1,
-            c.token_l1_kept.1,
-            100.0 * c.tolerance,
-            out.compaction().display()
-        );
-    } else if cfg_tolerance > 0.0 {
-        println!(
-            "compact: no fraction of the Gaussians down to half kept the training views' token L1 within {} %: \
-                every Gaussian kept",
-            100.0 * cfg_tolerance
-        );
+    if c.is_root() {
+        bars.language_done(&s, &shown, out);
     }
     Ok(())
 }

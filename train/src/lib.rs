@@ -3,7 +3,8 @@
 //! training view and masked object) and [`language`] (the per-Gaussian language field, the
 //! encoder and the scaling adjustment against those tokens). All render through
 //! `splat_kernels::splat` and optimise with burn's Adam; [`ckpt`] keeps the optimizer state by
-//! parameter name. Inference (chat) lives in `model` and does not depend on this crate.
+//! parameter name; [`pipeline`] runs one scene through the three. Inference (chat) lives in `model`
+//! and does not depend on this crate.
 #![allow(deprecated)] // burn-ndarray is deprecated in burn 0.22 in favour of burn-flex.
 
 pub mod ckpt;
@@ -12,6 +13,7 @@ pub mod geometry;
 pub mod guard;
 pub mod language;
 pub use language::compact;
+pub mod pipeline;
 pub mod schedule;
 pub mod teacher;
 pub mod vlm;

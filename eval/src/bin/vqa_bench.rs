@@ -21,7 +21,7 @@ use model::chat::{ChatSession, DEFAULT_SCENE_VIEWS};
 use model::data::synth::{SynthOptions, write_dataset};
 use model::data::{LoadOptions, load_any};
 use model::language::CROP_MARGIN;
-use model::run::{GeometryRun, LanguageRun, TeacherDir};
+use model::run::{GeometryRun, LanguageRun};
 use model::splats::host;
 use model::vlm::{LlavaOnevision, RgbImage};
 use model::vqa::{Level, load_questions, scene_view, target_of};
@@ -31,7 +31,31 @@ use std::path::PathBuf;
 use std::time::Instant;
 use train::geometry::GeometryConfig;
 use train::language::LanguageTrainConfig;
+use train::pipeline::{Observer, Recipe, SceneDirs, Stage, TeacherModel, train_scene};
 use train::teacher::{ExtractOptions, NovelViews};
+
+/// One seed's progress bars: geometry (PSNR) and language (loss).
+struct SeedBars {
+    seed: u64,
+    bar: Option<Progress>,
+}
+
+impl Observer for SeedBars {
+    fn start(&mut self, stage: Stage, _resumed_from: Option<usize>) {
+        self.bar =
+            (stage != Stage::Teacher).then(|| Progress::new(format!("seed {} {}", self.seed, stage.name()), "it"));
+    }
+    fn geometry(&mut self, p: &train::geometry::Progress) {
+        if let Some(bar) = self.bar.as_ref().filter(|_| p.iter.is_multiple_of(20) || p.iter == p.iters) {
+            bar.update_with(p.iter, p.iters, &format!("psnr {:.2}", p.psnr))
+        }
+    }
+    fn language(&mut self, p: &train::language::LangProgress) {
+        if let Some(bar) = self.bar.as_ref().filter(|_| p.iter.is_multiple_of(10) || p.iter == p.iters) {
+            bar.update_with(p.iter, p.iters, &format!("loss {:.4}", p.step.loss))
+        }
+    }
+}
 
 #[derive(Parser)]
 #[command(name = "vqa-bench", about = "ChatSplat vs the VLM on ground-truth and rendered images, offline")]
@@ -328,12 +352,7 @@ fn bench(a: &Args) -> Result<()> {
             c.validate().map_err(|e| model::Error::invalid(p, e.to_string()))?;
             c
         }
-        None => {
-            let mut c = LanguageTrainConfig::default();
-            c.field.patch = 0; // maps at the views' own resolution
-            c.warmup_iters = (a.language_iters / 10).max(1);
-            c
-        }
+        None => LanguageTrainConfig::short(a.language_iters),
     };
     language_config.iters = a.language_iters;
     language_config.checkpoint_every = 0;
@@ -346,28 +365,21 @@ fn bench(a: &Args) -> Result<()> {
         let data = dir.join("data");
         let opts = SynthOptions { seed, views: a.views, width: side, height: side, ..Default::default() };
         write_dataset(&data, &opts, |_, _| {})?;
+        let dirs = SceneDirs::beside(&data, &dir.join("run"));
+        let (run, teacher) = (dirs.run.clone(), dirs.teacher.clone());
+        let novel = (a.novel_views > 0).then(|| NovelViews { run: run.clone(), count: a.novel_views, seed });
+        let recipe = Recipe {
+            geometry: GeometryConfig::short(a.geometry_iters),
+            teacher: ExtractOptions { novel, tower_tail: a.tower_tail, ..Default::default() },
+            language: language_config.clone(),
+        };
+        let mut bars = SeedBars { seed, bar: None };
+        let trained = train_scene(TeacherModel::Loaded(&vlm), &dirs, &recipe, &device, false, &mut bars)?;
+        let (Some(g), Some(l)) = (trained.geometry, trained.language) else {
+            unreachable!("every stage runs without resume")
+        };
         let load = LoadOptions::default();
         let ds = load_any(&data, &load)?;
-        let run = GeometryRun::new(dir.join("run"));
-        let gcfg = GeometryConfig::short(a.geometry_iters);
-        let bar = Progress::new(format!("seed {seed} geometry"), "it");
-        let g = train::geometry::run(&ds, None, &data, &load, &run, gcfg, &device, false, |p| {
-            if p.iter % 20 == 0 || p.iter == p.iters {
-                bar.update_with(p.iter, p.iters, &format!("psnr {:.2}", p.psnr))
-            }
-        })?;
-        let teacher = TeacherDir::new(data.join("teacher"));
-        let novel = (a.novel_views > 0).then(|| NovelViews { run: run.clone(), count: a.novel_views, seed });
-        let eo = ExtractOptions { novel, tower_tail: a.tower_tail, ..Default::default() };
-        train::teacher::extract(&vlm, &data, &teacher, &eo, |_| {}, |_, _| {})?;
-        let lang = LanguageRun::new(run.dir.join("language"));
-        let lcfg = language_config.clone();
-        let bar = Progress::new(format!("seed {seed} language"), "it");
-        let l = train::language::run(&run, &teacher.dir, &lang, lcfg, &device, false, &train::dist::Solo, |p| {
-            if p.iter % 10 == 0 || p.iter == p.iters {
-                bar.update_with(p.iter, p.iters, &format!("loss {:.4}", p.step.loss))
-            }
-        })?;
         eprintln!(
             "seed {seed}: geometry held-out PSNR {:.2} dB, mIoU {:.3}; language token L1 view {:.3} object {:.3}",
             g.eval.psnr,
@@ -457,7 +469,7 @@ fn bench(a: &Args) -> Result<()> {
             let lang = LanguageRun::new(run.dir.join(format!("language-{tag}")));
             let bar = Progress::new(format!("seed {seed} sweep: language {tag}"), "it");
             let l = train::language::run(run, &teacher.dir, &lang, cfg, &device, false, &train::dist::Solo, |p| {
-                if p.iter % 10 == 0 || p.iter == p.iters {
+                if p.iter.is_multiple_of(10) || p.iter == p.iters {
                     bar.update_with(p.iter, p.iters, &format!("loss {:.4}", p.step.loss))
                 }
             })?;
@@ -477,7 +489,7 @@ fn bench(a: &Args) -> Result<()> {
                     continue;
                 }
                 Variant::Kept(pct) => {
-                    let c = lang.read_contribution()?;
+                    let c = dirs.language.read_contribution()?;
                     let keep = model::scene::top_contributors(&c, (c.len() * pct).div_ceil(100));
                     let mut s = ChatSession::open_full(&run, None, &vlm_dir, &device)?;
                     s.scene = s.scene.subset(&keep);
@@ -505,7 +517,7 @@ fn bench(a: &Args) -> Result<()> {
                     let bar = Progress::new(format!("seed {seed} sweep: geometry 1/{k}"), "it");
                     let gcfg = GeometryConfig::short((a.geometry_iters / k).max(1));
                     train::geometry::run(&ds, None, &data, &load, &small, gcfg, &device, false, |p| {
-                        if p.iter % 20 == 0 || p.iter == p.iters {
+                        if p.iter.is_multiple_of(20) || p.iter == p.iters {
                             bar.update_with(p.iter, p.iters, &format!("psnr {:.2}", p.psnr))
                         }
                     })?;

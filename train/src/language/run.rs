@@ -1,7 +1,8 @@
 //! Running the language stage: a fresh or resumed trainer, its steps with checkpoints judged by
 //! the next step's loss, the token L1 before and after, metrics, and the compaction.
 
-use super::{LangStep, LanguageTrainConfig, LanguageTrainer, Snapshot, compact};
+use super::trainer::Snapshot;
+use super::{LangStep, LanguageTrainConfig, LanguageTrainer, compact};
 use crate::dist::Collective;
 use crate::geometry::view_at;
 use crate::guard::LossGuard;

@@ -1,0 +1,197 @@
+//! Question files about a scene (the paper's view / object / scene-level question answering): the
+//! types, reading and validating them, and which scene view an index means. Answering them
+//! through a chat session is `model::vqa`'s; scoring is `eval::score`'s. A leaf: the synthetic
+//! scenes ([`crate::synth`]) write these files.
+//!
+//! # Question files
+//!
+//! ```json
+//! {"scene": "room",
+//!  "questions": [
+//!   {"id": "q1", "level": "view", "view": 3,
+//!    "question": "What colour is the cube?", "answer": "red", "keywords": ["red"]},
+//!   {"id": "q2", "level": "object", "view": 0, "object": [120, 64],
+//!    "question": "What is this object?", "answer": "a wooden chair"},
+//!   {"id": "q3", "level": "scene", "question": "How many chairs are there?", "answer": "two"}
+//! ]}
+//! ```
+//!
+//! `scene` is optional. `level` is `view`, `object` or `scene`; `view` (an image index) is
+//! required for view-level questions; `object` (an `[x, y]` pixel, in the image of `view` when
+//! given) is required for object-level ones; scene-level questions may list their `views`
+//! (default: views spread around the scene); `keywords` is optional. Ids must be unique and the
+//! question and answer texts non-empty. Unknown keys are rejected (typos).
+
+use crate::error::{Error, Result};
+use serde::{Deserialize, Serialize};
+use std::collections::HashSet;
+use std::path::Path;
+
+/// Views a scene-level question is asked from: the views the synthetic question files name for
+/// each (chosen to see every object together), the views chat spreads around the scene when not
+/// told how many, and the images per scene the built-in model was trained with.
+pub const SCENE_VIEWS: usize = 4;
+
+/// The granularity a question asks about.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Hash, PartialOrd, Ord, Serialize, Deserialize)]
+#[serde(rename_all = "lowercase")]
+pub enum Level {
+    View,
+    Object,
+    Scene,
+}
+
+impl std::fmt::Display for Level {
+    fn fmt(&self, f: &mut std::fmt::Formatter<'_>) -> std::fmt::Result {
+        f.write_str(match self {
+            Level::View => "view",
+            Level::Object => "object",
+            Level::Scene => "scene",
+        })
+    }
+}
+
+/// One annotated question with its reference answer.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct Question {
+    pub id: String,
+    pub level: Level,
+    /// The question type (free text, e.g. `count`; scores are also reported per kind).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub kind: Option<String>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub view: Option<usize>,
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub object: Option<[f32; 2]>,
+    /// Scene level: the views to use (default: views spread around the scene).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub views: Option<Vec<usize>>,
+    pub question: String,
+    pub answer: String,
+    #[serde(default, skip_serializing_if = "Vec::is_empty")]
+    pub keywords: Vec<String>,
+}
+
+/// A question file: see the [module documentation](self) for the format.
+#[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
+#[serde(deny_unknown_fields)]
+pub struct QuestionFile {
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub scene: Option<String>,
+    /// The dataset's images in frame order (transforms.json): `view` indexes this list and the
+    /// images are found among the trained scene's views by file name. Without it, `view` indexes
+    /// the scene's views directly (training views, then held-out views).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub views: Option<Vec<String>>,
+    pub questions: Vec<Question>,
+}
+
+/// Reads and validates a question file; errors name the file and the problem.
+pub fn load_questions(path: &Path) -> Result<QuestionFile> {
+    let file: QuestionFile = crate::io::read_json(path)?;
+    if file.questions.is_empty() {
+        return Err(Error::invalid(path, "holds no questions"));
+    }
+    let mut seen = HashSet::new();
+    for (i, q) in file.questions.iter().enumerate() {
+        let fail = |what: &str| Err(Error::invalid(path, format!("question {i} (id {:?}): {what}", q.id)));
+        if q.id.trim().is_empty() {
+            return fail("empty id");
+        }
+        if !seen.insert(q.id.as_str()) {
+            return fail("duplicate id");
+        }
+        if q.question.trim().is_empty() {
+            return fail("empty question text");
+        }
+        if q.answer.trim().is_empty() {
+            return fail("empty reference answer");
+        }
+        if q.level == Level::View && q.view.is_none() {
+            return fail("view-level question without \"view\"");
+        }
+        if q.level == Level::Object && q.object.is_none() {
+            return fail("object-level question without \"object\" pixel");
+        }
+        if let Some([x, y]) = q.object
+            && !(x.is_finite() && y.is_finite() && x >= 0.0 && y >= 0.0)
+        {
+            return fail("\"object\" pixel must be two non-negative numbers");
+        }
+        if q.views.as_ref().is_some_and(|v| v.is_empty()) {
+            return fail("\"views\" is empty");
+        }
+        if let Some(frames) = &file.views {
+            let n = frames.len();
+            if q.view.is_some_and(|v| v >= n) || q.views.iter().flatten().any(|&v| v >= n) {
+                return fail(&format!("a view index is not below the {n} listed views"));
+            }
+        }
+    }
+    Ok(file)
+}
+
+/// The scene view a question's view index means: through the file's frame list (by image file
+/// name, among `images`, the run's view image names) when it has one, else the index itself.
+pub fn scene_view(file: &QuestionFile, images: &[String], view: usize) -> Result<usize> {
+    let Some(frames) = &file.views else { return Ok(view) };
+    let frame = frames.get(view).ok_or_else(|| Error::input(format!("view {view} is not in the file's views")))?;
+    let name = Path::new(frame).file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+    images
+        .iter()
+        .position(|i| *i == name)
+        .ok_or_else(|| Error::input(format!("frame {view} ({frame}) is not one of the trained scene's views")))
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    fn tmp(name: &str, text: &str) -> std::path::PathBuf {
+        let p = std::env::temp_dir().join(format!("chatsplat-vqa-{}-{name}.json", std::process::id()));
+        std::fs::write(&p, text).unwrap();
+        p
+    }
+
+    #[test]
+    fn question_files() {
+        let good = r#"{"scene": "room", "questions": [
+            {"id": "q1", "level": "view", "view": 3, "question": "Colour?", "answer": "red", "keywords": ["red"]},
+            {"id": "q2", "level": "object", "object": [1.5, 2], "question": "What?", "answer": "chair"},
+            {"id": "q3", "level": "scene", "question": "How many?", "answer": "two"}]}"#;
+        let p = tmp("good", good);
+        let f = load_questions(&p).unwrap();
+        let _ = std::fs::remove_file(p);
+        assert_eq!(f.scene.as_deref(), Some("room"));
+        assert_eq!(f.questions.len(), 3);
+        assert_eq!((f.questions[0].level, f.questions[0].view), (Level::View, Some(3)));
+        assert_eq!(f.questions[1].object, Some([1.5, 2.0]));
+        assert!(f.questions[2].keywords.is_empty());
+
+        let err = |name: &str, text: &str| {
+            let p = tmp(name, text);
+            let e = load_questions(&p).unwrap_err().to_string();
+            let _ = std::fs::remove_file(&p);
+            assert!(e.contains(&p.display().to_string()), "{e}");
+            e
+        };
+        let q = |body: &str| format!(r#"{{"questions": [{body}]}}"#);
+        let e = err("json", "{\"questions\": [\n  {\"id\": }]}");
+        assert!(e.contains("line 2, column"), "{e}");
+        let e = err("obj", &q(r#"{"id": "a", "level": "object", "question": "Q?", "answer": "x"}"#));
+        assert!(e.contains("\"a\"") && e.contains("without \"object\""), "{e}");
+        let e = err("view", &q(r#"{"id": "b", "level": "view", "question": "Q?", "answer": "x"}"#));
+        assert!(e.contains("without \"view\""), "{e}");
+        let e = err("empty", &q(r#"{"id": "c", "level": "scene", "question": " ", "answer": "x"}"#));
+        assert!(e.contains("empty question"), "{e}");
+        let one = r#"{"id": "d", "level": "scene", "question": "Q?", "answer": "x"}"#;
+        let e = err("dup", &q(&format!("{one}, {one}")));
+        assert!(e.contains("question 1") && e.contains("duplicate id"), "{e}");
+        let e = err("level", &q(r#"{"id": "e", "level": "room", "question": "Q?", "answer": "x"}"#));
+        assert!(e.contains("invalid JSON") && e.contains("room"), "{e}");
+        let missing = std::env::temp_dir().join("chatsplat-vqa-no-such-file.json");
+        let e = load_questions(&missing).unwrap_err().to_string();
+        assert!(e.contains("no-such-file") && e.contains("cannot read"), "{e}");
+    }
+}

@@ -7,6 +7,7 @@
 
 pub mod browser;
 pub mod compare;
+pub mod harness;
 pub mod http;
 pub mod plot;
 pub mod probe;

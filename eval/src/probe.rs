@@ -4,7 +4,7 @@
 
 use model::data::synth::FIRST_OBJECT_ID;
 use model::data::synth::questions::{Kind, ViewFacts, view_questions};
-use model::data::synth::scene::Scene;
+use model::data::synth::scene::SynthScene;
 use model::rng::Rng;
 
 /// A patch's place relative to the objects.
@@ -62,7 +62,7 @@ pub fn regions(ids: &[u8], w: usize, h: usize, p: usize) -> Vec<Region> {
 /// The true answers of "How many objects are there?" and "What colors are there?" for a `w`x`h`
 /// view of `scene` with instance mask `ids`, by the question files' own rule
 /// ([`view_questions`]); `None` for a view the question files leave out as ambiguous.
-pub fn view_truth(scene: &Scene, ids: &[u8], w: usize, h: usize) -> Option<(usize, String)> {
+pub fn view_truth(scene: &SynthScene, ids: &[u8], w: usize, h: usize) -> Option<(usize, String)> {
     let facts = ViewFacts::of(scene, ids, &vec![0.0; w * h], w, h);
     if facts.ambiguous {
         return None;

@@ -78,8 +78,8 @@ struct SceneEntry {
     language_iters: Option<usize>,
 }
 
-/// A scene ready to run.
-struct Scene {
+/// A scene ready to run: a job of the batch.
+struct Job {
     name: String,
     data: PathBuf,
     questions: Option<PathBuf>,
@@ -93,7 +93,7 @@ struct Plan {
     vlm: Option<PathBuf>,
     backend: Backend,
     tower_tail: usize,
-    scenes: Vec<Scene>,
+    scenes: Vec<Job>,
 }
 
 /// `path:line: message` for the byte offset `at` of `text`.
@@ -124,7 +124,7 @@ fn read_manifest(path: &Path) -> anyhow::Result<Plan> {
     if m.geometry_iters == 0 || m.language_iters == 0 {
         bail!("{}: geometry_iters and language_iters must be at least 1", path.display());
     }
-    let mut scenes: Vec<Scene> = Vec::new();
+    let mut scenes: Vec<Job> = Vec::new();
     for s in &m.scene {
         let name = s.name.get_ref();
         let bad = |at: usize, msg: String| at_line(path, &text, at, format!("scene `{name}`: {msg}"));
@@ -163,7 +163,7 @@ fn read_manifest(path: &Path) -> anyhow::Result<Plan> {
         if geometry_iters == 0 || language_iters == 0 {
             return Err(bad(s.name.span().start, "geometry_iters and language_iters must be at least 1".into()));
         }
-        scenes.push(Scene { name: name.clone(), data, questions, geometry_iters, language_iters });
+        scenes.push(Job { name: name.clone(), data, questions, geometry_iters, language_iters });
     }
     let stem = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "batch".into());
     let out = m.out.as_ref().map(|o| base.join(o)).unwrap_or_else(|| base.join(format!("{stem}-out")));
@@ -199,13 +199,13 @@ fn shard(arg: Option<&str>) -> anyhow::Result<(usize, usize)> {
 }
 
 /// Where a scene's files go.
-struct SceneDirs {
+struct JobDirs {
     dir: PathBuf,
     run: GeometryRun,
     teacher: TeacherDir,
 }
 
-impl SceneDirs {
+impl JobDirs {
     fn new(out: &Path, name: &str) -> Self {
         let dir = out.join(name);
         Self { run: GeometryRun::new(dir.join("run")), teacher: TeacherDir::new(dir.join("teacher")), dir }
@@ -216,7 +216,7 @@ impl SceneDirs {
 }
 
 /// Runs the pipeline on one scene, resuming whatever an earlier attempt left; returns its summary.
-fn run_scene(plan: &Plan, s: &Scene, d: &SceneDirs, shard: &str) -> anyhow::Result<serde_json::Value> {
+fn run_scene(plan: &Plan, s: &Job, d: &JobDirs, shard: &str) -> anyhow::Result<serde_json::Value> {
     model::io::create_dir(&d.dir)?;
     let lang: LanguageRun = d.run.language();
     let mut seconds = serde_json::Map::new();
@@ -282,7 +282,7 @@ fn write_report(plan: &Plan) -> anyhow::Result<(usize, PathBuf)> {
     let mut rows = Vec::new();
     let mut done = 0;
     for s in &plan.scenes {
-        let path = SceneDirs::new(&plan.out, &s.name).summary();
+        let path = JobDirs::new(&plan.out, &s.name).summary();
         if path.is_file() {
             done += 1;
             let summary: serde_json::Value = model::io::read_json(&path)?;
@@ -309,12 +309,12 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         println!("{done} of {} scenes done -> {}", plan.scenes.len(), path.display());
         return Ok(());
     }
-    let mine: Vec<&Scene> = plan.scenes.iter().skip(i).step_by(n).collect();
+    let mine: Vec<&Job> = plan.scenes.iter().skip(i).step_by(n).collect();
     let label = format!("{i}/{n}");
     let names: Vec<&str> = mine.iter().map(|s| s.name.as_str()).collect();
     eprintln!("batch: shard {label}: {} of {} scenes: {}", mine.len(), plan.scenes.len(), names.join(", "));
     for (k, s) in mine.iter().enumerate() {
-        let d = SceneDirs::new(&plan.out, &s.name);
+        let d = JobDirs::new(&plan.out, &s.name);
         if d.summary().is_file() {
             eprintln!("\n== scene {} ({} of {}): done earlier ({})", s.name, k + 1, mine.len(), d.summary().display());
             continue;

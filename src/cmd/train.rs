@@ -6,7 +6,7 @@ use model::Backend;
 use model::data::{Background, LoadOptions};
 use model::run::GeometryRun;
 use std::path::{Path, PathBuf};
-use train::geometry::{GeometryConfig, run as train_geometry};
+use train::geometry::{GeometryConfig, fit as train_geometry};
 use train::pipeline::{Observer, Stage, load_for_geometry};
 
 #[derive(clap::Args)]

@@ -5,7 +5,7 @@ use anyhow::bail;
 use model::Backend;
 use model::run::{GeometryRun, LanguageRun};
 use std::path::{Path, PathBuf};
-use train::language::{LanguageTrainConfig, run as train_field};
+use train::language::{LanguageTrainConfig, fit as train_field};
 use train::pipeline::{Observer, Stage};
 
 #[derive(clap::Args)]

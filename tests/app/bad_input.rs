@@ -255,14 +255,34 @@ fn broken_datasets_configs_and_arguments_are_refused() {
     let mut s = Suite::default();
     let base = dir.join("base");
     synth(&base, "46");
-    let train = |data: &Path, out: &Path, extra: &[&str]| {
-        let mut args = vec!["train"];
-        if !extra.contains(&"--iters") {
-            args.extend(["--iters", "2"]);
-        }
-        args.extend(extra);
-        run(&args, &[Path::new("--data"), data, Path::new("--out"), out])
-    };
+    broken_datasets(&mut s, &dir, &base);
+    broken_configs(&mut s, &dir, &base);
+    bad_command_lines(&mut s, &dir, &base);
+    let (r, other) = resumes(&mut s, &dir, &base);
+    outputs_and_vlm_options(&mut s, &dir);
+    teachers(&mut s, &dir, &base, &other, &r);
+    let (bare_run, bare_teacher) = without_masks(&mut s, &dir, &base);
+    chat_repl(&mut s, &bare_run);
+    vqa_files(&mut s, &dir, &bare_run);
+    relative_paths(&mut s, &dir);
+    killed_geometry(&mut s, &dir, &base);
+    killed_language(&mut s, &dir, &bare_run, &bare_teacher);
+    s.finish(70);
+    std::fs::remove_dir_all(&dir).ok();
+}
+
+/// `chatsplat train --iters 2` (unless `extra` sets them) on `data` into `out`.
+fn train(data: &Path, out: &Path, extra: &[&str]) -> Output {
+    let mut args = vec!["train"];
+    if !extra.contains(&"--iters") {
+        args.extend(["--iters", "2"]);
+    }
+    args.extend(extra);
+    run(&args, &[Path::new("--data"), data, Path::new("--out"), out])
+}
+
+/// Datasets, each a copy of the base with one defect, and one that is missing: refused, the copy intact.
+fn broken_datasets(s: &mut Suite, dir: &Path, base: &Path) {
     // datasets: each a copy of the base with one defect
     type Edit = Box<dyn Fn(&Path)>;
     let tj =
@@ -331,7 +351,7 @@ fn broken_datasets_configs_and_arguments_are_refused() {
     ];
     for (tag, edit, want) in &datasets {
         let d = dir.join(tag);
-        copy_dir(&base, &d);
+        copy_dir(base, &d);
         edit(&d);
         let before = std::fs::read(d.join("transforms.json")).unwrap();
         let out = train(&d, &dir.join(format!("run-{tag}")), &[]);
@@ -348,6 +368,10 @@ fn broken_datasets_configs_and_arguments_are_refused() {
         out: train(&missing, &dir.join("run-missing"), &[]),
         expect: vec!["no-such-dataset".into()],
     });
+}
+
+/// Training configs that are not JSON, hold unknown keys, wrong types or values out of range.
+fn broken_configs(s: &mut Suite, dir: &Path, base: &Path) {
     // configs
     let configs: Vec<(&str, &str, &str)> = vec![
         ("unknown-key", r#"{"lr_means": 0.001, "frobnicate": 1}"#, "frobnicate"),
@@ -371,10 +395,15 @@ fn broken_datasets_configs_and_arguments_are_refused() {
         std::fs::write(&c, text).unwrap();
         let out = run(
             &["train", "--iters", "2", "--config"],
-            &[&c, Path::new("--data"), &base, Path::new("--out"), &dir.join(format!("run-cfg-{tag}"))],
+            &[&c, Path::new("--data"), base, Path::new("--out"), &dir.join(format!("run-cfg-{tag}"))],
         );
         s.fails(Case { name: format!("config {tag}"), out, expect: vec![format!("{tag}.json"), want.into()] });
     }
+}
+
+/// Options out of range, a port another program holds, one-process commands under an MPI launcher,
+/// and a question longer than the model's context.
+fn bad_command_lines(s: &mut Suite, dir: &Path, base: &Path) {
     // command lines
     let out_dir = dir.join("cli");
     let o = out_dir.to_string_lossy().to_string();
@@ -436,16 +465,21 @@ fn broken_datasets_configs_and_arguments_are_refused() {
     let long = "what is on the table ".repeat(5000);
     let out = run(&["ask", "--image"], &[&photo, Path::new(&long)]);
     s.fails(Case { name: "ask with a 100 KB question".into(), out, expect: vec!["at most 4096".into()] });
+}
+
+/// Resuming without a checkpoint, on another dataset, downscale or masks, or at an absurd iteration;
+/// a moved copy of the dataset resumes. Returns the trained run and the other dataset.
+fn resumes(s: &mut Suite, dir: &Path, base: &Path) -> (PathBuf, PathBuf) {
     // resume: no checkpoint; another dataset; a moved copy of the same dataset resumes
     let empty_run = dir.join("empty-run");
     std::fs::create_dir_all(&empty_run).unwrap();
     s.fails(Case {
         name: "resume without checkpoint".into(),
-        out: train(&base, &empty_run, &["--resume"]),
+        out: train(base, &empty_run, &["--resume"]),
         expect: vec!["checkpoint".into()],
     });
     let r = dir.join("run-a");
-    s.succeeds("train a", train(&base, &r, &[]));
+    s.succeeds("train a", train(base, &r, &[]));
     let other = dir.join("other");
     synth(&other, "7");
     s.fails(Case {
@@ -455,15 +489,15 @@ fn broken_datasets_configs_and_arguments_are_refused() {
     });
     s.fails(Case {
         name: "resume at another downscale".into(),
-        out: train(&base, &r, &["--resume", "--downscale", "2"]),
+        out: train(base, &r, &["--resume", "--downscale", "2"]),
         expect: vec!["downscale".into()],
     });
     let moved = dir.join("moved");
-    copy_dir(&base, &moved);
+    copy_dir(base, &moved);
     s.succeeds("resume on a moved copy", train(&moved, &r, &["--resume", "--iters", "4"]));
     // resuming with other masks (one mask edited, or --masks from elsewhere) is another run
     let remasked = dir.join("remasked");
-    copy_dir(&base, &remasked);
+    copy_dir(base, &remasked);
     mask16(&remasked.join("masks/frame_0000.png"), 9);
     s.fails(Case {
         name: "resume with other masks".into(),
@@ -476,10 +510,15 @@ fn broken_datasets_configs_and_arguments_are_refused() {
     edit_json(&state, |v| v["iter"] = serde_json::json!(1_000_000_000u64));
     s.fails(Case {
         name: "resume an absurd iteration count".into(),
-        out: train(&base, &r, &["--resume", "--iters", "5"]),
+        out: train(base, &r, &["--resume", "--iters", "5"]),
         expect: vec!["state.json".into(), "iteration 1000000000".into()],
     });
     std::fs::write(&state, kept_state).unwrap();
+    (r, other)
+}
+
+/// `--out` naming a folder, and `train-vlm --evaluate` options that would report nothing true.
+fn outputs_and_vlm_options(s: &mut Suite, dir: &Path) {
     // --out naming a folder: refused before any work, nothing left beside it
     let folder_out = dir.join("a-folder.png");
     std::fs::create_dir_all(&folder_out).unwrap();
@@ -492,13 +531,13 @@ fn broken_datasets_configs_and_arguments_are_refused() {
     // train-vlm --evaluate on 0 seeds would report 0 %
     s.fails(Case {
         name: "train-vlm --eval-seeds 0".into(),
-        out: run(&["train-vlm", "--eval-seeds", "0", "--evaluate"], &[&dir]),
+        out: run(&["train-vlm", "--eval-seeds", "0", "--evaluate"], &[dir]),
         expect: vec!["--eval-seeds".into()],
     });
     // held-out seeds that run into the training seeds are not held out
     s.fails(Case {
         name: "train-vlm --eval-from into the training seeds".into(),
-        out: run(&["train-vlm", "--eval-from", "999990", "--evaluate"], &[&dir]),
+        out: run(&["train-vlm", "--eval-from", "999990", "--evaluate"], &[dir]),
         expect: vec!["--eval-from 999990".into(), "training seeds".into()],
     });
     // a model whose train_config.json was edited out of range: named, not clamped to a default
@@ -510,14 +549,19 @@ fn broken_datasets_configs_and_arguments_are_refused() {
         out: run(&["train-vlm", "--evaluate"], &[&edited]),
         expect: vec!["train_config.json".into(), "supersample".into()],
     });
+}
+
+/// Teacher tokens from another scene, or from a dataset that changed since; a language resume
+/// without a checkpoint.
+fn teachers(s: &mut Suite, dir: &Path, base: &Path, other: &Path, r: &Path) {
     // teacher tokens: from another scene, or from a dataset that changed since, are refused
     let (teacher_other, teacher_base) = (dir.join("teacher-other"), dir.join("teacher-base"));
-    s.succeeds("extract other", run(&["extract", "--data"], &[&other, Path::new("--out"), &teacher_other]));
-    s.succeeds("extract base", run(&["extract", "--data"], &[&base, Path::new("--out"), &teacher_base]));
+    s.succeeds("extract other", run(&["extract", "--data"], &[other, Path::new("--out"), &teacher_other]));
+    s.succeeds("extract base", run(&["extract", "--data"], &[base, Path::new("--out"), &teacher_base]));
     let language = |teacher: &Path, extra: &[&str]| {
         let mut args = vec!["train-language", "--iters", "1"];
         args.extend(extra);
-        run(&args, &[Path::new("--run"), &r, Path::new("--teacher"), teacher])
+        run(&args, &[Path::new("--run"), r, Path::new("--teacher"), teacher])
     };
     s.fails(Case {
         name: "teacher from another scene".into(),
@@ -538,9 +582,14 @@ fn broken_datasets_configs_and_arguments_are_refused() {
         expect: vec!["teacher.json".into(), "extract".into()],
     });
     std::fs::write(&img, photo).unwrap();
+}
+
+/// A capture without masks: view level works, object level says it needs masks; a language stage
+/// at 1000x the rates diverges with a loadable checkpoint. Returns the run and its teacher.
+fn without_masks(s: &mut Suite, dir: &Path, base: &Path) -> (PathBuf, PathBuf) {
     // a capture without masks: view level works, object level says it needs masks
     let bare = dir.join("no-masks");
-    copy_dir(&base, &bare);
+    copy_dir(base, &bare);
     std::fs::remove_dir_all(bare.join("masks")).unwrap();
     edit_json(&bare.join("transforms.json"), |v| {
         for f in v["frames"].as_array_mut().unwrap() {
@@ -600,11 +649,16 @@ fn broken_datasets_configs_and_arguments_are_refused() {
         out: ask(&["--object", "5", "5"]),
         expect: vec!["needs instance masks".into()],
     });
+    (bare_run, bare_teacher)
+}
+
+/// The chat REPL: bad commands are reported and the session goes on.
+fn chat_repl(s: &mut Suite, bare_run: &Path) {
     // the chat REPL: bad commands are reported and the session goes on (documented: an
     // interactive session is not ended by a typo); each line's message names the problem
     let mut child = chatsplat()
         .args(["chat", "--max-new-tokens", "1", "--run"])
-        .arg(&bare_run)
+        .arg(bare_run)
         .stdin(std::process::Stdio::piped())
         .stdout(std::process::Stdio::piped())
         .stderr(std::process::Stdio::piped())
@@ -636,13 +690,17 @@ fn broken_datasets_configs_and_arguments_are_refused() {
         s.check(&format!("chat REPL {what}"), err.contains(want), &format!("no \"{want}\" in: {err}"));
     }
     s.check("chat REPL: no panic", !err.contains("panicked"), &err);
+}
+
+/// VQA: an empty question file, and a question that cannot be asked.
+fn vqa_files(s: &mut Suite, dir: &Path, bare_run: &Path) {
     // VQA: an empty question file is refused; a question that cannot be asked fails the run
     // unless --keep-going (documented: then it is scored 0 and the run exits 0)
     let empty_q = dir.join("questions-empty.json");
     std::fs::write(&empty_q, r#"{"questions": []}"#).unwrap();
     let vqa = |q: &Path, extra: &[&str]| {
         let mut c = chatsplat();
-        c.args(["vqa", "--max-new-tokens", "1", "--run"]).arg(&bare_run).arg("--questions").arg(q).args(extra);
+        c.args(["vqa", "--max-new-tokens", "1", "--run"]).arg(bare_run).arg("--questions").arg(q).args(extra);
         c.output().unwrap()
     };
     s.fails(Case {
@@ -660,9 +718,13 @@ fn broken_datasets_configs_and_arguments_are_refused() {
         expect: vec!["questions-bad-view.json".into(), "could not be asked".into()],
     });
     s.succeeds("vqa view 999 with --keep-going", vqa(&bad_q, &["--keep-going"]));
+}
+
+/// A run made with relative paths works from any directory.
+fn relative_paths(s: &mut Suite, dir: &Path) {
     // a run made with relative paths works from any directory (paths resolve against the run)
     let vlm = Path::new(env!("CARGO_MANIFEST_DIR")).join("checkpoints/tiny-llava-ov");
-    let rel = |args: &[&str]| chatsplat().current_dir(&dir).env("CHATSPLAT_VLM", &vlm).args(args).output().unwrap();
+    let rel = |args: &[&str]| chatsplat().current_dir(dir).env("CHATSPLAT_VLM", &vlm).args(args).output().unwrap();
     s.succeeds("relative: train", rel(&["train", "--iters", "2", "--data", "base", "--out", "rel-run"]));
     s.succeeds("relative: extract", rel(&["extract", "--data", "base", "--out", "rel-teacher"]));
     let lang = rel(&["train-language", "--iters", "1", "--run", "rel-run", "--teacher", "rel-teacher"]);
@@ -676,14 +738,18 @@ fn broken_datasets_configs_and_arguments_are_refused() {
         .output()
         .unwrap();
     s.succeeds("relative: ask from another directory", elsewhere);
+}
+
+/// `kill -9` during geometry training, then `--resume`; a NaN written into its checkpoint.
+fn killed_geometry(s: &mut Suite, dir: &Path, base: &Path) {
     // kill -9 during geometry training, then --resume
     let k = dir.join("run-killed");
     let mut c = chatsplat();
-    c.args(["train", "--iters", "1000000", "--data"]).arg(&base).arg("--out").arg(&k);
+    c.args(["train", "--iters", "1000000", "--data"]).arg(base).arg("--out").arg(&k);
     kill_after(c, &k.join("checkpoint.safetensors"));
     s.check("kill -9: first checkpoint", k.join("checkpoint.safetensors").is_file(), "no checkpoint within 120 s");
     s.check("kill -9: config", k.join("config.json").is_file(), "no config.json");
-    s.succeeds("kill -9 then resume", train(&base, &k, &["--resume", "--iters", "3"]));
+    s.succeeds("kill -9 then resume", train(base, &k, &["--resume", "--iters", "3"]));
     // a NaN written into a checkpoint: export and resume refuse it, naming the file
     let ck = k.join("checkpoint.safetensors");
     let mut bytes = std::fs::read(&ck).unwrap();
@@ -708,13 +774,17 @@ fn broken_datasets_configs_and_arguments_are_refused() {
     s.check("NaN checkpoint: --out intact", std::fs::read(&kept).unwrap() == b"the user's ply", "--out overwritten");
     s.fails(Case {
         name: "resume a checkpoint holding NaN".into(),
-        out: train(&base, &k, &["--resume", "--iters", "5"]),
+        out: train(base, &k, &["--resume", "--iters", "5"]),
         expect: vec!["checkpoint.safetensors".into(), "non-finite".into()],
     });
+}
+
+/// `kill -9` during language training, then `--resume`; resuming a finished run.
+fn killed_language(s: &mut Suite, dir: &Path, bare_run: &Path, bare_teacher: &Path) {
     // the same during language training
     let lk = dir.join("language-killed");
     let lang_args = |c: &mut Command| {
-        c.arg("--run").arg(&bare_run).arg("--teacher").arg(&bare_teacher).arg("--out").arg(&lk);
+        c.arg("--run").arg(bare_run).arg("--teacher").arg(bare_teacher).arg("--out").arg(&lk);
     };
     let mut c = chatsplat();
     c.args(["train-language", "--iters", "1000000"]);
@@ -734,6 +804,4 @@ fn broken_datasets_configs_and_arguments_are_refused() {
     s.succeeds("language resume with nothing left", c.output().unwrap());
     let again = std::fs::read(lk.join("metrics.json")).unwrap_or_default();
     s.check("language resume with nothing left: metrics kept", !metrics.is_empty() && again == metrics, "rewritten");
-    s.finish(70);
-    std::fs::remove_dir_all(&dir).ok();
 }

@@ -13,7 +13,7 @@ use chatsplat_tests::http::{self, Reply, Server};
 use glam::Vec3;
 use model::chat::{ChatSession, Target};
 use model::data::synth::questions::{Kind, ViewFacts, view_questions};
-use model::data::synth::scene::Scene;
+use model::data::synth::scene::SynthScene;
 use model::run::GeometryRun;
 use serde_json::{Value, json};
 use splat_kernels::Camera;
@@ -30,7 +30,7 @@ fn scene() -> Tabletop {
     fixture::tabletop(Path::new(env!("CARGO_TARGET_TMPDIR")))
 }
 
-fn scene_json(data: &Path) -> Scene {
+fn scene_json(data: &Path) -> SynthScene {
     model::io::read_json(&data.join("scene.json")).unwrap()
 }
 

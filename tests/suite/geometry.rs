@@ -202,7 +202,7 @@ fn colmap_points_initialise_the_gaussians() {
     // every initial point lies inside the table's footprint (x, z within the table half-size) or above it.
     let d = initial_cloud(&ds.train, None, &SceneExtent::from_cameras(&cams), &cfg(1));
     assert!(d.len() > 100);
-    let half = model::data::synth::scene::Scene::from_seed(model::data::synth::DEFAULT_SEED).table.half;
+    let half = model::data::synth::scene::SynthScene::from_seed(model::data::synth::DEFAULT_SEED).table.half;
     let inside =
         d.means.iter().filter(|m| m[0].abs() <= half * 1.05 + 0.05 && m[2].abs() <= half * 1.05 + 0.05).count();
     assert!(inside as f32 > 0.95 * d.len() as f32, "{inside} of {} depth points on the table", d.len());

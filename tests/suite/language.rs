@@ -12,7 +12,7 @@ use model::rng::Rng;
 use model::run::{GeometryRun, LanguageRun, TeacherDir};
 use model::vlm::{GenerateOptions, LlavaOnevision};
 use std::path::{Path, PathBuf};
-use train::language::{LanguageTrainConfig, LanguageTrainer, run};
+use train::language::{LanguageTrainConfig, LanguageTrainer, fit};
 use train::teacher::TeacherSet;
 
 fn fixture() -> PathBuf {
@@ -248,7 +248,7 @@ fn end_to_end_language_field_chat_and_export() {
 
     // --- training: the token L1 on training views must fall
     let lang_dir = run_dir.join("language");
-    let s = run(
+    let s = fit(
         &geometry,
         &teacher_dir,
         &LanguageRun::new(&lang_dir),

@@ -15,7 +15,7 @@ use glam::Vec3;
 use model::run::{GeometryRun, LanguageRun, TeacherDir};
 use model::splats::SplatModel;
 use std::path::{Path, PathBuf};
-use train::language::{LanguageTrainConfig, LanguageTrainer, run};
+use train::language::{LanguageTrainConfig, LanguageTrainer, fit};
 use train::teacher::TeacherSet;
 
 fn fixture() -> PathBuf {
@@ -148,7 +148,7 @@ impl Case {
         resume: bool,
     ) -> model::error::Result<train::language::LangSummary> {
         let (dev, solo) = (Device::ndarray(), train::dist::Solo);
-        run(&self.geometry(), &self.teacher, &self.language(), cfg, &dev, resume, &solo, |_| {})
+        fit(&self.geometry(), &self.teacher, &self.language(), cfg, &dev, resume, &solo, |_| {})
     }
 
     pub(crate) fn language(&self) -> LanguageRun {
@@ -254,7 +254,8 @@ fn token_l1_curve(case: &Case, cfg: LanguageTrainConfig, at: &[usize]) -> Vec<(f
 /// start within 50 iterations and keeps falling (measured: view 0.669 -> 0.611 -> 0.533, object
 /// 0.377 -> 0.327 -> 0.321 at 0 / 50 / 100). At these 2-px patches (fan-in 4,608) the paper's
 /// one rate falls too (0.611 at 50); where it rose, at 14-px patches (fan-in 225,792) on a random
-/// 0.5B teacher, BENCHMARKS.md has the figures ("The language stage at real size").
+/// 0.5B teacher, eval/journal/2026-12-01.md has the figures ("The language stage at real size: the
+/// encoder's rate scaled by fan-in").
 #[test]
 fn a_real_width_teacher_with_outlier_channels_is_learnt_from_the_first_iterations() {
     const D: usize = 1152;

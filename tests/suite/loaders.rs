@@ -21,7 +21,7 @@ fn synthetic_dataset_round_trips_through_the_loader() {
     let (dir, o) = synth_dir("rt");
     let ds = load(&dir, &LoadOptions { holdout_every: 3, ..Default::default() }).unwrap();
     assert_eq!((ds.train.len(), ds.test.len()), (4, 2));
-    let scene = model::data::synth::scene::Scene::from_seed(o.seed);
+    let scene = model::data::synth::scene::SynthScene::from_seed(o.seed);
     // Views 2 and 5 are held out.
     for (view, i) in ds.train.iter().zip([0usize, 1, 3, 4]).chain(ds.test.iter().zip([2, 5])) {
         let want = synth::view_camera(i, &o);

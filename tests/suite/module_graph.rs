@@ -12,7 +12,7 @@ const CRATES: &[&str] = &[
     "splat_kernels/src",
     "model/base/src",
     "model/data/src",
-    "model/llava/src",
+    "model/llava-onevision/src",
     "model/core/src",
     "model/viewer/src",
     "train/src",

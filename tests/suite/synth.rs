@@ -12,7 +12,7 @@ use glam::{Mat4, Quat, Vec3, Vec4};
 use model::data::synth::questions::{Kind, ViewFacts, object_questions, scene_questions, view_questions};
 use model::data::synth::raycast::{render_view, render_view_supersampled};
 use model::data::synth::scene::{
-    CUBE_HALF, CYLINDER_HALF_HEIGHT, CYLINDER_RADIUS, Color, Scene, Shape, Size, TORUS_MAJOR, TORUS_MINOR,
+    CUBE_HALF, CYLINDER_HALF_HEIGHT, CYLINDER_RADIUS, Color, Shape, Size, SynthScene, TORUS_MAJOR, TORUS_MINOR,
 };
 use model::data::synth::{self, FIRST_OBJECT_ID, SynthOptions};
 use model::images::{read_gray16, read_png8};
@@ -50,8 +50,8 @@ fn scenes_vary_within_the_rules_and_are_deterministic() {
         (BTreeSet::new(), BTreeSet::new(), BTreeSet::new(), BTreeSet::new());
     let (mut tables, mut backgrounds) = (BTreeSet::new(), BTreeSet::new());
     for seed in 0..400 {
-        let s = Scene::from_seed(seed);
-        assert_eq!(s, Scene::from_seed(seed), "seed {seed} is not deterministic");
+        let s = SynthScene::from_seed(seed);
+        assert_eq!(s, SynthScene::from_seed(seed), "seed {seed} is not deterministic");
         assert!((1..=6).contains(&s.objects.len()), "seed {seed}: {} objects", s.objects.len());
         counts.insert(s.objects.len());
         tables.insert((s.table.pattern, (s.table.color_a[0] * 100.0) as i32));
@@ -80,7 +80,13 @@ fn scenes_vary_within_the_rules_and_are_deterministic() {
 }
 
 /// The answer to a view question recomputed from the rendered ids and depth alone.
-fn recompute(scene: &Scene, ids: &[u8], depth: &[f32], w: usize, qa: &model::data::synth::questions::Qa) -> String {
+fn recompute(
+    scene: &SynthScene,
+    ids: &[u8],
+    depth: &[f32],
+    w: usize,
+    qa: &model::data::synth::questions::Qa,
+) -> String {
     let area = ids.len() as f32;
     let mut px: BTreeMap<u8, Vec<usize>> = BTreeMap::new();
     for (p, &i) in ids.iter().enumerate() {
@@ -158,7 +164,7 @@ fn supersampled_views_blend_edge_pixels_as_a_finer_render_averaged() {
     let mut rng = Rng::new(5);
     let mut blended = 0;
     for seed in [3u64, 11, 29] {
-        let scene = Scene::from_seed(seed);
+        let scene = SynthScene::from_seed(seed);
         let cam = synth::random_camera(&mut rng, 50.0, side, side);
         let plain = render_view(&cam, &scene);
         assert!(render_view_supersampled(&cam, &scene, 1).rgb == plain.rgb, "s = 1 is the plain render");
@@ -210,7 +216,7 @@ fn view_answers_are_true_by_construction() {
     let mut rng = Rng::new(1);
     let mut ambiguous = 0;
     for seed in 100..160 {
-        let scene = Scene::from_seed(seed);
+        let scene = SynthScene::from_seed(seed);
         for _ in 0..3 {
             let cam = synth::random_camera(&mut rng, 50.0, 96, 96);
             let v = render_view(&cam, &scene);
@@ -242,7 +248,7 @@ fn view_answers_are_true_by_construction() {
 
 #[test]
 fn object_and_scene_answers_describe_the_scene() {
-    let scene = Scene::from_seed(3);
+    let scene = SynthScene::from_seed(3);
     for o in &scene.objects {
         let qs = object_questions(o);
         let get = |k: Kind| qs.iter().find(|q| q.kind == k).unwrap().answer.clone();
@@ -287,8 +293,8 @@ fn dataset_is_deterministic_complete_and_geometrically_consistent() {
         );
     }
     let tf: serde_json::Value = serde_json::from_slice(&std::fs::read(a.join("transforms.json")).unwrap()).unwrap();
-    let scene: Scene = serde_json::from_slice(&std::fs::read(a.join("scene.json")).unwrap()).unwrap();
-    assert_eq!(scene, Scene::from_seed(11));
+    let scene: SynthScene = serde_json::from_slice(&std::fs::read(a.join("scene.json")).unwrap()).unwrap();
+    assert_eq!(scene, SynthScene::from_seed(11));
     let (fx, fy, cx, cy) = (
         tf["fl_x"].as_f64().unwrap() as f32,
         tf["fl_y"].as_f64().unwrap() as f32,
@@ -411,7 +417,7 @@ fn clicks_land_deep_inside_the_object() {
     // a rendered view: each click is on its object, and inside it whenever the mask has an interior
     let s = 48usize;
     let opts = SynthOptions { views: 2, width: s as u32, height: s as u32, ..Default::default() };
-    let scene = Scene::from_seed(opts.seed);
+    let scene = SynthScene::from_seed(opts.seed);
     let v = render_view(&synth::view_camera(0, &opts), &scene);
     for o in &scene.objects {
         let Some([x, y]) = synth::click_pixel(&v.ids, s, o.id) else { continue };

@@ -11,9 +11,10 @@ use burn::tensor::{Device, Tensor, TensorData, activation};
 use chatsplat_tests::{host, max_abs_diff, temp_dir};
 use model::vlm::LlavaOnevision;
 use train::dist::Solo;
-use train::vlm::batch::{forward, pack};
 use train::vlm::data::SampleKind;
+use train::vlm::forward::forward;
 use train::vlm::hops::{HopKind, SINK};
+use train::vlm::pack::pack;
 use train::vlm::{HEADS_FILE, RunningAccuracy, Shape, Trainer, VlmTrainConfig, eval_samples, save_model, train_from};
 
 fn tiny_config() -> VlmTrainConfig {
@@ -536,8 +537,9 @@ fn chatsplat_tokens_answer_a_held_out_scene_nearly_as_well_as_ground_truth_image
 /// (2026-11-25), 75 questions, ground-truth images 0.933, ChatSplat tokens 0.947 (dev profile,
 /// ndarray; with the paper's constant rates 0.933 and 0.867; with the smaller objects and an
 /// earlier model 0.821 and 0.791, and 0.567 after 60 language iterations: the view tokens of small
-/// objects sharpen late, BENCHMARKS.md). With the seventh model and the encoder's rates scaled by
-/// fan-in (2026-12-01, dev profile): ground-truth images 0.987, ChatSplat tokens 1.000.
+/// objects sharpen late, eval/journal/2026-11-25.md, "The paper's comparison with the fourth
+/// model"). With the seventh model and the encoder's rates scaled by fan-in (2026-12-01, dev
+/// profile): ground-truth images 0.987, ChatSplat tokens 1.000.
 const E2E_FLOOR: f64 = 0.85;
 const E2E_GAP: f64 = 0.05;
 

@@ -2,12 +2,12 @@
 //! identity field, from posed photos), [`teacher`] (LLaVA-OneVision's SigLIP tokens of every
 //! training view and masked object) and [`language`] (the per-Gaussian language field, the
 //! encoder and the scaling adjustment against those tokens). All render through
-//! `splat_kernels::splat` and optimise with burn's Adam; [`ckpt`] keeps the optimizer state by
+//! `splat_kernels::splat` and optimise with burn's Adam; [`adam_state`] keeps the optimizer state by
 //! parameter name; [`pipeline`] runs one scene through the three. Inference (chat) lives in `model`
 //! and does not depend on this crate.
 #![allow(deprecated)] // burn-ndarray is deprecated in burn 0.22 in favour of burn-flex.
 
-pub mod ckpt;
+pub mod adam_state;
 pub mod dist;
 pub mod geometry;
 pub mod guard;

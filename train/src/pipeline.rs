@@ -146,7 +146,7 @@ pub fn train_scene(
         obs.dataset(&dirs.data, &ds);
         let cfg = recipe.geometry.clone();
         let s = model::catch_backend("training", || {
-            geometry::run(&ds, points.as_ref(), &dirs.data, &load, &dirs.run, cfg, device, again, |p| obs.geometry(&p))
+            geometry::fit(&ds, points.as_ref(), &dirs.data, &load, &dirs.run, cfg, device, again, |p| obs.geometry(&p))
         })??;
         obs.geometry_done(&s, &dirs.run);
         out.geometry = Some(s);
@@ -189,7 +189,7 @@ pub fn train_scene(
     obs.start(Stage::Language, if again { Some(lang.read_state()?.iter) } else { None });
     let cfg = recipe.language.clone();
     let s = model::catch_backend("language training", || {
-        crate::language::run(&dirs.run, &dirs.teacher.dir, lang, cfg, device, again, &crate::dist::Solo, |p| {
+        crate::language::fit(&dirs.run, &dirs.teacher.dir, lang, cfg, device, again, &crate::dist::Solo, |p| {
             obs.language(&p)
         })
     })??;

@@ -14,7 +14,9 @@
 
 use burn::tensor::{Device, Tensor, TensorData, activation};
 use clap::Parser;
+use eval::harness::{ModelArgs, TokenFidelity};
 use eval::plot::{Chart, Series};
+use model::Result;
 use model::chat::ChatSession;
 use model::data::View;
 use model::language::{Encoder, FrozenEncoder, LanguageConfig, object_image};
@@ -22,10 +24,9 @@ use model::run::{GeometryRun, LanguageRun};
 use model::scene::LanguageScene;
 use model::splats::host;
 use model::vlm::{LlavaOnevision, RgbImage};
-use model::{Backend, Result, catch_backend};
 use std::path::PathBuf;
 use std::time::Instant;
-use train::language::{LanguageTrainConfig, run};
+use train::language::{LanguageTrainConfig, fit};
 use train::teacher::{ExtractOptions, TeacherSet};
 
 #[derive(Parser)]
@@ -37,11 +38,8 @@ struct Args {
     /// Language run (default: RUN/language).
     #[arg(long)]
     language: Option<PathBuf>,
-    /// LLaVA-OneVision directory (default: the built-in model).
-    #[arg(long)]
-    vlm: Option<PathBuf>,
-    #[arg(long, default_value_t = Backend::Ndarray)]
-    backend: Backend,
+    #[command(flatten)]
+    model: ModelArgs,
     /// Output directory for sweep runs, bench.json and the plot (default: RUN/bench).
     #[arg(long)]
     out: Option<PathBuf>,
@@ -61,37 +59,11 @@ const QUESTIONS: [&str; 3] =
     ["Describe this image.", "What objects are on the table?", "What colour is the largest object?"];
 
 #[derive(Default, Clone, Copy, Debug, serde::Serialize)]
-struct Pair {
-    l1: f64,
-    cos: f64,
-    n: usize,
-}
-
-impl Pair {
-    fn add(&mut self, a: &[f32], b: &[f32], d: usize) {
-        self.l1 += a.iter().zip(b).map(|(x, y)| (x - y).abs() as f64).sum::<f64>() / a.len() as f64;
-        let mut cos = 0.0;
-        for (x, y) in a.chunks(d).zip(b.chunks(d)) {
-            let dot: f64 = x.iter().zip(y).map(|(p, q)| (*p as f64) * (*q as f64)).sum();
-            let nx: f64 = x.iter().map(|p| (*p as f64).powi(2)).sum::<f64>().sqrt();
-            let ny: f64 = y.iter().map(|p| (*p as f64).powi(2)).sum::<f64>().sqrt();
-            cos += dot / (nx * ny).max(1e-12);
-        }
-        self.cos += cos / (a.len() / d) as f64;
-        self.n += 1;
-    }
-    fn mean(self) -> Pair {
-        let k = self.n.max(1) as f64;
-        Pair { l1: self.l1 / k, cos: self.cos / k, n: self.n }
-    }
-}
-
-#[derive(Default, Clone, Copy, Debug, serde::Serialize)]
 struct Fidelity {
-    view: Pair,
-    view_baseline: Pair,
-    object: Pair,
-    object_baseline: Pair,
+    view: TokenFidelity,
+    view_baseline: TokenFidelity,
+    object: TokenFidelity,
+    object_baseline: TokenFidelity,
     kl: f64,
     kl_baseline: f64,
     kl_n: usize,
@@ -325,28 +297,11 @@ fn row(
     Ok(r)
 }
 
-/// Large tensors' blocks mapped with huge pages and reused ([`model::alloc::KeepLarge`]).
-#[global_allocator]
-static ALLOC: model::alloc::KeepLarge = model::alloc::KeepLarge;
-
-fn main() -> std::process::ExitCode {
-    model::alloc::keep_freed_memory();
-    let a = Args::parse();
-    match catch_backend("lang-bench", || bench(&a)).and_then(|r| r) {
-        Ok(()) => std::process::ExitCode::SUCCESS,
-        Err(e) => {
-            eprintln!("error: {e}");
-            std::process::ExitCode::FAILURE
-        }
-    }
-}
+eval::bench_main!("lang-bench", bench);
 
 fn bench(a: &Args) -> Result<()> {
-    let device: Device = a.backend.device();
-    let vlm_dir = match &a.vlm {
-        Some(d) => d.clone(),
-        None => model::vlm::default_model_dir()?,
-    };
+    let device: Device = a.model.device();
+    let vlm_dir = a.model.vlm_dir()?;
     let geometry = GeometryRun::new(&a.run);
     let lang = a.language.as_ref().map(LanguageRun::new).unwrap_or_else(|| geometry.language());
     let out = a.out.clone().unwrap_or_else(|| a.run.join("bench"));
@@ -367,7 +322,7 @@ fn bench(a: &Args) -> Result<()> {
         held[0].camera.height,
         vlm_dir.display(),
         vlm.cfg.vision.hidden_size,
-        a.backend
+        a.model.backend
     );
 
     let f = fidelity(scene, vlm, held, true, true)?;
@@ -376,7 +331,7 @@ fn bench(a: &Args) -> Result<()> {
     println!("|---|---|---|---|---|---|---|");
     println!(
         "| ChatSplat (rendered language maps -> encoder) | {:.4} | {:.4} | {:.4} | {:.4} | {} | {:.4} |",
-        f.view.l1, f.view.cos, f.object.l1, f.object.cos, f.object.n, f.kl
+        f.view.l1, f.view.cos, f.object.l1, f.object.cos, f.object.grids, f.kl
     );
     println!(
         "| LLaVA-OV baseline: teacher(rendered RGB) | {:.4} | {:.4} | {:.4} | {:.4} | {} | {:.4} |",
@@ -384,13 +339,13 @@ fn bench(a: &Args) -> Result<()> {
         f.view_baseline.cos,
         f.object_baseline.l1,
         f.object_baseline.cos,
-        f.object_baseline.n,
+        f.object_baseline.grids,
         f.kl_baseline
     );
     println!("\n(KL averaged over {} view x question pairs: {:?})", f.kl_n, QUESTIONS);
 
     let s = speed(scene, vlm, true, held, a.reps)?;
-    println!("\n## Speed ({:?}, {} views x {} reps)\n", a.backend, held.len(), a.reps);
+    println!("\n## Speed ({:?}, {} views x {} reps)\n", a.model.backend, held.len(), a.reps);
     println!("| path | views/s | objects/s |");
     println!("|---|---|---|");
     println!(
@@ -478,7 +433,7 @@ fn bench(a: &Args) -> Result<()> {
                 {secs:.3} s per view at inference (median of {} calls, {:.3}-{:.3} s; frozen{}; the first view, \
                 freezing included, {first_secs:.3} s), {train_secs:.3} s as training runs it (the fold formed \
                 per view)",
-            a.backend,
+            a.model.backend,
             calls.len(),
             calls[0],
             calls[calls.len() - 1],
@@ -540,7 +495,7 @@ fn bench(a: &Args) -> Result<()> {
             let dir = LanguageRun::new(out.join(name.replace([' ', '/', '(', ')', '='], "_")));
             let bar = eval::progress::Progress::new(name.clone(), "it");
             let resume = dir.checkpoint().is_file();
-            let summary = run(&geometry, &teacher_dir, &dir, cfg, &device, resume, &train::dist::Solo, |p| {
+            let summary = fit(&geometry, &teacher_dir, &dir, cfg, &device, resume, &train::dist::Solo, |p| {
                 bar.update_with(p.iter, p.iters, &format!("loss {:.4}", p.step.loss))
             })?;
             let sc = LanguageScene::load(&geometry, &dir, &device)?;
@@ -582,7 +537,7 @@ fn bench(a: &Args) -> Result<()> {
         color: [120, 120, 120],
     });
     let chart = Chart {
-        title: format!("held-out token L1 vs views/s ({:?})", a.backend),
+        title: format!("held-out token L1 vs views/s ({:?})", a.model.backend),
         x_label: "views per second (render + encode)".into(),
         y_label: "token L1 vs teacher(GT)".into(),
         log_x: true,
@@ -594,7 +549,7 @@ fn bench(a: &Args) -> Result<()> {
     let json = serde_json::json!({
         "fidelity": f, "speed": s, "rows": rows, "full_size_encoder_s_per_view": full,
         "object_crop_ms": per_object(t_crop), "object_full_frame_ms": per_object(t_full),
-        "backend": a.backend.to_string(),
+        "backend": a.model.backend.to_string(),
     });
     model::io::write_json(&out.join("bench.json"), &json)?;
     println!("\nplot -> {}, figures -> {}", png.display(), out.join("bench.json").display());

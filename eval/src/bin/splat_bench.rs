@@ -298,17 +298,13 @@ fn fmt_ms(v: Option<f64>) -> String {
     }
 }
 
-/// Large tensors' blocks mapped with huge pages and reused ([`model::alloc::KeepLarge`]).
-#[global_allocator]
-static ALLOC: model::alloc::KeepLarge = model::alloc::KeepLarge;
+eval::bench_main!("splat-bench", bench);
 
-fn main() {
-    model::alloc::keep_freed_memory();
-    let a = Args::parse();
+fn bench(a: &Args) -> model::Result<()> {
     if a.accuracy {
         accuracy();
         grad_accuracy();
-        return;
+        return Ok(());
     }
     let want = |s: &str| a.impls.iter().any(|x| x == s);
     let reduce = GradReduce::from(a.grad_reduce);
@@ -321,8 +317,7 @@ fn main() {
         let Some((w, h)) =
             res.split_once('x').and_then(|(w, h)| Some((w.parse::<u32>().ok()?, h.parse::<u32>().ok()?)))
         else {
-            eprintln!("error: --res expects WxH, got `{res}`");
-            std::process::exit(2);
+            return Err(model::Error::input(format!("--res expects WxH, got `{res}`")));
         };
         let cam = Camera::look_at(glam::Vec3::ZERO, glam::Vec3::Z, -glam::Vec3::Y, 50.0, w, h);
         for &c in &a.c {
@@ -381,4 +376,5 @@ fn main() {
             }
         }
     }
+    Ok(())
 }

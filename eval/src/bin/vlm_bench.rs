@@ -178,49 +178,22 @@ fn memory_table(name: &str, cfg: &LlavaConfig) {
     );
 }
 
-/// Large tensors' blocks mapped with huge pages and reused ([`model::alloc::KeepLarge`]).
-#[global_allocator]
-static ALLOC: model::alloc::KeepLarge = model::alloc::KeepLarge;
+eval::bench_main!("vlm-bench", bench);
 
-fn main() -> std::process::ExitCode {
-    model::alloc::keep_freed_memory();
-    let a = Args::parse();
-    let reference = match a.reference.as_deref().map(read_reference).transpose() {
-        Ok(r) => r,
-        Err(e) => {
-            eprintln!("error: {e}");
-            return std::process::ExitCode::FAILURE;
-        }
-    };
-    let dir = match a.vlm.clone().map(Ok).unwrap_or_else(model::vlm::default_model_dir) {
-        Ok(d) => d,
-        Err(e) => {
-            eprintln!("error: {e}");
-            return std::process::ExitCode::FAILURE;
-        }
-    };
+fn bench(a: &Args) -> model::Result<()> {
+    let reference = a.reference.as_deref().map(read_reference).transpose()?;
+    let dir = eval::harness::vlm_dir(a.vlm.as_deref())?;
     let layers = a.layers.map(|n| n as usize);
     if let Some(out) = &a.save {
         let Some(size) = &a.random else {
-            eprintln!("error: --save writes a --random model: pass --random 0.5b");
-            return std::process::ExitCode::FAILURE;
+            return Err(model::Error::input("--save writes a --random model: pass --random 0.5b"));
         };
         // drawn in f16 (written in bf16 anyway): the peak is the f16 model and one f32 copy for the
         // writer, under twice the model's f32 size
-        let saved = match random_model(size, layers, &burn::tensor::Device::flex(), true) {
-            Ok(m) => train::vlm::save_model_as(&m, out, true).map_err(|e| e.to_string()),
-            Err(e) => Err(e.to_string()),
-        };
-        return match saved {
-            Ok(n) => {
-                println!("random {size}: {n} parameters (bf16) -> {}", out.display());
-                std::process::ExitCode::SUCCESS
-            }
-            Err(e) => {
-                eprintln!("error: {e}");
-                std::process::ExitCode::FAILURE
-            }
-        };
+        let m = random_model(size, layers, &burn::tensor::Device::flex(), true)?;
+        let n = train::vlm::save_model_as(&m, out, true)?;
+        println!("random {size}: {n} parameters (bf16) -> {}", out.display());
+        return Ok(());
     }
     match &a.random {
         Some(size) => println!("## vlm-bench: random-weight {size} (published configuration)"),
@@ -341,5 +314,5 @@ fn main() -> std::process::ExitCode {
     }
     memory_table("llava-onevision-qwen2-0.5b-ov-hf", &LlavaConfig::onevision_0_5b());
     memory_table("llava-onevision-qwen2-7b-ov-hf", &LlavaConfig::onevision_7b());
-    std::process::ExitCode::SUCCESS
+    Ok(())
 }

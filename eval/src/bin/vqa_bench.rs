@@ -15,8 +15,10 @@
 use burn::tensor::Device;
 use clap::Parser;
 use eval::compare::{Answered, Source, Tally, answer_file};
+use eval::harness::{HeldOutSeeds, ModelArgs, TokenFidelity};
 use eval::plot::{Chart, Series};
 use eval::progress::Progress;
+use model::Result;
 use model::chat::{ChatSession, DEFAULT_SCENE_VIEWS};
 use model::data::synth::{SynthOptions, write_dataset};
 use model::data::{LoadOptions, load_any};
@@ -25,7 +27,6 @@ use model::run::{GeometryRun, LanguageRun};
 use model::splats::host;
 use model::vlm::{LlavaOnevision, RgbImage};
 use model::vqa::{Level, load_questions, scene_view, target_of};
-use model::{Backend, Result, catch_backend};
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::time::Instant;
@@ -60,14 +61,10 @@ impl Observer for SeedBars {
 #[derive(Parser)]
 #[command(name = "vqa-bench", about = "ChatSplat vs the VLM on ground-truth and rendered images, offline")]
 struct Args {
-    /// LLaVA-OneVision directory (default: the built-in model).
-    #[arg(long)]
-    vlm: Option<PathBuf>,
-    /// Held-out scenes (seeds `first-seed..first-seed + seeds`; training never uses seeds below 1e6).
-    #[arg(long, default_value_t = 5)]
-    seeds: u64,
-    #[arg(long, default_value_t = 30_000)]
-    first_seed: u64,
+    #[command(flatten)]
+    model: ModelArgs,
+    #[command(flatten)]
+    held_out: HeldOutSeeds,
     /// Views per scene (every 8th is held out) and their side.
     #[arg(long, default_value_t = 32)]
     views: usize,
@@ -94,8 +91,6 @@ struct Args {
     /// Work directory (datasets, runs) and bench.json.
     #[arg(long, default_value = "out/vqa-bench")]
     out: PathBuf,
-    #[arg(long, default_value_t = Backend::Ndarray)]
-    backend: Backend,
     /// Also sweep speed against error on ChatSplat's answers: language channels (8/16/64 beside
     /// the config's), Gaussians kept by language contribution (50/25/10 %), a coarser map, half
     /// the language iterations and a quarter of the geometry's. Writes sweep.png (accuracy against
@@ -215,54 +210,7 @@ fn field_bytes(session: &ChatSession) -> usize {
     session.scene.field.named().iter().map(|(_, t)| 4 * t.dims().iter().product::<usize>()).sum()
 }
 
-/// Large tensors' blocks mapped with huge pages and reused ([`model::alloc::KeepLarge`]).
-#[global_allocator]
-static ALLOC: model::alloc::KeepLarge = model::alloc::KeepLarge;
-
-fn main() -> std::process::ExitCode {
-    model::alloc::keep_freed_memory();
-    let a = Args::parse();
-    match catch_backend("vqa-bench", || bench(&a)).and_then(|r| r) {
-        Ok(()) => std::process::ExitCode::SUCCESS,
-        Err(e) => {
-            eprintln!("error: {e}");
-            std::process::ExitCode::FAILURE
-        }
-    }
-}
-
-/// L1 and cosine of token grids against the teacher's: sums over `n` grids while a run adds
-/// them, means in bench.json ([`Fidelity::mean`]).
-#[derive(Default, Clone, Copy, serde::Serialize, serde::Deserialize)]
-struct Fidelity {
-    l1: f64,
-    cos: f64,
-    n: usize,
-}
-
-impl Fidelity {
-    fn add(&mut self, a: &[f32], b: &[f32], d: usize) {
-        for (x, y) in a.chunks(d).zip(b.chunks(d)) {
-            let l1 = x.iter().zip(y).map(|(p, q)| (p - q).abs() as f64).sum::<f64>() / d as f64;
-            let dot: f64 = x.iter().zip(y).map(|(p, q)| *p as f64 * *q as f64).sum();
-            let nx = x.iter().map(|p| (*p as f64).powi(2)).sum::<f64>().sqrt();
-            let ny = y.iter().map(|p| (*p as f64).powi(2)).sum::<f64>().sqrt();
-            self.l1 += l1;
-            self.cos += dot / (nx * ny).max(1e-12);
-            self.n += 1;
-        }
-    }
-    fn mean(self) -> Self {
-        let n = self.n.max(1) as f64;
-        Self { l1: self.l1 / n, cos: self.cos / n, n: self.n }
-    }
-    /// Adds the means `m` of another run back as sums.
-    fn add_mean(&mut self, m: Fidelity) {
-        self.l1 += m.l1 * m.n as f64;
-        self.cos += m.cos * m.n as f64;
-        self.n += m.n;
-    }
-}
+eval::bench_main!("vqa-bench", bench);
 
 /// Adds `p` to the point of its name in `points`, or appends it (the sweep's order).
 fn add_point(points: &mut Vec<Point>, p: &Point) {
@@ -278,8 +226,8 @@ struct Totals {
     tallies: BTreeMap<Source, Tally>,
     /// Seconds spent making tokens and how many, per path and level.
     seconds: BTreeMap<(Source, Level), (f64, usize)>,
-    fid_rgb: Fidelity,
-    fid_cs: Fidelity,
+    fid_rgb: TokenFidelity,
+    fid_cs: TokenFidelity,
     points: Vec<Point>,
     /// Held-out seeds, ranges `[first, end)`.
     seeds: Vec<[u64; 2]>,
@@ -296,8 +244,8 @@ struct BenchJson {
     /// `None` in files written before the runs stored it.
     #[serde(default)]
     token_seconds: Option<Vec<(Source, Level, f64, usize)>>,
-    fidelity_rendered_rgb: Fidelity,
-    fidelity_chatsplat: Fidelity,
+    fidelity_rendered_rgb: TokenFidelity,
+    fidelity_chatsplat: TokenFidelity,
     #[serde(default)]
     sweep: Vec<Point>,
 }
@@ -339,11 +287,8 @@ fn bench(a: &Args) -> Result<()> {
     if !a.merge.is_empty() {
         return merge(a);
     }
-    let device: Device = a.backend.device();
-    let vlm_dir = match &a.vlm {
-        Some(d) => d.clone(),
-        None => model::vlm::default_model_dir()?,
-    };
+    let device: Device = a.model.device();
+    let vlm_dir = a.model.vlm_dir()?;
     let vlm = LlavaOnevision::load(&vlm_dir, &device)?;
     let side = a.resolution.unwrap_or(vlm.cfg.vision.image_size as u32);
     let mut language_config = match &a.language_config {
@@ -357,10 +302,10 @@ fn bench(a: &Args) -> Result<()> {
     language_config.iters = a.language_iters;
     language_config.checkpoint_every = 0;
     model::io::create_dir(&a.out)?;
-    let mut totals = Totals { seeds: vec![[a.first_seed, a.first_seed + a.seeds]], ..Default::default() };
+    let mut totals = Totals { seeds: vec![[a.held_out.first_seed, a.held_out.range().end]], ..Default::default() };
     let Totals { tallies, seconds, fid_rgb, fid_cs, points, .. } = &mut totals;
     let d = vlm.cfg.vision.hidden_size;
-    for seed in a.first_seed..a.first_seed + a.seeds {
+    for seed in a.held_out.range() {
         let dir = a.out.join(format!("seed{seed}"));
         let data = dir.join("data");
         let opts = SynthOptions { seed, views: a.views, width: side, height: side, ..Default::default() };
@@ -468,7 +413,7 @@ fn bench(a: &Args) -> Result<()> {
         let train_field = |run: &GeometryRun, tag: &str, cfg: LanguageTrainConfig| -> Result<(ChatSession, f64)> {
             let lang = LanguageRun::new(run.dir.join(format!("language-{tag}")));
             let bar = Progress::new(format!("seed {seed} sweep: language {tag}"), "it");
-            let l = train::language::run(run, &teacher.dir, &lang, cfg, &device, false, &train::dist::Solo, |p| {
+            let l = train::language::fit(run, &teacher.dir, &lang, cfg, &device, false, &train::dist::Solo, |p| {
                 if p.iter.is_multiple_of(10) || p.iter == p.iters {
                     bar.update_with(p.iter, p.iters, &format!("loss {:.4}", p.step.loss))
                 }
@@ -516,7 +461,7 @@ fn bench(a: &Args) -> Result<()> {
                     let small = GeometryRun::new(dir.join(format!("run-geometry-{k}")));
                     let bar = Progress::new(format!("seed {seed} sweep: geometry 1/{k}"), "it");
                     let gcfg = GeometryConfig::short((a.geometry_iters / k).max(1));
-                    train::geometry::run(&ds, None, &data, &load, &small, gcfg, &device, false, |p| {
+                    train::geometry::fit(&ds, None, &data, &load, &small, gcfg, &device, false, |p| {
                         if p.iter.is_multiple_of(20) || p.iter == p.iters {
                             bar.update_with(p.iter, p.iters, &format!("psnr {:.2}", p.psnr))
                         }
@@ -531,10 +476,10 @@ fn bench(a: &Args) -> Result<()> {
         }
     }
     let settings = serde_json::json!({
-        "seeds": [a.first_seed, a.first_seed + a.seeds], "views": a.views, "resolution": side,
+        "seeds": [a.held_out.first_seed, a.held_out.range().end], "views": a.views, "resolution": side,
         "geometry_iters": a.geometry_iters, "language_iters": a.language_iters, "novel_views": a.novel_views,
         "tower_tail": a.tower_tail,
-        "language_config": language_config, "backend": a.backend.to_string(),
+        "language_config": language_config, "backend": a.model.backend.to_string(),
     });
     report(&totals, &format!("{} views of {side}px", a.views), settings, &a.out)
 }

@@ -5,8 +5,9 @@
 /// makes buffers of 7-39 MB, which glibc by default maps per allocation and unmaps on free, so
 /// each was zeroed and faulted in page by page again (page faults were ~8 % of a prefill's
 /// samples). Measured on 2 cores: prefill 244 -> 291 tokens/s, vision tower 2.90 -> 2.68 s
-/// (BENCHMARKS.md). Freed memory stays with the process (its peak is unchanged). Call it at the
-/// start of `main`; a no-op off glibc.
+/// (eval/journal/2026-11-26.md, "Decode past transformers on the AVX-512 Xeon: few-row products, the
+/// KV cache in place, malloc kept"). Freed memory stays with the process (its peak is unchanged).
+/// Call it at the start of `main`; a no-op off glibc.
 pub fn keep_freed_memory() {
     #[cfg(all(target_os = "linux", target_env = "gnu"))]
     // SAFETY: `mallopt` only sets malloc's tunables (it takes the arena lock itself).

@@ -148,19 +148,18 @@ impl ChatSession {
         compact: bool,
     ) -> Result<Self> {
         let language = language.map(LanguageRun::new).unwrap_or_else(|| run.language());
-        let scene = if compact {
-            LanguageScene::open(run, &language, device)?
-        } else {
-            LanguageScene::load(run, &language, device)?
-        };
+        let (splats, state) = run.load_model(device)?;
+        let opened = language.open(run, splats.len(), compact, device)?;
         // after the loads, which name a missing or broken run better
-        if let Some(iter) = language.unfinished()? {
+        if !opened.finished {
             crate::error::warn(format_args!(
-                "{}: this language run stopped at iteration {iter} before it finished (it has no metrics.json): \
+                "{}: this language run stopped at iteration {} before it finished (it has no metrics.json): \
                     its field is that checkpoint's; `chatsplat train-language --resume` finishes it",
-                language.dir.display()
+                language.dir.display(),
+                opened.state.iter
             ));
         }
+        let scene = LanguageScene::of(splats, &state, opened);
         let cams = run.read_cameras()?;
         let vlm = LlavaOnevision::load(vlm_dir, device)?;
         if vlm.cfg.vision.hidden_size != scene.cfg.dim {

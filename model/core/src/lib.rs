@@ -7,7 +7,7 @@
 //! 3. [`language`] — per-Gaussian language features, the encoder that turns a rendered feature
 //!    map into tokens, and the token cameras (one crop rule for teacher and field).
 //! 4. [`vlm`] — LLaVA-OneVision (SigLIP, projector, Qwen2, tokenizer, generation): the
-//!    `llava-onevision` crate (model/llava), re-exported.
+//!    `llava-onevision` crate (model/llava-onevision), re-exported.
 //! 5. [`scene`] and [`chat`] — a trained scene answering questions at view, object and scene
 //!    level: frozen Gaussians + language field -> tokens -> prompt -> LLM; [`vqa`] runs a
 //!    question file through it.

@@ -357,6 +357,27 @@ impl LanguageRun {
         Ok((field, state))
     }
 
+    /// Everything of the run a scene needs, each file read once: the field and the state, with
+    /// `compacted` its compaction (both checked against the `gaussians` of the geometry run
+    /// `geometry`), and whether the run finished.
+    pub fn open(
+        &self,
+        geometry: &GeometryRun,
+        gaussians: usize,
+        compacted: bool,
+        device: &Device,
+    ) -> Result<OpenedLanguage> {
+        let (field, state) = self.load_field(device)?;
+        if field.len() != gaussians {
+            return Err(Error::invalid(
+                self.checkpoint(),
+                format!("{} Gaussians, but the geometry run {} has {gaussians}", field.len(), geometry.dir.display()),
+            ));
+        }
+        let compaction = if compacted { self.read_compaction(gaussians)? } else { None };
+        Ok(OpenedLanguage { field, state, compaction, finished: self.metrics().is_file() })
+    }
+
     /// Each Gaussian's accumulated language gradient (zero: never seen by a map).
     pub fn read_contribution(&self) -> Result<Vec<f32>> {
         let path = self.checkpoint();
@@ -365,6 +386,17 @@ impl LanguageRun {
             tensors.remove("contribution").ok_or_else(|| Error::invalid(&path, "tensor contribution is missing"))?;
         Ok(v)
     }
+}
+
+/// A language run opened for a scene ([`LanguageRun::open`]).
+pub struct OpenedLanguage {
+    pub field: LanguageField,
+    pub state: LanguageState,
+    /// The Gaussians its language maps keep, when it was opened compacted and has a compaction.
+    pub compaction: Option<Compaction>,
+    /// Whether the run wrote its `metrics.json` (a stopped, killed or diverged run has not: its
+    /// field is its last checkpoint's).
+    pub finished: bool,
 }
 
 /// What compacting a language run kept (`compact.json`): the Gaussians with the largest language

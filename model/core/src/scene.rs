@@ -4,7 +4,7 @@
 
 use crate::error::{Error, Result};
 use crate::language::{LanguageConfig, LanguageField, ObjectCrop, mask_out};
-use crate::run::{GeometryRun, LanguageRun};
+use crate::run::{GeometryRun, GeometryState, LanguageRun, OpenedLanguage};
 use crate::splats::{SplatModel, ViewRender, host};
 use crate::vlm::LlavaOnevision;
 use burn::tensor::{Device, Int, Tensor, TensorData};
@@ -36,26 +36,11 @@ pub struct LanguageScene {
 }
 
 impl LanguageScene {
-    /// Loads a geometry run and a language run trained on it.
+    /// Loads a geometry run and a language run trained on it, every Gaussian in the language maps.
     pub fn load(run: &GeometryRun, language: &LanguageRun, device: &Device) -> Result<Self> {
         let (splats, state) = run.load_model(device)?;
-        let (field, lstate) = language.load_field(device)?;
-        if field.len() != splats.len() {
-            return Err(Error::invalid(
-                language.checkpoint(),
-                format!("{} Gaussians, but the geometry run {} has {}", field.len(), run.dir.display(), splats.len()),
-            ));
-        }
-        Ok(Self {
-            cfg: lstate.field,
-            splats,
-            sh_degree: state.sh_degree,
-            background: state.background,
-            field,
-            display: None,
-            margin: lstate.margin,
-            masks: state.data.masks,
-        })
+        let opened = language.open(run, splats.len(), false, device)?;
+        Ok(Self::of(splats, &state, opened))
     }
 
     /// [`load`](Self::load) for inference: a compacted run ([`model::run::Compaction`]) keeps
@@ -63,11 +48,28 @@ impl LanguageScene {
     ///
     /// [`model::run::Compaction`]: crate::run::Compaction
     pub fn open(run: &GeometryRun, language: &LanguageRun, device: &Device) -> Result<Self> {
-        let scene = Self::load(run, language, device)?;
-        Ok(match language.read_compaction(scene.splats.len())? {
+        let (splats, state) = run.load_model(device)?;
+        let opened = language.open(run, splats.len(), true, device)?;
+        Ok(Self::of(splats, &state, opened))
+    }
+
+    /// The scene of an opened geometry and language run: with a compaction, its language maps
+    /// and picks from the kept Gaussians only.
+    pub fn of(splats: SplatModel, state: &GeometryState, language: OpenedLanguage) -> Self {
+        let scene = Self {
+            cfg: language.state.field,
+            splats,
+            sh_degree: state.sh_degree,
+            background: state.background,
+            field: language.field,
+            display: None,
+            margin: language.state.margin,
+            masks: state.data.masks,
+        };
+        match &language.compaction {
             Some(c) => scene.subset(&c.kept),
             None => scene,
-        })
+        }
     }
 
     /// The frozen Gaussians carrying `features` (`[N, C]`, on `features`' device, autodiff when

@@ -5,7 +5,7 @@
 use crate::camera::ViewCamera;
 use glam::Vec3;
 use model::chat::{ChatSession, DEFAULT_SCENE_VIEWS};
-use model::data::synth::scene::Scene;
+use model::data::synth::scene::SynthScene;
 use model::run::GeometryRun;
 use serde::Serialize;
 use splat_kernels::Camera;
@@ -25,7 +25,7 @@ impl ObjectNames {
         if !path.exists() {
             return Self::default();
         }
-        match model::io::read_json::<Scene>(&path) {
+        match model::io::read_json::<SynthScene>(&path) {
             Ok(scene) => {
                 let mut names: BTreeMap<u8, String> = scene.objects.iter().map(|o| (o.id, o.name())).collect();
                 names.insert(model::data::synth::TABLE_ID, "table".into());

@@ -7,7 +7,7 @@
 //! the accumulated screen-space gradient, prunes transparent ones and periodically resets opacity.
 //!
 //! [`config`] (every knob), [`init`] (extent, initial Gaussians), [`metrics`] (SSIM, PSNR, mIoU),
-//! [`trainer`] (step, densification, evaluation, checkpoints), and [`run`] (the whole stage).
+//! [`trainer`] (step, densification, evaluation, checkpoints), and [`fit`] (the whole stage).
 
 pub mod config;
 pub mod init;
@@ -60,7 +60,7 @@ pub struct Progress {
     pub gaussians: usize,
 }
 
-/// Result of [`run`].
+/// Result of [`fit`].
 #[derive(Clone, Debug)]
 pub struct RunSummary {
     pub eval: EvalStats,
@@ -106,7 +106,7 @@ pub fn data_ref(ds: &Dataset, data_dir: &Path, load: &LoadOptions, run: &Geometr
 /// `cameras.json`, `classifier.json` and `metrics.json`. Resuming a run made on another dataset
 /// or downscale is refused.
 #[allow(clippy::too_many_arguments)]
-pub fn run(
+pub fn fit(
     ds: &Dataset,
     points: Option<&SparsePoints>,
     data_dir: &Path,
@@ -159,7 +159,7 @@ pub fn run(
         // drops below the iteration reached, so the saved state stays consistent)
         t.cfg.iters = cfg.iters.max(t.iter);
         let at = t.iter;
-        crate::ckpt::warn_if_done(&out.dir, at, cfg.iters);
+        crate::adam_state::warn_if_done(&out.dir, at, cfg.iters);
         (t, Some(at))
     } else {
         (GeometryTrainer::new_with_points(ds, points, cfg, device)?, None)

@@ -3,7 +3,7 @@
 use super::init::{SceneExtent, initial_cloud, logit};
 use super::metrics::{miou, psnr, ssim};
 use super::{GeometryConfig, classes_of};
-use crate::ckpt::AdamStates;
+use crate::adam_state::AdamStates;
 use burn::optim::{Adam, AdamConfig};
 use burn::tensor::{Device, Int, Tensor, TensorData, activation};
 use model::data::colmap::SparsePoints;
@@ -306,7 +306,7 @@ impl GeometryTrainer {
         let cfg: GeometryConfig = io::read_json(&run.config())?;
         cfg.validate().map_err(|e| Error::invalid(run.config(), e.to_string()))?;
         let (model, state) = run.load_model(device)?;
-        crate::ckpt::check_progress(&run.state(), state.iter, cfg.iters, &state.adam_time)?;
+        crate::adam_state::check_progress(&run.state(), state.iter, cfg.iters, &state.adam_time)?;
         let path = run.checkpoint();
         let (mut tensors, _) = io::read_f32(&path)?;
         for name in SplatParams::<()>::NAMES {

@@ -6,7 +6,7 @@
 //! rasterised from the kept rows alone, and the smallest whose score rises by at most the
 //! tolerance over the whole field's is kept. Scoring stops at the first fraction past it. The
 //! tolerance was set on five held-out scenes, where answers through the kept rows were also
-//! measured (BENCHMARKS.md, "Model only what a scene needs: the compact default").
+//! measured (eval/journal/2026-11-27.md, "Model only what a scene needs: the compact default").
 
 use super::LanguageTrainer;
 use model::error::Result;

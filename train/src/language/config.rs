@@ -5,9 +5,9 @@ use model::language::LanguageConfig;
 use serde::{Deserialize, Serialize};
 
 /// The default largest relative rise of the training views' token L1 when compacting
-/// ([`compact`]). On the five held-out scenes of BENCHMARKS.md, 25 % of the Gaussians raised it
-/// 1.0-2.6 % (their answers: 652 of 734 right against 654 with every Gaussian) and 15 % raised it
-/// 4.5-9.2 %, so 3 % keeps a quarter.
+/// ([`compact`]). On five held-out scenes (eval/journal/2026-11-27.md, "Model only what a scene
+/// needs: the compact default"), 25 % of the Gaussians raised it 1.0-2.6 % (their answers: 652 of
+/// 734 right against 654 with every Gaussian) and 15 % raised it 4.5-9.2 %, so 3 % keeps a quarter.
 pub const DEFAULT_COMPACT_TOLERANCE: f32 = 0.03;
 
 /// Every knob of the language stage (saved beside the run as `config.json`).
@@ -23,7 +23,8 @@ pub struct LanguageTrainConfig {
     /// patch convolution overshoots during the warm-up of a short run (on the demo scene the loss
     /// rose 2.5 -> 3.9 and 100 iterations never recovered: 47-54 % exact match with a warm-up of
     /// 10-25 against 90 % at 0.02), so the default is 0.02; at 240 iterations on the bench scenes
-    /// 0.05 scores about a point higher (BENCHMARKS.md).
+    /// 0.05 scores about a point higher (eval/journal/2026-11-25.md, "The language stage's learning
+    /// rates: a cosine decay and a slower encoder").
     pub lr_encoder: f64,
     /// The encoder's rate is `lr_encoder` for a layer whose fan-in is at most this, and
     /// `lr_encoder * lr_fan_in_ref / fan_in` above it (weight and bias alike; the scaling
@@ -32,11 +33,13 @@ pub struct LanguageTrainConfig {
     /// moves by about rate x fan-in: the patch convolution (fan-in patch² x D: 12,288 for the
     /// built-in model, 18,432-225,792 at LLaVA-OneVision's D = 1152) at the lifting layers' rate
     /// threw the tokens far past the teacher's in the first steps (on `fox` at 1/8 the training
-    /// views' token L1 rose 0.594 -> 1.088 in 100 iterations; BENCHMARKS.md). Scaled, a step moves
-    /// the tokens by the same amount at every size.
+    /// views' token L1 rose 0.594 -> 1.088 in 100 iterations; eval/journal/2026-12-01.md, "The
+    /// language stage at real size: the encoder's rate scaled by fan-in"). Scaled, a step moves the
+    /// tokens by the same amount at every size.
     pub lr_fan_in_ref: usize,
     /// Adam learning rate of the token mixer (`field.token_mixer`): its attention projections
-    /// were fitted at 0.002 where they were measured (`encoder-probe`, BENCHMARKS.md).
+    /// were fitted at 0.002 where they were measured (`encoder-probe`, eval/journal/2026-11-28.md,
+    /// "Ten held-out scenes with 48 views", paragraph "Found: the encoder's locality loses the count").
     pub lr_mixer: f64,
     /// Weight of the object loss (paper: 1).
     pub object_weight: f32,
@@ -52,7 +55,9 @@ pub struct LanguageTrainConfig {
     /// fraction of it at the last iteration (1: constant, as in the paper). Adam at a constant
     /// rate keeps every feature moving by about the rate to the end; decaying it lets the field
     /// settle: on held-out views of the synthetic scenes (240 iterations) the view tokens' L1 to
-    /// the teacher fell from 0.51 to 0.42 and ChatSplat's exact match rose 82 -> 89 % (BENCHMARKS.md).
+    /// the teacher fell from 0.51 to 0.42 and ChatSplat's exact match rose 82 -> 89 %
+    /// (eval/journal/2026-11-25.md, "The language stage's learning rates: a cosine decay and a
+    /// slower encoder").
     pub lr_final: f64,
     /// Initialise the scaling adjustment from the teacher: `b` = per-token mean over the training
     /// views, `a` = per-channel standard deviation, so the encoder starts on standardised targets.
@@ -76,7 +81,8 @@ pub struct LanguageTrainConfig {
     /// contribution; half, 35, 25, 15 or 10 %) whose training views' token L1 (view + weighted
     /// object) rises by at most this fraction over the whole field's, and write them to
     /// `compact.json` (inference then renders language maps from those alone; 0: keep all).
-    /// Calibrated on five held-out scenes (BENCHMARKS.md).
+    /// Calibrated on five held-out scenes (eval/journal/2026-11-27.md, "Model only what a scene
+    /// needs: the compact default").
     pub compact_tolerance: f32,
 }
 

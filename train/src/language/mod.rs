@@ -10,13 +10,13 @@
 //! `Adam`, one state per named tensor (paper: lr 0.05 for features and encoder).
 //!
 //! Modules: [`config`] (the knobs, the short recipe), [`trainer`] (one step), [`compact`]
-//! (the fewest Gaussians that keep the tokens), `run` (the stage: checkpoints, metrics).
+//! (the fewest Gaussians that keep the tokens), `fit` (the stage: checkpoints, metrics).
 
 pub mod compact;
 pub mod config;
-mod run;
+mod fit;
 pub mod trainer;
 
 pub use config::*;
-pub use run::*;
+pub use fit::*;
 pub use trainer::*;

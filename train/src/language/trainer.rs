@@ -2,7 +2,7 @@
 //! them and steps the field, the encoder and the scaling adjustment against the teacher tokens.
 
 use super::LanguageTrainConfig;
-use crate::ckpt::{AdamStates, HostAdam};
+use crate::adam_state::{AdamStates, HostAdam};
 use crate::dist::{self, Collective, Solo};
 use crate::schedule::warmup_cosine;
 use crate::teacher::{TeacherObject, TeacherSet};
@@ -481,7 +481,7 @@ impl LanguageTrainer {
         cfg.validate().map_err(|e| Error::invalid(out.config(), e.to_string()))?;
         let scene = LanguageScene::load(run, out, device)?;
         let state = out.read_state()?;
-        crate::ckpt::check_progress(&out.state(), state.iter, cfg.iters, &state.adam_time)?;
+        crate::adam_state::check_progress(&out.state(), state.iter, cfg.iters, &state.adam_time)?;
         let teacher = TeacherSet::open(&state.teacher.resolve(&out.dir))?;
         teacher.check_novel(&scene.splats, run)?;
         let cameras = teacher.cameras()?;

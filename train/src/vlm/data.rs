@@ -9,7 +9,7 @@ use model::data::synth::questions::{
     view_questions,
 };
 use model::data::synth::raycast::{SynthView, render_view_supersampled};
-use model::data::synth::scene::Scene;
+use model::data::synth::scene::SynthScene;
 use model::data::synth::{SCENE_VIEWS, random_camera};
 use model::language::ObjectCrop;
 use model::question_file::Level;
@@ -57,7 +57,7 @@ pub struct TowerImage {
 }
 
 /// The (colour, shape, size) classes (1-based) of object `id` of `scene`; zeros for anything else.
-fn token_label(scene: &Scene, id: u8) -> [u8; 3] {
+fn token_label(scene: &SynthScene, id: u8) -> [u8; 3] {
     use model::data::synth::scene::{Color, Shape, Size};
     match scene.object(id) {
         Some(o) => [
@@ -122,7 +122,7 @@ impl DataSpec {
 
     /// The tower input of an image, its id map and depth (`[h, w]`, same size), resized like
     /// the processor's base view (the ids and depths by nearest sample).
-    fn tower_image(&self, img: &RgbImage, ids: &[u8], depth: &[f32], scene: &Scene) -> TowerImage {
+    fn tower_image(&self, img: &RgbImage, ids: &[u8], depth: &[f32], scene: &SynthScene) -> TowerImage {
         let s = self.image_size;
         let resized = resize(img, s, s, self.processor.resample);
         let patches = ImagePatches { views: vec![resized], orig_hw: (img.height, img.width), anyres: false };
@@ -177,7 +177,7 @@ impl DataSpec {
         TowerImage { pixels, labels, depth: depths }
     }
 
-    fn render(&self, scene: &Scene, rng: &mut Rng) -> (SynthView, ViewFacts, RgbImage) {
+    fn render(&self, scene: &SynthScene, rng: &mut Rng) -> (SynthView, ViewFacts, RgbImage) {
         let r = self.resolution;
         let cam = random_camera(rng, self.fov_deg, r, r);
         let v = render_view_supersampled(&cam, scene, self.supersample);
@@ -189,7 +189,7 @@ impl DataSpec {
     /// A sample of `kind` from the scene of `seed` (random cameras from `rng`); `None` when the
     /// drawn views give nothing to ask (e.g. an ambiguous view, or no object large enough).
     pub fn sample(&self, kind: SampleKind, seed: u64, rng: &mut Rng) -> Option<Sample> {
-        let scene = Scene::from_seed(seed);
+        let scene = SynthScene::from_seed(seed);
         match kind {
             SampleKind::View => {
                 let (v, facts, img) = self.render(&scene, rng);
@@ -257,7 +257,7 @@ impl DataSpec {
 /// Whether every object a view's questions count as seen shows in at least one token of its
 /// image (objects that share their only tokens with others cannot all show; such views are not
 /// asked about, so that answers and hop targets agree with what the tokens show).
-fn shows_every_seen_object(image: &TowerImage, facts: &ViewFacts, scene: &Scene) -> bool {
+fn shows_every_seen_object(image: &TowerImage, facts: &ViewFacts, scene: &SynthScene) -> bool {
     facts.seen.iter().all(|s| image.labels.contains(&token_label(scene, s.id)))
 }
 

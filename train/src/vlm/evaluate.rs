@@ -1,7 +1,8 @@
 //! Exact match on held-out seeds: the samples, teacher-forced greedy answers, per kind and level.
 
-use super::batch::{LabelTokens, Trainable, exact, forward, pack};
 use super::data::{DataSpec, Sample, SampleKind};
+use super::forward::{Trainable, exact, forward};
+use super::pack::{LabelTokens, pack};
 use super::{TRAIN_SEEDS, VlmTrainConfig};
 use burn::tensor::Device;
 use model::data::synth::questions::Kind;

@@ -3,7 +3,9 @@
 //! learns look-up questions ("is there a red cube?") only after a long plateau, because two
 //! attention hops must appear together before either helps the answer: the answer position must
 //! gather the words that name the object, then find the image tokens that show it
-//! (BENCHMARKS.md). Supervising each hop directly removes the plateau:
+//! (eval/journal/2026-11-23.md, "Why look-up questions stay at chance: layout and relevance
+//! probes"). Supervising each hop directly removes the plateau (eval/journal/2026-11-24.md,
+//! "Supervised reasoning hops move the look-up plateau; the first committed model"):
 //!
 //! * **dedupe** (layer 0, heads 0 and 1): every object token of the images looks at earlier
 //!   tokens of the same object, else the first token (the "sink");
@@ -13,7 +15,8 @@
 //!   first answer position's residual stream;
 //! * **places** (out of the find layer, optional): a linear head classifies the image column of
 //!   each of them from the same position (what `left_of` compares, which the answers alone do not
-//!   teach in the mix of all kinds: BENCHMARKS.md);
+//!   teach in the mix of all kinds: eval/journal/2026-11-24.md, "A decaying tower phase of 2,000
+//!   steps: the third model", paragraph "Left of stays at chance in the mix but is learned alone");
 //! * **find** (layer 2, heads 0 and 1): every answer position looks at the tokens of the object
 //!   the answer is about (per question kind, below).
 //!

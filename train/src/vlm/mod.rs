@@ -6,25 +6,27 @@
 //!
 //! Each step draws fresh scenes (seeds from [`TRAIN_SEEDS`], never the held-out ones), ray-casts
 //! them, and asks questions in the token layouts ChatSplat feeds the LLM ([`data`]); many
-//! questions share one image prefix in a packed forward pass ([`batch`]). An auxiliary per-token
+//! questions share one image prefix in a packed forward pass ([`pack`], [`forward`]). An auxiliary per-token
 //! colour/shape/size classification speeds up the vision tower; Gaussian noise on the vision
 //! tokens teaches the LLM to read tokens that are close to the tower's (what ChatSplat's encoder
 //! gives). Evaluation is exact match on held-out seeds ([`evaluate`]).
 //!
 //! In data-flow order: `config` (the model's shape, every knob, the seeds, the running accuracy
 //! that adaptive sampling draws by), [`data`] (samples in ChatSplat's token layouts), [`hops`]
-//! (where a question's reasoning steps should look), [`batch`] (the packed forward and its
-//! losses), `model_dir` (a fresh model; the llava-hf directory it is written to), `evaluate`,
-//! `trainer` (the state and one step), [`checkpoint`] (a stage's whole state for `--resume`);
-//! this module chains the stages ([`train_from`]).
+//! (where a question's reasoning steps should look), [`pack`] (samples packed into one pass),
+//! [`forward`] (the model being trained, its forward pass and losses), `model_dir` (a fresh model;
+//! the llava-hf directory it is written to), `evaluate`, `trainer` (the state and one step),
+//! [`checkpoint`] (a stage's whole state for `--resume`); this module chains the stages
+//! ([`train_from`]).
 
-pub mod batch;
 pub mod checkpoint;
 mod config;
 pub mod data;
 mod evaluate;
+pub mod forward;
 pub mod hops;
 mod model_dir;
+pub mod pack;
 mod trainer;
 
 pub use config::*;

@@ -1,9 +1,12 @@
 //! The training state and one step: samples drawn by running accuracy, the packed forward, the
 //! gradients all-reduced over the ranks, AdamW.
 
-use super::batch::{AUX_CLASSES, LabelTokens, Packed, Trainable, exact, forward, pack};
 use super::data::{DataSpec, Sample, SampleKind, pick_questions};
-use super::{Accuracy, RunningAccuracy, SCENE_IMAGES, VlmTrainConfig, batch, init_model, train_seed};
+use super::forward::{
+    Parts, SLOT_CLASSES, Trainable, counts, exact, forward, place_classes, tower_accuracy, tower_loss, tower_tokens,
+};
+use super::pack::{AUX_CLASSES, LabelTokens, Packed, pack};
+use super::{Accuracy, RunningAccuracy, SCENE_IMAGES, VlmTrainConfig, init_model, train_seed};
 use crate::dist::{self, Collective};
 use burn::optim::{AdamWConfig, GradientsParams};
 use burn::tensor::Device;
@@ -143,10 +146,10 @@ impl Trainer {
         let mut rng = Rng::new(cfg.seed ^ 0xDA7A);
         let aux = model::vlm::layers::init_linear(&mut rng, vlm.cfg.vision.hidden_size, classes, true, 0.02, &ad);
         let vlm_dim = vlm.cfg.vision.hidden_size;
-        let slot_classes = batch::SLOT_CLASSES.iter().sum();
+        let slot_classes = SLOT_CLASSES.iter().sum();
         let slots = model::vlm::layers::init_linear(&mut rng, vlm.cfg.text.hidden_size, slot_classes, true, 0.02, &ad);
         // its own generator: `rng` goes on to draw the data, which must not depend on this head
-        let (mut place_rng, place_classes) = (Rng::new(cfg.seed ^ 0x91ACE), 2 * batch::place_classes(&vlm));
+        let (mut place_rng, place_classes) = (Rng::new(cfg.seed ^ 0x91ACE), 2 * place_classes(&vlm));
         let places =
             model::vlm::layers::init_linear(&mut place_rng, vlm.cfg.text.hidden_size, place_classes, true, 0.02, &ad);
         Ok(Self {
@@ -238,9 +241,9 @@ impl Trainer {
         let parts = match c.size() {
             1 => None,
             size => {
-                let local = batch::counts(&p, self.model.vlm.cfg.text.num_heads);
+                let local = counts(&p, self.model.vlm.cfg.text.num_heads);
                 let global = dist::global_counts(c, "the step's item counts", &local)?;
-                Some(batch::Parts::new(&local, &global.try_into().expect("8 counts"), size))
+                Some(Parts::new(&local, &global.try_into().expect("8 counts"), size))
             }
         };
         let f = forward(&self.model, &p, labels, noise, supervise, parts.as_ref().map(|w| (w, c)), &self.device)?;
@@ -262,7 +265,7 @@ impl Trainer {
             one(&f.slot_loss),
             one(&f.place_loss),
         ];
-        let tower = batch::tower_accuracy(&p, f.aux_logits.clone());
+        let tower = tower_accuracy(&p, f.aux_logits.clone());
         let results = exact(&p, f.log_probs.clone());
         let (values, tower, results) = if c.size() == 1 {
             (values, tower.map(|(r, n)| r as f32 / n.max(1) as f32), results)
@@ -345,12 +348,12 @@ impl Trainer {
         let part = match c.size() {
             1 => None,
             size => {
-                let all = batch::tower_tokens(&self.model.vlm, &samples);
-                let local = batch::tower_tokens(&self.model.vlm, &samples[mine.clone()]);
+                let all = tower_tokens(&self.model.vlm, &samples);
+                let local = tower_tokens(&self.model.vlm, &samples[mine.clone()]);
                 Some(size as f32 * dist::part(local, all))
             }
         };
-        let (loss, tower) = batch::tower_loss(&self.model, &samples[mine], part, &self.device);
+        let (loss, tower) = tower_loss(&self.model, &samples[mine], part, &self.device);
         let mut aux = model::splats::host(loss.clone())[0];
         let tower = if c.size() == 1 {
             tower.map(|(r, n)| r as f32 / n.max(1) as f32)

@@ -25,7 +25,8 @@ pub struct LanguageConfig {
     /// One `(a, b)` per level (view, object) instead of one shared pair. The paper has a single
     /// pair; object crops (mostly black) and whole views have very different token statistics,
     /// and with one pair the view loss rose during training on the synthetic test scene (see
-    /// BENCHMARKS.md), so the default is per level.
+    /// eval/journal/README-reference-2026-11-27.md, "The language stage: `chatsplat train-language`"),
+    /// so the default is per level.
     pub scale_shift_per_level: bool,
     /// Teacher token width D (SigLIP hidden size: 1152 for LLaVA-OneVision).
     pub dim: usize,
@@ -41,7 +42,8 @@ pub struct LanguageConfig {
     pub teacher_patch: usize,
     /// One self-attention layer over the token grid after the patch convolution
     /// ([`TokenMixer`](super::TokenMixer); not in the paper, whose encoder is local). Off: on
-    /// ten held-out scenes it did not answer better than the field without it (BENCHMARKS.md).
+    /// ten held-out scenes it did not answer better than the field without it (BENCHMARKS.md,
+    /// "Where the field's tokens lose count and colours").
     pub token_mixer: bool,
     /// The encoder's tokens are the teacher tower's state before its last `tower_tail` layers,
     /// which run, frozen, on them before the projector (not in the paper: 0). Set from the

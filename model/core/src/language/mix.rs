@@ -5,8 +5,9 @@
 //! SigLIP tokens are not (27 attention layers), and what a question such as "how many" needs is
 //! spread over them: fitted on the true pixels of a view, the local encoder counts 10.7 % right
 //! on held-out views where the teacher counts 75.0 %; with this layer 57.1 % (`encoder-probe`,
-//! BENCHMARKS.md). The output projection starts at zero, so a fresh mixer is the identity and a
-//! field trains as without it until the layer has learnt something.
+//! eval/journal/2026-11-28.md, "Ten held-out scenes with 48 views", paragraph "Found: the encoder's
+//! locality loses the count"). The output projection starts at zero, so a fresh mixer is the
+//! identity and a field trains as without it until the layer has learnt something.
 
 use super::init::{fan_in_bound, uniform};
 use crate::rng::Rng;

@@ -1,10 +1,10 @@
-//! A synthetic [`Scene`] made of Gaussians (for `chatsplat render` and tests): the table top and
+//! A synthetic [`SynthScene`] made of Gaussians (for `chatsplat render` and tests): the table top and
 //! every object's surface covered by flat Gaussians oriented along the surface normal, coloured
 //! with the albedo. It describes the same scene as the ray-cast dataset.
 
 use super::scene::{
     CONE_HEIGHT, CONE_RADIUS, CUBE_HALF, CYLINDER_HALF_HEIGHT, CYLINDER_RADIUS, Object, PYRAMID_HALF, PYRAMID_HEIGHT,
-    Scene, Shape, TORUS_MAJOR, TORUS_MINOR,
+    Shape, SynthScene, TORUS_MAJOR, TORUS_MINOR,
 };
 use crate::cloud::GaussianCloud;
 use crate::cloud::SH_C0;
@@ -107,8 +107,8 @@ fn object(b: &mut Builder, o: &Object, d: usize) {
 }
 
 /// The scene of `seed` as about `density^2 * (1 + objects / 4)` Gaussians, and the scene.
-pub fn tabletop(seed: u64, density: usize) -> (GaussianCloud, Scene) {
-    let scene = Scene::from_seed(seed);
+pub fn tabletop(seed: u64, density: usize) -> (GaussianCloud, SynthScene) {
+    let scene = SynthScene::from_seed(seed);
     let mut b = Builder { cloud: GaussianCloud::default(), rng: Rng::new(seed) };
     let d = density.max(4);
     let half = scene.table.half;

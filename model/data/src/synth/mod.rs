@@ -34,7 +34,7 @@ use base::rng::Rng;
 use glam::{Mat4, Vec3};
 use questions::{CLICK_FRACTION, ViewFacts, covering_views, object_questions, scene_questions, view_questions};
 use raycast::render_view;
-use scene::Scene;
+use scene::SynthScene;
 use serde::Serialize;
 use splat_kernels::Camera;
 use std::path::Path;
@@ -184,7 +184,7 @@ pub fn write_dataset(dir: &Path, opts: &SynthOptions, mut progress: impl FnMut(u
             return Err(Error::input(format!("synth: --{name} {v} is out of range (at most {max})")));
         }
     }
-    let scene = Scene::from_seed(opts.seed);
+    let scene = SynthScene::from_seed(opts.seed);
     for sub in ["images", "masks", "depth"] {
         io::create_dir(&dir.join(sub))?;
     }
@@ -239,7 +239,7 @@ pub fn write_dataset(dir: &Path, opts: &SynthOptions, mut progress: impl FnMut(u
 /// The dataset's question file: view- and object-level questions on the held-out views, scene-level
 /// questions on training views that together see every object (`views` index the frames).
 fn question_file(
-    scene: &Scene,
+    scene: &SynthScene,
     facts: &[ViewFacts],
     clicks: &[Vec<(u8, [usize; 2])>],
     frames: &[String],

@@ -1,4 +1,4 @@
-//! Questions with short canonical answers about a synthetic [`Scene`], true by construction: the
+//! Questions with short canonical answers about a synthetic [`SynthScene`], true by construction: the
 //! view-level facts are read off the rendered instance mask and depth of that very view (an
 //! object counts as seen when it covers at least [`VISIBLE_FRACTION`] of the image; views where
 //! some object shows only a sliver are not asked about), object-level ones off the clicked
@@ -22,7 +22,7 @@
 //! | scene | count_color | How many red objects are in the scene? | `2` |
 //! | scene | count_shape | How many cubes are in the scene? | `1` |
 
-use super::scene::{Color, Object, Scene, Shape, Size};
+use super::scene::{Color, Object, Shape, Size, SynthScene};
 use crate::question_file::Level;
 use base::rng::Rng;
 use serde::{Deserialize, Serialize};
@@ -152,7 +152,7 @@ pub struct ViewFacts {
 
 impl ViewFacts {
     /// The facts of a view of `scene` from its instance ids and camera-space depth (`[h, w]`).
-    pub fn of(scene: &Scene, ids: &[u8], depth: &[f32], width: usize, height: usize) -> Self {
+    pub fn of(scene: &SynthScene, ids: &[u8], depth: &[f32], width: usize, height: usize) -> Self {
         let area = (width * height) as f32;
         let mut seen = Vec::new();
         let mut ambiguous = false;
@@ -177,7 +177,7 @@ impl ViewFacts {
         Self { width, height, seen, ambiguous }
     }
 
-    fn objects<'a>(&self, scene: &'a Scene) -> Vec<&'a Object> {
+    fn objects<'a>(&self, scene: &'a SynthScene) -> Vec<&'a Object> {
         self.seen.iter().filter_map(|s| scene.object(s.id)).collect()
     }
 }
@@ -204,7 +204,7 @@ fn yes(b: bool) -> &'static str {
 
 /// Every view-level question about a view (empty for an ambiguous view). `rng` picks the
 /// negative examples of `exists` and the pairs of `left_of`.
-pub fn view_questions(scene: &Scene, facts: &ViewFacts, rng: &mut Rng) -> Vec<Qa> {
+pub fn view_questions(scene: &SynthScene, facts: &ViewFacts, rng: &mut Rng) -> Vec<Qa> {
     if facts.ambiguous {
         return vec![];
     }
@@ -286,7 +286,7 @@ pub fn object_questions(o: &Object) -> Vec<Qa> {
 
 /// The scene-level questions: counts and the list of all objects, counts by every colour and
 /// every shape (zero included).
-pub fn scene_questions(scene: &Scene) -> Vec<Qa> {
+pub fn scene_questions(scene: &SynthScene) -> Vec<Qa> {
     let all: Vec<&Object> = scene.objects.iter().collect();
     let mut out = vec![
         Qa::new(Kind::Total, "How many objects are in the scene?".into(), all.len().to_string()),
@@ -305,7 +305,7 @@ pub fn scene_questions(scene: &Scene) -> Vec<Qa> {
 
 /// Views (indices into `facts`) that together see every object of the scene: greedily the view
 /// adding most unseen objects, at most `k`; `None` when some object is seen in none of them.
-pub fn covering_views(scene: &Scene, facts: &[ViewFacts], k: usize) -> Option<Vec<usize>> {
+pub fn covering_views(scene: &SynthScene, facts: &[ViewFacts], k: usize) -> Option<Vec<usize>> {
     let mut chosen = Vec::new();
     let mut covered: Vec<u8> = Vec::new();
     let usable: Vec<usize> = (0..facts.len()).filter(|&i| !facts[i].ambiguous).collect();

@@ -1,4 +1,4 @@
-//! The analytic renderer of a synthetic [`Scene`]: one ray per pixel against the table and the
+//! The analytic renderer of a synthetic [`SynthScene`]: one ray per pixel against the table and the
 //! objects (closed forms for sphere, cube, cylinder, cone and pyramid; sphere tracing of the
 //! torus's distance function), Lambert shading under the scene's light, instance ids and
 //! camera-space depth.
@@ -6,7 +6,7 @@
 use super::TABLE_ID;
 use super::scene::{
     CONE_HEIGHT, CONE_RADIUS, CUBE_HALF, CYLINDER_HALF_HEIGHT, CYLINDER_RADIUS, Object, PYRAMID_HALF, PYRAMID_HEIGHT,
-    Scene, Shape, TORUS_MAJOR, TORUS_MINOR,
+    Shape, SynthScene, TORUS_MAJOR, TORUS_MINOR,
 };
 use glam::{Mat4, Quat, Vec3};
 use splat_kernels::Camera;
@@ -182,7 +182,7 @@ fn intersect(o: Vec3, d: Vec3, obj: &Object, best: &mut Option<Hit>) {
 }
 
 /// Casts one ray against the table and all objects.
-fn trace(o: Vec3, d: Vec3, scene: &Scene) -> Option<Hit> {
+fn trace(o: Vec3, d: Vec3, scene: &SynthScene) -> Option<Hit> {
     let mut best = None;
     if d.y.abs() > 1e-12 {
         let t = -o.y / d.y;
@@ -207,7 +207,7 @@ pub struct SynthView {
 }
 
 /// Ray-casts view `cam` of `scene`: one ray through each pixel's centre.
-pub fn render_view(cam: &Camera, scene: &Scene) -> SynthView {
+pub fn render_view(cam: &Camera, scene: &SynthScene) -> SynthView {
     let (w, h) = (cam.width as usize, cam.height as usize);
     let c2w = cam.world_to_cam.inverse();
     let eye = c2w.transform_point3(Vec3::ZERO);
@@ -232,7 +232,7 @@ pub fn render_view(cam: &Camera, scene: &Scene) -> SynthView {
 /// the background (a 4-neighbour of another id) the mean of `s` x `s` rays spread over the
 /// pixel, as a camera's pixel integrates its area; ids and depths stay those of the centre ray.
 /// `s` = 1 is [`render_view`].
-pub fn render_view_supersampled(cam: &Camera, scene: &Scene, s: usize) -> SynthView {
+pub fn render_view_supersampled(cam: &Camera, scene: &SynthScene, s: usize) -> SynthView {
     let mut v = render_view(cam, scene);
     if s <= 1 {
         return v;
@@ -272,7 +272,7 @@ fn pixel_ray(cam: &Camera, c2w: Mat4, px: f32, py: f32) -> Vec3 {
 }
 
 /// The colour of `hit` seen along `d`: its albedo under the scene's light and an ambient term.
-fn shade(hit: &Hit, d: Vec3, scene: &Scene) -> [f32; 3] {
+fn shade(hit: &Hit, d: Vec3, scene: &SynthScene) -> [f32; 3] {
     let n = if hit.normal.dot(d) > 0.0 { -hit.normal } else { hit.normal };
     let k = 0.35 + 0.65 * n.dot(scene.light).max(0.0);
     [hit.albedo[0] * k, hit.albedo[1] * k, hit.albedo[2] * k]

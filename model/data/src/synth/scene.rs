@@ -2,7 +2,7 @@
 //! placed without overlap, every (colour, shape) pair at most once (so "the red cube" names one
 //! object in the whole scene), on a table whose colour and pattern, and under a background and a
 //! light, that also vary with the seed. Everything else in [`super`] (the ray caster, the Gaussian
-//! version, the questions) draws from a [`Scene`].
+//! version, the questions) draws from a [`SynthScene`].
 //!
 //! World frame: y up, the table top at y = 0, objects standing on it.
 
@@ -218,7 +218,7 @@ pub const GAP: f32 = 0.08;
 
 /// A whole synthetic scene.
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
-pub struct Scene {
+pub struct SynthScene {
     pub seed: u64,
     pub table: Table,
     pub background: [f32; 3],
@@ -236,7 +236,7 @@ const TABLE_COLORS: [([f32; 3], [f32; 3]); 4] = [
 
 const BACKGROUNDS: [[f32; 3]; 4] = [[1.0, 1.0, 1.0], [0.90, 0.90, 0.90], [0.86, 0.91, 1.0], [1.0, 0.97, 0.90]];
 
-impl Scene {
+impl SynthScene {
     /// The scene of `seed`: deterministic, 1 to 6 objects.
     pub fn from_seed(seed: u64) -> Self {
         let mut r = Rng::new(seed ^ 0x5EED_5CE7E);
@@ -283,7 +283,7 @@ impl Scene {
                 yaw: r.range(0.0, std::f32::consts::FRAC_PI_2),
             });
         }
-        Scene { seed, table, background, light, objects }
+        SynthScene { seed, table, background, light, objects }
     }
 
     /// The object with mask id `id`.

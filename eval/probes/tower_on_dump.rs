@@ -1,8 +1,10 @@
 //! The Rust tower trained on the crops file `dump_crops` writes, in the way of
-//! `eval/bench/tower_probe.py` (random batches of 16 of the first 7000 crops, AdamW 1e-3, the
+//! `eval/probes/tower_probe.py` (random batches of 16 of the first 7000 crops, AdamW 1e-3, the
 //! per-token shape cross-entropy; `MULTI=1`: the colour, shape and size losses with shape weighted
 //! `SW`, default 1), printing the per-token shape accuracy on object tokens every 100 steps:
-//! `cargo run --release -p train --example tower_on_dump -- /tmp/crops.bin 400` (BENCHMARKS.md).
+//! `cargo run --release -p eval --example tower_on_dump -- /tmp/crops.bin 400`
+//! (eval/journal/2026-11-24.md, "The tower does not learn shape in burn where the same ViT does in
+//! PyTorch").
 #![allow(deprecated)]
 use burn::module::Module;
 use burn::optim::{AdamWConfig, GradientsParams};

@@ -1,5 +1,5 @@
-//! `token-probe`: where ChatSplat's view tokens lose "how many" and "which colours" (issue 38,
-//! section 3). On scenes that `vqa-bench` already trained (its `seed*` directories), every
+//! `token-probe`: where ChatSplat's view tokens lose "how many" and "which colours".
+//! On scenes that `vqa-bench` already trained (its `seed*` directories), every
 //! unambiguous view (training and held-out) is asked "How many objects are there?" and "What
 //! colors are there?" from token grids that mix the teacher's tokens of the ground-truth image
 //! with ChatSplat's, region by region of the view's 8x8 patch grid (by the ground-truth mask):
@@ -22,17 +22,18 @@
 use burn::tensor::{Device, Tensor, TensorData};
 use clap::Parser;
 use eval::compare::{exact, greedy};
+use eval::harness::ModelArgs;
 use eval::probe::{REGIONS, Region, count_answer, regions, token_l1, view_truth};
+use model::Result;
 use model::chat::{ChatSession, Target, answer};
 use model::data::synth::raycast::render_view;
-use model::data::synth::scene::Scene;
+use model::data::synth::scene::SynthScene;
 use model::data::synth::{FOV_DEG, SynthOptions, random_camera, view_camera};
 use model::data::{LoadOptions, load_any};
 use model::rng::Rng;
 use model::run::GeometryRun;
 use model::splats::host;
 use model::vlm::{LlavaOnevision, RgbImage};
-use model::{Backend, Result, catch_backend};
 use splat_kernels::Camera;
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -40,12 +41,11 @@ use std::path::PathBuf;
 #[derive(Parser)]
 #[command(name = "token-probe", about = "Which regions of ChatSplat's view tokens lose count and colours")]
 struct Args {
-    /// Scene directories written by vqa-bench (each holds data/ and run/).
+    /// SynthScene directories written by vqa-bench (each holds data/ and run/).
     #[arg(required = true)]
     scenes: Vec<PathBuf>,
-    /// LLaVA-OneVision directory (default: the built-in model).
-    #[arg(long)]
-    vlm: Option<PathBuf>,
+    #[command(flatten)]
+    model: ModelArgs,
     /// Use every Gaussian (default: the run's compaction, as chat and vqa-bench's (c) do).
     #[arg(long)]
     full: bool,
@@ -60,8 +60,6 @@ struct Args {
     no_swaps: bool,
     #[arg(long, default_value = "out/token-probe")]
     out: PathBuf,
-    #[arg(long, default_value_t = Backend::Ndarray)]
-    backend: Backend,
 }
 
 /// The token grid a variant asks from: `base`'s tokens with `other`'s in `regions`.
@@ -129,7 +127,7 @@ const NOVEL_SEED: u64 = 0x6e6f_7665_6c00;
 /// `n` random orbit cameras of `scene` with its dataset's image size, ray-cast for the truth.
 /// Fails when the dataset's first camera is not the synthetic frame's (a capture that is not
 /// `synth`'s, or one moved after writing), where the ray-cast truth would be of other poses.
-fn novel_views(scene: &Scene, ds: &model::data::Dataset, n: usize) -> Result<Vec<ProbeView>> {
+fn novel_views(scene: &SynthScene, ds: &model::data::Dataset, n: usize) -> Result<Vec<ProbeView>> {
     if n == 0 {
         return Ok(Vec::new()); // without --novel, any dataset the probe read before still works
     }
@@ -157,28 +155,11 @@ fn novel_views(scene: &Scene, ds: &model::data::Dataset, n: usize) -> Result<Vec
         .collect())
 }
 
-/// Large tensors' blocks mapped with huge pages and reused ([`model::alloc::KeepLarge`]).
-#[global_allocator]
-static ALLOC: model::alloc::KeepLarge = model::alloc::KeepLarge;
-
-fn main() -> std::process::ExitCode {
-    model::alloc::keep_freed_memory();
-    let a = Args::parse();
-    match catch_backend("token-probe", || probe(&a)).and_then(|r| r) {
-        Ok(()) => std::process::ExitCode::SUCCESS,
-        Err(e) => {
-            eprintln!("error: {e}");
-            std::process::ExitCode::FAILURE
-        }
-    }
-}
+eval::bench_main!("token-probe", probe);
 
 fn probe(a: &Args) -> Result<()> {
-    let device: Device = a.backend.device();
-    let vlm_dir = match &a.vlm {
-        Some(d) => d.clone(),
-        None => model::vlm::default_model_dir()?,
-    };
+    let device: Device = a.model.device();
+    let vlm_dir = a.model.vlm_dir()?;
     let vlm = LlavaOnevision::load(&vlm_dir, &device)?;
     let (d, p) = (vlm.cfg.vision.hidden_size, vlm.cfg.vision.patch_size);
     let opts = greedy();
@@ -191,7 +172,7 @@ fn probe(a: &Args) -> Result<()> {
     let mut rows = Vec::new();
     for dir in &a.scenes {
         let data = dir.join("data");
-        let scene: Scene = model::io::read_json(&data.join("scene.json"))?;
+        let scene: SynthScene = model::io::read_json(&data.join("scene.json"))?;
         let ds = load_any(&data, &LoadOptions::default())?;
         let run = GeometryRun::new(dir.join("run"));
         let lang = a.language.as_ref().map(|l| run.dir.join(l));

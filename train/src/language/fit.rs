@@ -13,7 +13,7 @@ use model::io;
 use model::run::{GeometryRun, LanguageRun};
 use serde::{Deserialize, Serialize};
 
-/// Progress of [`run`], reported after every iteration.
+/// Progress of [`fit`], reported after every iteration.
 #[derive(Clone, Copy, Debug)]
 pub struct LangProgress {
     pub iter: usize,
@@ -21,7 +21,7 @@ pub struct LangProgress {
     pub step: LangStep,
 }
 
-/// Result of [`run`].
+/// Result of [`fit`].
 #[derive(Clone, Debug)]
 pub struct LangSummary {
     /// Token L1 on the training views (view, object) before and after.
@@ -57,7 +57,7 @@ pub struct LanguageMetrics {
 /// renders its share of every step's views, rank 0 alone writes checkpoints and metrics and
 /// reports progress, and a resume reads the checkpoint rank 0 wrote (a folder every rank sees).
 /// The token L1 before and after is rank 0's (zeros on the others).
-pub fn run(
+pub fn fit(
     run: &GeometryRun,
     teacher_dir: &std::path::Path,
     out: &LanguageRun,
@@ -78,7 +78,7 @@ pub fn run(
         t.cfg.compact_tolerance = cfg.compact_tolerance;
         let at = t.iter;
         if c.is_root() {
-            crate::ckpt::warn_if_done(&out.dir, at, cfg.iters);
+            crate::adam_state::warn_if_done(&out.dir, at, cfg.iters);
         }
         (t, Some(at))
     } else {

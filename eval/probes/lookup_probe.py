@@ -1,11 +1,12 @@
 #!/usr/bin/env python3
-"""An independent PyTorch replica of the tabletop VLM's look-up problem (BENCHMARKS.md, "Why
-look-up questions stay at chance"), to tell a bug in the Rust training from an optimisation
-problem. Run by hand (CI needs no Python): `pip install torch`, then e.g.
+"""An independent PyTorch replica of the tabletop VLM's look-up problem (eval/journal/2026-11-23.md,
+"Why look-up questions stay at chance: layout and relevance probes"; its runs: "The same plateau in an
+independent PyTorch replica"), to tell a bug in the Rust training from an optimisation problem. Run
+by hand (CI needs no Python): `pip install torch`, then e.g.
 
-    python3 eval/bench/lookup_probe.py steps=1500                      # images first, 8x8 tokens
-    python3 eval/bench/lookup_probe.py steps=1000 grid=4 sup=1         # 4x4, supervised attention
-    python3 eval/bench/lookup_probe.py steps=600 text_first=1 wordimg=1 tiedqk=1
+    python3 eval/probes/lookup_probe.py steps=1500                      # images first, 8x8 tokens
+    python3 eval/probes/lookup_probe.py steps=1000 grid=4 sup=1         # 4x4, supervised attention
+    python3 eval/probes/lookup_probe.py steps=600 text_first=1 wordimg=1 tiedqk=1
 
 The LLM follows `train::vlm`'s recipe (Qwen2 blocks: RMSNorm, RoPE, 4 query / 2 KV heads, SwiGLU,
 width 128, 4 layers, tied embeddings, N(0, 0.02) init with the output maps scaled by the depth;
@@ -23,7 +24,7 @@ Further knobs: `init_std` (all matrices, default 0.02), `qk_std` (query/key maps
 `minimal=1` (a row is only the image tokens and the two attribute words; the answer is read at
 the last word) or `minimal=2` (the image tokens, then the whole question, answer read at `?`):
 
-    python3 eval/bench/lookup_probe.py steps=1000 grid=4 text_first=1 wordimg=1 minimal=1 lr=0.001
+    python3 eval/probes/lookup_probe.py steps=1000 grid=4 text_first=1 wordimg=1 minimal=1 lr=0.001
 """
 import torch, torch.nn as nn, torch.nn.functional as F, math, random, sys, time, json
 torch.set_num_threads(1)

@@ -1,13 +1,14 @@
 #!/usr/bin/env python3
-"""Text-only look-up, the control for `lookup_probe.py` (BENCHMARKS.md, "What moves the look-up
-plateau"). Run by hand (CI needs no Python). A row lists 1-6 objects as words (colour, shape),
-then `? <colour> <shape>`; the answer (yes/no: is that object in the list) is read at the last
-word. Same widths as the tabletop LLM (128 x 4 layers), AdamW, batch 128 fresh rows, 100
-warm-up steps; prints the held-out accuracy (1,000 rows) every `ev` steps.
+"""Text-only look-up, the control for `lookup_probe.py` (eval/journal/2026-11-23.md, "What moves
+the look-up plateau: a text-only control, learning rate and layout"). Run by hand (CI needs no
+Python). A row lists 1-6 objects as words (colour, shape), then `? <colour> <shape>`; the answer
+(yes/no: is that object in the list) is read at the last word. Same widths as the tabletop LLM
+(128 x 4 layers), AdamW, batch 128 fresh rows, 100 warm-up steps; prints the held-out accuracy
+(1,000 rows) every `ev` steps.
 
-    python3 eval/bench/text_lookup_probe.py                       # GPT blocks, two words per object
-    python3 eval/bench/text_lookup_probe.py fused=1 qwen=1        # one token per object, Qwen2 blocks
-    python3 eval/bench/text_lookup_probe.py fused=1 bg=20         # + 20 empty tokens among the objects
+    python3 eval/probes/text_lookup_probe.py                       # GPT blocks, two words per object
+    python3 eval/probes/text_lookup_probe.py fused=1 qwen=1        # one token per object, Qwen2 blocks
+    python3 eval/probes/text_lookup_probe.py fused=1 bg=20         # + 20 empty tokens among the objects
 
 `fused=1`: an object is one token, the sum of its colour and shape embeddings (as an image token
 carries both); `bg=K`: K empty tokens placed at random among the objects; `mask_bg_until=S`: the

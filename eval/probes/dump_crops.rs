@@ -1,6 +1,6 @@
 //! Writes the tower's object-crop training images with their per-token labels, for
-//! `eval/bench/tower_probe.py` (the same crops trained in PyTorch):
-//! `cargo run --release -p train --example dump_crops -- 8000 /tmp/crops.bin`.
+//! `eval/probes/tower_probe.py` (the same crops trained in PyTorch):
+//! `cargo run --release -p eval --example dump_crops -- 8000 /tmp/crops.bin`.
 //! Each record: the crop as `[3, S, S]` u8 (S = the tower's input side), then per token the
 //! (colour, shape, size) classes as u8 (0: no object).
 #![allow(deprecated)]

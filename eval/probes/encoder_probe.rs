@@ -1,4 +1,4 @@
-//! `encoder-probe`: can ChatSplat's encoder carry "how many" at all (issue 38, section 3)? The
+//! `encoder-probe`: can ChatSplat's encoder carry "how many" at all? The
 //! encoder is local: a per-pixel lifting network, a non-overlapping patch convolution and a
 //! per-token scale/shift, so a token sees its own patch only, while the teacher's tokens come out
 //! of global attention. Here the field is left out: the encoder reads the ground-truth pixels of a
@@ -15,26 +15,27 @@
 use burn::tensor::{Device, Tensor, TensorData};
 use clap::Parser;
 use eval::compare::{exact, greedy};
+use eval::harness::{HeldOutSeeds, ModelArgs};
 use eval::probe::{Region, count_answer, regions, token_l1, view_truth};
+use model::Result;
 use model::chat::answer;
-use model::data::synth::scene::Scene;
+use model::data::synth::scene::SynthScene;
 use model::data::synth::{SynthOptions, write_dataset};
 use model::data::{LoadOptions, View, load_any};
 use model::language::{Encoder, LanguageConfig};
 use model::rng::Rng;
 use model::splats::host;
 use model::vlm::{LlavaOnevision, RgbImage};
-use model::{Backend, Result, catch_backend};
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 
 #[derive(Parser)]
 #[command(name = "encoder-probe", about = "Whether the local encoder on true pixels keeps count on new views")]
 struct Args {
-    #[arg(long, default_value_t = 5)]
-    seeds: u64,
-    #[arg(long, default_value_t = 30000)]
-    first_seed: u64,
+    #[command(flatten)]
+    model: ModelArgs,
+    #[command(flatten)]
+    held_out: HeldOutSeeds,
     #[arg(long, default_value_t = 48)]
     views: usize,
     /// Adam steps per scene (one training view per step).
@@ -50,25 +51,9 @@ struct Args {
     pooled: bool,
     #[arg(long, default_value = "out/encoder-probe")]
     out: PathBuf,
-    #[arg(long, default_value_t = Backend::Ndarray)]
-    backend: Backend,
 }
 
-/// Large tensors' blocks mapped with huge pages and reused ([`model::alloc::KeepLarge`]).
-#[global_allocator]
-static ALLOC: model::alloc::KeepLarge = model::alloc::KeepLarge;
-
-fn main() -> std::process::ExitCode {
-    model::alloc::keep_freed_memory();
-    let a = Args::parse();
-    match catch_backend("encoder-probe", || probe(&a)).and_then(|r| r) {
-        Ok(()) => std::process::ExitCode::SUCCESS,
-        Err(e) => {
-            eprintln!("error: {e}");
-            std::process::ExitCode::FAILURE
-        }
-    }
-}
+eval::bench_main!("encoder-probe", probe);
 
 struct Sample {
     map: Vec<f32>,
@@ -86,8 +71,8 @@ fn tokens(enc_names: &[String], p: &BTreeMap<String, Tensor<2>>, map: Tensor<3>)
 }
 
 fn probe(a: &Args) -> Result<()> {
-    let device: Device = a.backend.device();
-    let vlm_dir = model::vlm::default_model_dir()?;
+    let device: Device = a.model.device();
+    let vlm_dir = a.model.vlm_dir()?;
     let vlm = LlavaOnevision::load(&vlm_dir, &device)?;
     let (d, p) = (vlm.cfg.vision.hidden_size, vlm.cfg.vision.patch_size);
     let side = vlm.cfg.vision.image_size;
@@ -105,11 +90,11 @@ fn probe(a: &Args) -> Result<()> {
         ..Default::default()
     };
     let mut samples = Vec::new();
-    for (si, seed) in (a.first_seed..a.first_seed + a.seeds).enumerate() {
+    for (si, seed) in a.held_out.range().enumerate() {
         let data = a.out.join(format!("seed{seed}"));
         let opts = SynthOptions { seed, views: a.views, width: side as u32, height: side as u32, ..Default::default() };
         write_dataset(&data, &opts, |_, _| {})?;
-        let scene: Scene = model::io::read_json(&data.join("scene.json"))?;
+        let scene: SynthScene = model::io::read_json(&data.join("scene.json"))?;
         let ds = load_any(&data, &LoadOptions::default())?;
         let split = ds.train.iter().map(|v| (v, false)).chain(ds.test.iter().map(|v| (v, true)));
         for (v, held_out) in split {
@@ -124,15 +109,18 @@ fn probe(a: &Args) -> Result<()> {
     let t = grid * grid;
     let fresh = |seed: u64| Encoder::new(&cfg, seed, &device).named();
     let enc_names: Vec<String> = Encoder::new(&cfg, 0, &device).named().into_iter().map(|(n, _)| n).collect();
-    let groups: Vec<Vec<usize>> =
-        if a.pooled { vec![(0..a.seeds as usize).collect()] } else { (0..a.seeds as usize).map(|s| vec![s]).collect() };
+    let groups: Vec<Vec<usize>> = if a.pooled {
+        vec![(0..a.held_out.seeds as usize).collect()]
+    } else {
+        (0..a.held_out.seeds as usize).map(|s| vec![s]).collect()
+    };
     let mut predicted: Vec<Option<Vec<f32>>> = vec![None; samples.len()];
     let adam = burn::optim::AdamConfig::new().with_epsilon(1e-15).build();
     for (gi, g) in groups.iter().enumerate() {
         let train: Vec<usize> =
             (0..samples.len()).filter(|&i| !samples[i].held_out && g.contains(&samples[i].scene)).collect();
         let mut params = fresh(gi as u64);
-        let mut states = train::ckpt::AdamStates::default();
+        let mut states = train::adam_state::AdamStates::default();
         let mut rng = Rng::new(gi as u64 + 7);
         let mut avg = 0.0;
         for it in 0..a.iters {
@@ -199,7 +187,7 @@ fn probe(a: &Args) -> Result<()> {
     eprintln!();
     println!(
         "encoder-probe: {} scenes from {}, {} iters, lr {}, mix {}, pooled {}",
-        a.seeds, a.first_seed, a.iters, a.lr, a.mix, a.pooled
+        a.held_out.seeds, a.held_out.first_seed, a.iters, a.lr, a.mix, a.pooled
     );
     println!("| views | tokens | asked | count right % | under | colours right % | token L1 | edge L1 |");
     println!("|---|---|---|---|---|---|---|---|");
@@ -224,7 +212,7 @@ fn probe(a: &Args) -> Result<()> {
 /// tokens are edges (one object and background, or two objects).
 fn sample(
     vlm: &LlavaOnevision,
-    scene: &Scene,
+    scene: &SynthScene,
     v: &View,
     held_out: bool,
     si: usize,

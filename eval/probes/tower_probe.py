@@ -1,9 +1,9 @@
 """The tower's shape problem in PyTorch: a ViT of the tabletop tower's size (width 128, 4 layers,
 4 heads, patch 12 on 96 px crops) trained on the very crops and per-token labels the Rust trainer
-uses (written by `cargo run --release -p train --example dump_crops -- 8000 /tmp/crops.bin`),
+uses (written by `cargo run --release -p eval --example dump_crops -- 8000 /tmp/crops.bin`),
 per-token cross-entropy on shape (multi=1: the mean of colour, shape and size, as the Rust
 auxiliary loss), AdamW. Prints train / held-out per-token shape accuracy on object tokens every
-100 steps. Run by hand (2 threads): python3 eval/bench/tower_probe.py steps=400 multi=1 pos=sincos
+100 steps. Run by hand (2 threads): python3 eval/probes/tower_probe.py steps=400 multi=1 pos=sincos
 Options: key=value for any key of A below; model=cnn for a small conv net instead.
 """
 import torch, torch.nn as nn, torch.nn.functional as F, numpy as np, sys, time, math

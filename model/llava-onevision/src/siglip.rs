@@ -79,7 +79,8 @@ impl VisionTower {
         let (d, f, p) = (v.hidden_size, v.intermediate_size, v.patch_size);
         let n = cfg.vision_layers_needed();
         // PyTorch's default scale for linear layers (1 / sqrt(3 fan_in)): a small tower trained from
-        // scratch learns shapes several times faster than from GPT's N(0, 0.02²) (BENCHMARKS.md)
+        // scratch learns shapes several times faster than from GPT's N(0, 0.02²) (eval/journal/2026-11-24.md,
+        // "The tower does not learn shape in burn where the same ViT does in PyTorch")
         let (std, deep) = (1.0 / (3.0 * d as f32).sqrt(), 1.0 / (3.0 * f as f32).sqrt());
         let eps = v.layer_norm_eps;
         let layers: Vec<EncoderLayer> = (0..n)

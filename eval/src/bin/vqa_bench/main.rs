@@ -12,11 +12,13 @@
 //! cargo run --release -p eval --bin vqa-bench -- [--vlm DIR] [--seeds 5] [--sweep] [--out out/vqa-bench]
 #![allow(deprecated)]
 
+mod sweep;
+mod totals;
+
 use burn::tensor::Device;
 use clap::Parser;
-use eval::compare::{Answered, Source, Tally, answer_file};
-use eval::harness::{HeldOutSeeds, ModelArgs, TokenFidelity};
-use eval::plot::{Chart, Series};
+use eval::compare::{Answered, Source, answer_file};
+use eval::harness::{HeldOutSeeds, ModelArgs};
 use eval::progress::Progress;
 use model::Result;
 use model::chat::{ChatSession, DEFAULT_SCENE_VIEWS};
@@ -27,9 +29,10 @@ use model::run::{GeometryRun, LanguageRun};
 use model::splats::host;
 use model::vlm::{LlavaOnevision, RgbImage};
 use model::vqa::{Level, load_questions, scene_view, target_of};
-use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::time::Instant;
+use sweep::{GEOMETRY_SWEEP, Point, SWEEP, Variant, add_point};
+use totals::{BenchJson, Totals, report};
 use train::geometry::GeometryConfig;
 use train::language::LanguageTrainConfig;
 use train::pipeline::{Observer, Recipe, SceneDirs, Stage, TeacherModel, train_scene};
@@ -103,185 +106,12 @@ struct Args {
     merge: Vec<PathBuf>,
 }
 
-/// One way to make a scene's field in the sweep, scored by ChatSplat's answers.
-#[derive(Clone, Copy, Debug, PartialEq)]
-enum Variant {
-    /// The field as configured, every Gaussian (the reference point).
-    Configured,
-    /// The field as `train-language` leaves it by default: compacted (compact.json), the
-    /// comparison's (c).
-    Compacted,
-    /// Language features of this many channels per level.
-    Channels(usize),
-    /// The configured field with only this percentage of its Gaussians, those with the largest
-    /// accumulated language gradient (no retraining).
-    Kept(usize),
-    /// Maps rendered at this many pixels per token (the configured: the views' resolution).
-    Patch(usize),
-    /// The language stage with 1/this of its iterations.
-    LanguageIters(usize),
-    /// Geometry trained with 1/this of its iterations, then the configured language stage.
-    GeometryIters(usize),
-}
-
-const SWEEP: [Variant; 10] = [
-    Variant::Configured,
-    Variant::Compacted,
-    Variant::Channels(8),
-    Variant::Channels(16),
-    Variant::Channels(64),
-    Variant::Kept(50),
-    Variant::Kept(25),
-    Variant::Kept(10),
-    Variant::Patch(6),
-    Variant::LanguageIters(2),
-];
-
-/// Geometry iterations are swept on their own (a second geometry run per scene).
-const GEOMETRY_SWEEP: Variant = Variant::GeometryIters(4);
-
-impl Variant {
-    fn name(self, a: &Args, channels: usize) -> String {
-        match self {
-            Variant::Configured => format!("configured ({channels} ch, all Gaussians)"),
-            Variant::Compacted => "compacted (the default: compact.json)".into(),
-            Variant::Channels(c) => format!("{c} channels"),
-            Variant::Kept(p) => format!("{p} % of the Gaussians kept"),
-            Variant::Patch(p) => format!("map at {p} px per token"),
-            Variant::LanguageIters(d) => format!("language {} iterations", a.language_iters / d),
-            Variant::GeometryIters(d) => format!("geometry {} iterations", a.geometry_iters / d),
-        }
-    }
-
-    /// The plot series a point belongs to.
-    fn axis(self) -> &'static str {
-        match self {
-            Variant::Configured | Variant::Channels(_) => "channels",
-            Variant::Kept(_) | Variant::Compacted => "Gaussians kept",
-            Variant::Patch(_) => "map resolution",
-            Variant::LanguageIters(_) | Variant::GeometryIters(_) => "iterations",
-        }
-    }
-}
-
-/// A sweep point summed over the scenes.
-#[derive(Clone, Debug, Default, serde::Serialize, serde::Deserialize)]
-struct Point {
-    name: String,
-    axis: String,
-    tally: Tally,
-    token_seconds: eval::compare::TokenSeconds,
-    /// Language-stage seconds per iteration, summed over the scenes that trained one.
-    train_seconds: f64,
-    trained: usize,
-    gaussians: usize,
-    field_bytes: usize,
-    scenes: usize,
-}
-
-impl Point {
-    fn add(&mut self, o: &Point) {
-        self.tally.merge(&o.tally);
-        for (level, (t, n)) in &o.token_seconds {
-            let e = self.token_seconds.entry(*level).or_default();
-            e.0 += t;
-            e.1 += n;
-        }
-        self.train_seconds += o.train_seconds;
-        self.trained += o.trained;
-        self.gaussians += o.gaussians;
-        self.field_bytes += o.field_bytes;
-        self.scenes += o.scenes;
-    }
-    fn rate(&self, level: Level) -> f64 {
-        self.token_seconds.get(&level).map(|(t, n)| *n as f64 / t.max(1e-9)).unwrap_or(f64::NAN)
-    }
-    fn kind(&self, kind: &str) -> String {
-        self.tally
-            .by_kind
-            .get(kind)
-            .map(|(r, n)| format!("{:.1}", 100.0 * *r as f64 / (*n).max(1) as f64))
-            .unwrap_or("-".into())
-    }
-}
-
 /// Bytes of a scene's language field (features and encoder) as f32.
 fn field_bytes(session: &ChatSession) -> usize {
     session.scene.field.named().iter().map(|(_, t)| 4 * t.dims().iter().product::<usize>()).sum()
 }
 
 eval::bench_main!("vqa-bench", bench);
-
-/// Adds `p` to the point of its name in `points`, or appends it (the sweep's order).
-fn add_point(points: &mut Vec<Point>, p: &Point) {
-    match points.iter_mut().find(|q| q.name == p.name) {
-        Some(q) => q.add(p),
-        None => points.push(p.clone()),
-    }
-}
-
-/// What a run adds up over its scenes; `--merge` adds the bench.json of several runs.
-#[derive(Default)]
-struct Totals {
-    tallies: BTreeMap<Source, Tally>,
-    /// Seconds spent making tokens and how many, per path and level.
-    seconds: BTreeMap<(Source, Level), (f64, usize)>,
-    fid_rgb: TokenFidelity,
-    fid_cs: TokenFidelity,
-    points: Vec<Point>,
-    /// Held-out seeds, ranges `[first, end)`.
-    seeds: Vec<[u64; 2]>,
-}
-
-/// The parts of a bench.json that `--merge` adds (older files lack `token_seconds`).
-#[derive(serde::Deserialize)]
-struct BenchJson {
-    #[serde(default)]
-    seeds: Option<[u64; 2]>,
-    #[serde(default)]
-    seed_ranges: Vec<[u64; 2]>,
-    tallies: BTreeMap<Source, Tally>,
-    /// `None` in files written before the runs stored it.
-    #[serde(default)]
-    token_seconds: Option<Vec<(Source, Level, f64, usize)>>,
-    fidelity_rendered_rgb: TokenFidelity,
-    fidelity_chatsplat: TokenFidelity,
-    #[serde(default)]
-    sweep: Vec<Point>,
-}
-
-impl Totals {
-    fn add(&mut self, b: &BenchJson) {
-        for (s, t) in &b.tallies {
-            self.tallies.entry(*s).or_default().merge(t);
-        }
-        for &(s, l, t, n) in b.token_seconds.iter().flatten() {
-            let e = self.seconds.entry((s, l)).or_default();
-            e.0 += t;
-            e.1 += n;
-        }
-        self.fid_rgb.add_mean(b.fidelity_rendered_rgb);
-        self.fid_cs.add_mean(b.fidelity_chatsplat);
-        for p in &b.sweep {
-            add_point(&mut self.points, p);
-        }
-        self.seeds.extend(b.seeds.iter().chain(&b.seed_ranges));
-    }
-
-    fn scenes(&self) -> u64 {
-        self.seeds.iter().map(|[a, b]| b - a).sum()
-    }
-
-    /// "5 held-out seeds: 30000-30002, 30003, 30004".
-    fn label(&self) -> String {
-        let ranges: Vec<String> = self
-            .seeds
-            .iter()
-            .map(|&[a, b]| if b == a + 1 { a.to_string() } else { format!("{a}-{}", b - 1) })
-            .collect();
-        format!("{} held-out seeds: {}", self.scenes(), ranges.join(", "))
-    }
-}
 
 fn bench(a: &Args) -> Result<()> {
     if !a.merge.is_empty() {
@@ -517,147 +347,4 @@ fn merge(a: &Args) -> Result<()> {
         "seed_ranges": totals.seeds, "merged_from": a.merge,
     });
     report(&totals, "merged", settings, &a.out)
-}
-
-/// Prints the comparison (and the sweep, when there is one) and writes bench.json (`settings`
-/// first) and sweep.png into `out`.
-fn report(t: &Totals, what: &str, settings: serde_json::Value, out: &std::path::Path) -> Result<()> {
-    let empty = Tally::default();
-    let tally = |s: Source| t.tallies.get(&s).unwrap_or(&empty);
-    println!("\n## ChatSplat vs the VLM on images ({}, {what})\n", t.label());
-    println!("| path | view | object | scene | overall | questions |\n|---|---|---|---|---|---|");
-    for source in Source::ALL {
-        let t = tally(source);
-        let f = |l: Level| t.level(l).map(|v| format!("{v:.1}")).unwrap_or_else(|| "-".into());
-        let n: usize = t.by_level.values().map(|(_, n)| n).sum();
-        println!(
-            "| {} | {} | {} | {} | {:.1} | {n} |",
-            source.label(),
-            f(Level::View),
-            f(Level::Object),
-            f(Level::Scene),
-            t.overall()
-        );
-    }
-    let kinds: Vec<String> = tally(Source::GroundTruth).by_kind.keys().cloned().collect();
-    println!(
-        "\n| question type | (a) ground truth | (b) rendered RGB | (c) ChatSplat | asked |\n|---|---|---|---|---|"
-    );
-    for k in &kinds {
-        let pct = |s: Source| {
-            tally(s)
-                .by_kind
-                .get(k)
-                .map(|(r, n)| format!("{:.1}", 100.0 * *r as f64 / (*n).max(1) as f64))
-                .unwrap_or("-".into())
-        };
-        let n = tally(Source::GroundTruth).by_kind.get(k).map_or(0, |e| e.1);
-        println!(
-            "| {k} | {} | {} | {} | {n} |",
-            pct(Source::GroundTruth),
-            pct(Source::RenderedRgb),
-            pct(Source::ChatSplat)
-        );
-    }
-    println!("\n| tokens of | views/s | objects/s | view token L1 vs teacher(GT) | cosine |\n|---|---|---|---|---|");
-    let rate = |s: Source, l: Level| t.seconds.get(&(s, l)).map(|(t, n)| *n as f64 / t.max(1e-9));
-    let fmt = |r: Option<f64>| r.map_or("-".into(), |r| format!("{r:.1}"));
-    let (fr, fc) = (t.fid_rgb.mean(), t.fid_cs.mean());
-    for (name, s, f) in [
-        ("(b) render RGB + vision tower", Source::RenderedRgb, &fr),
-        ("(c) ChatSplat: render language map + encoder", Source::ChatSplat, &fc),
-    ] {
-        println!(
-            "| {name} | {} | {} | {:.4} | {:.4} |",
-            fmt(rate(s, Level::View)),
-            fmt(rate(s, Level::Object)),
-            f.l1,
-            f.cos
-        );
-    }
-    let baseline = rate(Source::RenderedRgb, Level::View).map(|r| (r, tally(Source::RenderedRgb).overall()));
-    if !t.points.is_empty() {
-        sweep_report(&t.points, baseline, t, out)?;
-    }
-    let mut json = settings;
-    let figures = serde_json::json!({
-        "tallies": t.tallies
-            .iter()
-            .map(|(s, t)| (format!("{s:?}"), serde_json::to_value(t).unwrap()))
-            .collect::<serde_json::Map<_, _>>(),
-        "token_seconds": t.seconds.iter().map(|(&(s, l), &(secs, n))| (s, l, secs, n)).collect::<Vec<_>>(),
-        "fidelity_rendered_rgb": fr, "fidelity_chatsplat": fc, "sweep": t.points,
-    });
-    if let (Some(j), serde_json::Value::Object(f)) = (json.as_object_mut(), figures) {
-        j.extend(f);
-    }
-    model::io::write_json(&out.join("bench.json"), &json)?;
-    println!("\nfigures -> {}", out.join("bench.json").display());
-    Ok(())
-}
-
-/// Prints the sweep's table and writes its plot: ChatSplat's exact match against views/s, one
-/// series per axis through the configured field, the Pareto front, and the rendered-RGB baseline
-/// (`baseline`: its views/s and exact match, when the runs timed it).
-fn sweep_report(points: &[Point], baseline: Option<(f64, f64)>, t: &Totals, out: &std::path::Path) -> Result<()> {
-    println!("\n## Speed against error on ChatSplat's answers ({})\n", t.label());
-    println!(
-        "| field | Gaussians | field MB | view | object | scene | overall | count | colors | left_of | views/s \
-         | objects/s | train s/iter |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|"
-    );
-    for p in points {
-        let n = p.scenes.max(1);
-        let lv = |l: Level| p.tally.level(l).map(|v| format!("{v:.1}")).unwrap_or_else(|| "-".into());
-        let (right, asked) = p.tally.by_level.values().fold((0, 0), |a, b| (a.0 + b.0, a.1 + b.1));
-        let train = if p.trained > 0 { format!("{:.3}", p.train_seconds / p.trained as f64) } else { "-".into() };
-        println!(
-            "| {} | {} | {:.2} | {} | {} | {} | {:.1} ({right}/{asked}) | {} | {} | {} | {:.1} | {:.1} | {train} |",
-            p.name,
-            p.gaussians / n,
-            p.field_bytes as f64 / n as f64 / 1e6,
-            lv(Level::View),
-            lv(Level::Object),
-            lv(Level::Scene),
-            p.tally.overall(),
-            p.kind("count"),
-            p.kind("colors"),
-            p.kind("left_of"),
-            p.rate(Level::View),
-            p.rate(Level::Object),
-        );
-    }
-    let xy = |p: &Point| (p.rate(Level::View), p.tally.overall());
-    let all: Vec<(f64, f64)> = points.iter().map(xy).collect();
-    let front = eval::plot::pareto_front(&all);
-    println!(
-        "\nPareto front (views/s against exact match): {}",
-        front.iter().map(|&i| points[i].name.as_str()).collect::<Vec<_>>().join(" -> ")
-    );
-    let colors = [[31, 119, 180], [214, 39, 40], [44, 160, 44], [148, 103, 189]];
-    let mut series = Vec::new();
-    for (k, axis) in ["channels", "Gaussians kept", "map resolution", "iterations"].into_iter().enumerate() {
-        let mut pts: Vec<(f64, f64)> =
-            points.iter().filter(|p| p.axis == axis || p.name.starts_with("configured")).map(xy).collect();
-        pts.sort_by(|p, q| p.0.total_cmp(&q.0));
-        series.push(Series { label: axis.into(), points: pts, color: colors[k] });
-    }
-    series.push(Series {
-        label: "Pareto front".into(),
-        points: front.iter().map(|&i| all[i]).collect(),
-        color: [0; 3],
-    });
-    if let Some(b) = baseline {
-        series.push(Series { label: "LLaVA-OV on rendered RGB".into(), points: vec![b], color: [120; 3] });
-    }
-    let chart = Chart {
-        title: format!("ChatSplat answers: speed against exact match ({} held-out scenes)", t.scenes()),
-        x_label: "views per second (view tokens)".into(),
-        y_label: "exact match (%)".into(),
-        log_x: true,
-        series,
-    };
-    let png = out.join("sweep.png");
-    chart.write_png(&png, 900, 600)?;
-    println!("plot -> {}", png.display());
-    Ok(())
 }

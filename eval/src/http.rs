@@ -24,7 +24,14 @@ impl Reply {
         String::from_utf8_lossy(&self.body).into_owned()
     }
     pub fn json(&self) -> serde_json::Value {
-        serde_json::from_slice(&self.body).unwrap_or_else(|e| panic!("not JSON ({e}): {}", self.text()))
+        self.try_json().unwrap_or_else(|e| panic!("{e}"))
+    }
+    /// The body as JSON of a 200 response; otherwise the status or the parse error, with the body.
+    pub fn try_json(&self) -> Result<serde_json::Value, String> {
+        if self.status != 200 {
+            return Err(format!("HTTP {}: {}", self.status, self.text()));
+        }
+        serde_json::from_slice(&self.body).map_err(|e| format!("not JSON ({e}): {}", self.text()))
     }
     /// The server-sent events of the body: `(event name, JSON data)`.
     pub fn events(&self) -> Vec<(String, serde_json::Value)> {
@@ -166,6 +173,11 @@ pub struct Server {
 impl Server {
     /// `chatsplat serve --run RUN EXTRA..` of the binary `bin`, once it printed its URL.
     pub fn start(bin: &str, run: &Path, extra: &[&str]) -> Server {
+        Self::launch(Path::new(bin), run, extra).unwrap_or_else(|e| panic!("{e}"))
+    }
+
+    /// [`Server::start`], or why the server did not start (its standard error included).
+    pub fn launch(bin: &Path, run: &Path, extra: &[&str]) -> Result<Server, String> {
         let mut child = Command::new(bin)
             .args(["serve", "--addr", "127.0.0.1:0", "--run"])
             .arg(run)
@@ -173,24 +185,29 @@ impl Server {
             .stdout(Stdio::piped())
             .stderr(Stdio::piped())
             .spawn()
-            .unwrap();
+            .map_err(|e| format!("cannot start {}: {e}", bin.display()))?;
         let log = Arc::new(Mutex::new(String::new()));
-        let (err, l) = (child.stderr.take().unwrap(), log.clone());
-        std::thread::spawn(move || {
+        let (err, l) = (child.stderr.take().expect("piped"), log.clone());
+        let reader = std::thread::spawn(move || {
             for line in BufReader::new(err).lines().map_while(|l| l.ok()) {
                 l.lock().unwrap().push_str(&format!("{line}\n"));
             }
         });
-        let mut out = BufReader::new(child.stdout.take().unwrap());
+        let mut out = BufReader::new(child.stdout.take().expect("piped"));
         let mut line = String::new();
-        out.read_line(&mut line).unwrap();
-        let addr = line
-            .trim()
-            .strip_prefix("chatsplat viewer: http://")
-            .and_then(|a| a.strip_suffix('/'))
-            .unwrap_or_else(|| panic!("no URL on stdout ({line:?}); stderr: {}", log.lock().unwrap()))
-            .to_string();
-        Server { child, addr, log }
+        let _ = out.read_line(&mut line);
+        let addr = line.trim().strip_prefix("chatsplat viewer: http://").and_then(|a| a.strip_suffix('/'));
+        match addr {
+            Some(a) => Ok(Server { addr: a.to_string(), child, log }),
+            None => {
+                // the server exited (or printed something else): its whole standard error
+                let _ = child.kill();
+                let _ = child.wait();
+                let _ = reader.join();
+                let err = log.lock().unwrap().clone();
+                Err(format!("{} serve printed no URL ({line:?}); its stderr:\n{err}", bin.display()))
+            }
+        }
     }
 
     /// What the server wrote to its standard error so far.

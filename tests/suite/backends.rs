@@ -20,12 +20,18 @@ struct Grads {
 }
 
 /// Renders on an autodiff `device` and back-propagates `<w, features> + <wa, alpha> + <wd, depth>`.
-fn render_and_grad(scene: &Scene, cam: &Camera, cfg: RasterConfig, device: &Device, seed: u64) -> (Vec<f32>, Grads) {
+fn render_and_grad(
+    scene: &HostScene,
+    cam: &Camera,
+    cfg: RasterConfig,
+    device: &Device,
+    seed: u64,
+) -> (Vec<f32>, Grads) {
     render_and_grad_with(scene, cam, cfg, device, seed, None)
 }
 
 fn render_and_grad_with(
-    scene: &Scene,
+    scene: &HostScene,
     cam: &Camera,
     cfg: RasterConfig,
     device: &Device,
@@ -111,7 +117,7 @@ fn cpu_backends_autodiff_gradients_equal_the_hand_written_backward() {
     }
 }
 
-fn assert_gradients_equal_the_direct_backward(scene: &Scene, cam: &Camera, cfg: RasterConfig, g: &Grads) {
+fn assert_gradients_equal_the_direct_backward(scene: &HostScene, cam: &Camera, cfg: RasterConfig, g: &Grads) {
     // The same upstream gradient, straight into the CPU backward.
     let (h, w, c) = (cam.height as usize, cam.width as usize, 4);
     let mut r = Rng::new(17);
@@ -272,7 +278,7 @@ fn wgpu_matches_ndarray_forward_backward_and_hard_cases() {
     }
     // Hard cases stay finite on wgpu too.
     let cam = front_camera(33, 21, 30.0);
-    let mut hard = Scene::empty(3);
+    let mut hard = HostScene::empty(3);
     hard.push([0.0, 0.0, 2.0], [0.0; 3], [0.0; 4], 50.0, &[1e3, -1e3, 0.5]);
     hard.push([0.1, 0.0, 2.0], [(1e-8f32).ln(); 3], [1e-40, 0.0, 0.0, 0.0], -50.0, &[1.0; 3]);
     hard.push([0.0, 0.1, 2.0], [0.0, (1e-4f32).ln(), (1e-4f32).ln()], [0.92, 0.0, 0.0, 0.38], 1.0, &[0.2; 3]);
@@ -297,7 +303,7 @@ fn wgpu_matches_ndarray_forward_backward_and_hard_cases() {
     let mut culled = scene.clone();
     culled.push([0.0, 0.0, -2.0], [0.0; 3], [1.0, 0.0, 0.0, 0.0], 3.0, &[1.0; 4]);
     culled.push([50.0, 0.0, 2.0], [-2.0; 3], [1.0, 0.0, 0.0, 0.0], 3.0, &[1.0; 4]);
-    let render = |s: &Scene| {
+    let render = |s: &HostScene| {
         let (g, bg) = s.gaussians(&wgpu);
         host(splat(&g, &cam, bg, &SplatOptions::default()).unwrap().features)
     };
@@ -319,7 +325,7 @@ fn wgpu_matches_ndarray_forward_backward_and_hard_cases() {
     }
     assert!(drawn >= 10, "only {drawn} fuzz scenes drew anything on wgpu");
     // N = 0 and a 1x1 image.
-    let empty = Scene::empty(2);
+    let empty = HostScene::empty(2);
     let (g0, bg0) = empty.gaussians(&wgpu);
     let out = splat(&g0, &front_camera(1, 1, 1.0), bg0, &SplatOptions::default()).unwrap();
     assert_eq!(host(out.features), empty.background);
@@ -340,7 +346,7 @@ fn wgpu_matches_ndarray_forward_backward_and_hard_cases() {
 fn assert_right_or_refused_past_the_loop_limit(wgpu: &Device, nd: &Device) {
     let cam = front_camera(16, 16, 16.0);
     let mut r = Rng::new(91);
-    let mut heavy = Scene::empty(64);
+    let mut heavy = HostScene::empty(64);
     for _ in 0..3000 {
         let feat: Vec<f32> = (0..64).map(|_| r.f()).collect();
         heavy.push(

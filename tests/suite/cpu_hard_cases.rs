@@ -7,7 +7,7 @@ use chatsplat_tests::*;
 use splat_kernels::cpu::{self, ForwardOut, GradOut};
 use splat_kernels::{Camera, RasterConfig, SplatError, reference};
 
-fn run(scene: &Scene, cam: &Camera) -> (ForwardOut, GradOut) {
+fn run(scene: &HostScene, cam: &Camera) -> (ForwardOut, GradOut) {
     scene.inputs().validate().expect("finite inputs are valid");
     let cfg = RasterConfig::default();
     let f = cpu::forward(&scene.inputs(), cam, &cfg);
@@ -40,8 +40,8 @@ fn assert_finite(name: &str, f: &ForwardOut, g: &GradOut) {
     assert!(f.alpha.iter().all(|&a| (0.0..=1.0).contains(&a)), "{name}: alpha outside [0, 1]");
 }
 
-fn one(mean: [f32; 3], ls: [f32; 3], q: [f32; 4], logit: f32, c: usize) -> Scene {
-    let mut s = Scene::empty(c);
+fn one(mean: [f32; 3], ls: [f32; 3], q: [f32; 4], logit: f32, c: usize) -> HostScene {
+    let mut s = HostScene::empty(c);
     s.push(mean, ls, q, logit, &vec![0.7; c]);
     s
 }
@@ -94,7 +94,7 @@ fn extreme_scales_and_anisotropy_stay_finite_and_match_the_reference() {
 #[test]
 fn near_plane_behind_camera_and_extreme_opacity() {
     let cam = front_camera(40, 30, 35.0);
-    let mut s = Scene::empty(4);
+    let mut s = HostScene::empty(4);
     let near = cam.near;
     s.push([0.0, 0.0, -1.0], [0.0; 3], [1.0, 0.0, 0.0, 0.0], 5.0, &[1.0; 4]); // behind
     s.push([0.0, 0.0, near * 0.5], [0.0; 3], [1.0, 0.0, 0.0, 0.0], 5.0, &[1.0; 4]); // centre before near
@@ -114,7 +114,7 @@ fn near_plane_behind_camera_and_extreme_opacity() {
 #[test]
 fn ten_thousand_gaussians_stacked_on_one_pixel() {
     let cam = front_camera(32, 32, 40.0);
-    let mut s = Scene::empty(16);
+    let mut s = HostScene::empty(16);
     let mut r = Rng::new(77);
     for i in 0..10_000 {
         let feat: Vec<f32> = (0..16).map(|_| r.range(-1e3, 1e3)).collect();
@@ -136,12 +136,12 @@ fn ten_thousand_gaussians_stacked_on_one_pixel() {
 #[test]
 fn empty_and_fully_culled_scenes_and_a_one_pixel_image() {
     let cam = front_camera(19, 13, 20.0);
-    let empty = Scene::empty(5);
+    let empty = HostScene::empty(5);
     let (f, g) = run(&empty, &cam);
     assert_finite("N = 0", &f, &g);
     assert!(f.image.chunks(5).all(|px| px == empty.background.as_slice()));
     assert!(f.top_id.iter().all(|&t| t == -1));
-    let mut culled = Scene::empty(5);
+    let mut culled = HostScene::empty(5);
     for k in 0..50 {
         culled.push([0.0, 0.0, -(k as f32) - 1.0], [0.0; 3], [1.0, 0.0, 0.0, 0.0], 2.0, &[1.0; 5]);
     }

@@ -8,7 +8,7 @@ use splat_kernels::RasterConfig;
 use splat_kernels::cpu;
 use splat_kernels::reference;
 
-fn assert_forward_matches(scene: &Scene, cam: &splat_kernels::Camera, cfg: &RasterConfig, tol: f32) {
+fn assert_forward_matches(scene: &HostScene, cam: &splat_kernels::Camera, cfg: &RasterConfig, tol: f32) {
     let fast = cpu::forward(&scene.inputs(), cam, cfg);
     let r = reference::render(&scene.inputs(), cam, cfg);
     let slow = masked_reference(&r, &fast, scene.channels());
@@ -72,7 +72,7 @@ fn loss(r: &reference::RefOut, g: &Upstream) -> f64 {
     l
 }
 
-fn check_gradients(scene: &Scene, cam: &splat_kernels::Camera, seed: u64) {
+fn check_gradients(scene: &HostScene, cam: &splat_kernels::Camera, seed: u64) {
     let cfg = RasterConfig::smooth();
     let hw = (cam.width * cam.height) as usize;
     let c = scene.channels();
@@ -84,7 +84,7 @@ fn check_gradients(scene: &Scene, cam: &splat_kernels::Camera, seed: u64) {
     };
     let fwd = cpu::forward(&scene.inputs(), cam, &cfg);
     let an = cpu::backward(&scene.inputs(), cam, &cfg, &fwd.final_t, &fwd.n_visited, &g.image, &g.alpha, &g.depth);
-    type Field = fn(&mut Scene) -> &mut Vec<f32>;
+    type Field = fn(&mut HostScene) -> &mut Vec<f32>;
     let fields: [(&str, Field, &Vec<f32>, f32); 7] = [
         ("means", |s| &mut s.means, &an.means, 1e-3),
         ("log_scales", |s| &mut s.log_scales, &an.log_scales, 1e-3),
@@ -142,7 +142,7 @@ fn gradients_match_finite_differences_with_a_rotated_camera_and_clamped_jacobian
         32,
     );
     cam.cx = 18.0;
-    let mut scene = Scene::empty(2);
+    let mut scene = HostScene::empty(2);
     let mut r = Rng::new(5);
     for _ in 0..5 {
         let m = [r.range(-0.7, 0.7), r.range(-0.7, 0.7), r.range(0.5, 1.5)];

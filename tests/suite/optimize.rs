@@ -20,7 +20,7 @@ struct Splats {
 }
 
 impl Splats {
-    fn from_scene(s: &Scene, device: &Device) -> Self {
+    fn from_scene(s: &HostScene, device: &Device) -> Self {
         let (g, _) = s.gaussians(device);
         Self {
             means: Param::from_tensor(g.means),

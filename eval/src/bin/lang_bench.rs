@@ -512,25 +512,24 @@ fn bench(a: &Args) -> Result<()> {
         (1_000_000 * d * 2 * 4) as f64 / 1e9
     );
 
-    let mut series = Vec::new();
-    let pick = |pred: &dyn Fn(&Row) -> bool| {
-        rows.iter().filter(|r| pred(r)).map(|r| (r.views_per_s, r.view_l1)).collect::<Vec<_>>()
-    };
-    series.push(Series {
-        label: "channels 8-64".into(),
-        points: pick(&|r| r.name.starts_with("channels")),
-        color: [31, 119, 180],
-    });
-    series.push(Series {
-        label: "Gaussians kept".into(),
-        points: pick(&|r| r.name.starts_with("kept") || r.name.starts_with("trained")),
-        color: [214, 39, 40],
-    });
-    series.push(Series {
-        label: "ablations".into(),
-        points: pick(&|r| r.name.starts_with("no ")),
-        color: [44, 160, 44],
-    });
+    // the rows by the name's first word, then the teacher on renders
+    let groups: [(&str, &[&str], [u8; 3]); 3] = [
+        ("channels 8-64", &["channels"], [31, 119, 180]),
+        ("Gaussians kept", &["kept", "trained"], [214, 39, 40]),
+        ("ablations", &["no "], [44, 160, 44]),
+    ];
+    let mut series: Vec<Series> = groups
+        .iter()
+        .map(|(label, prefixes, color)| Series {
+            label: label.to_string(),
+            points: rows
+                .iter()
+                .filter(|r| prefixes.iter().any(|p| r.name.starts_with(p)))
+                .map(|r| (r.views_per_s, r.view_l1))
+                .collect(),
+            color: *color,
+        })
+        .collect();
     series.push(Series {
         label: "LLaVA-OV on render".into(),
         points: vec![(s.baseline_views_per_s, f.view_baseline.l1)],

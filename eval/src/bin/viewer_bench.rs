@@ -7,18 +7,26 @@
 //! cargo build --release && cargo run --release -p eval --bin viewer-bench -- [--run out/demo/run]
 //! ```
 
+use clap::Parser;
 use eval::browser::{self, Browser};
-use eval::http;
+use eval::http::{self, Reply, Server};
+use model::{Error, Result};
 use serde_json::{Value, json};
-use std::io::{BufRead, BufReader};
 use std::path::PathBuf;
-use std::process::{Command, Stdio};
 use std::time::{Duration, Instant};
 
-fn arg(name: &str) -> Option<String> {
-    let args: Vec<String> = std::env::args().collect();
-    args.iter().position(|a| a == name).and_then(|i| args.get(i + 1).cloned())
+#[derive(Parser)]
+#[command(about = "The browser viewer's figures on a trained run: clicks, first tokens, frames per second")]
+struct Args {
+    /// The run to serve (a `chatsplat demo`'s by default).
+    #[arg(long, default_value = "out/demo/run")]
+    run: PathBuf,
+    /// The `chatsplat` binary (default: the one beside this bench; `cargo build --release` first).
+    #[arg(long)]
+    chatsplat: Option<PathBuf>,
 }
+
+eval::bench_main!("viewer-bench", bench);
 
 fn pct(v: &mut [f64], q: f64) -> f64 {
     v.sort_by(f64::total_cmp);
@@ -26,139 +34,151 @@ fn pct(v: &mut [f64], q: f64) -> f64 {
 }
 
 /// A camera of `w x h` pixels at the view camera `v`'s pose and vertical field of view.
-fn sized(v: &Value, w: u32, h: u32) -> Value {
+fn sized(v: &Value, w: u32, h: u32) -> Result<Value> {
     let mut c = v.clone();
-    let o = c.as_object_mut().expect("a camera");
+    let o = c.as_object_mut().ok_or_else(|| Error::input(format!("/api/scene: a view's camera is {v}")))?;
     for k in ["fx", "fy", "cx", "cy"] {
         o.remove(k);
     }
     o.insert("width".into(), json!(w));
     o.insert("height".into(), json!(h));
-    c
+    Ok(c)
 }
 
-/// The server, stopped however the bench ends.
-struct Server(std::process::Child);
-
-impl Drop for Server {
-    fn drop(&mut self) {
-        let _ = self.0.kill();
-        let _ = self.0.wait();
-    }
+/// `POST path` to the server: the reply, or the connection's error naming the route.
+fn post(addr: &str, path: &str, body: &Value) -> Result<Reply> {
+    http::send(addr, "POST", path, &[], Some(body.to_string().as_bytes()))
+        .map_err(|e| Error::input(format!("{path}: {e}")))
 }
 
-fn main() {
-    let run = PathBuf::from(arg("--run").unwrap_or_else(|| "out/demo/run".into()));
-    let exe = arg("--chatsplat")
-        .map(PathBuf::from)
-        .unwrap_or_else(|| std::env::current_exe().expect("own path").with_file_name("chatsplat"));
+/// `POST path` and its JSON reply (a failure status is an error naming the route).
+fn post_json(addr: &str, path: &str, body: &Value) -> Result<Value> {
+    post(addr, path, body)?.try_json().map_err(|e| Error::input(format!("{path}: {e}")))
+}
+
+/// A number of a reply, or an error naming the field.
+fn num(v: &Value, what: &str) -> Result<f64> {
+    v.as_f64().ok_or_else(|| Error::input(format!("the server's reply has no number for {what}")))
+}
+
+fn bench(a: &Args) -> Result<()> {
+    let run = &a.run;
+    let exe = match &a.chatsplat {
+        Some(p) => p.clone(),
+        None => {
+            std::env::current_exe().map_err(|e| Error::input(format!("own path: {e}")))?.with_file_name("chatsplat")
+        }
+    };
     let (w, h) = (640u32, 480u32);
     let t0 = Instant::now();
-    let mut child = Server(
-        Command::new(&exe)
-            .args(["serve", "--addr", "127.0.0.1:0", "--run"])
-            .arg(&run)
-            .stdout(Stdio::piped())
-            .stderr(Stdio::inherit())
-            .spawn()
-            .unwrap_or_else(|e| panic!("cannot start {}: {e} (cargo build --release first)", exe.display())),
-    );
-    let mut line = String::new();
-    BufReader::new(child.0.stdout.take().expect("piped")).read_line(&mut line).expect("the server's URL");
-    let addr = line.trim().trim_start_matches("chatsplat viewer: http://").trim_end_matches('/').to_string();
-    assert!(!addr.is_empty(), "the server did not start");
+    let server =
+        Server::launch(&exe, run, &[]).map_err(|e| Error::input(format!("{e} (cargo build --release first)")))?;
+    let addr = server.addr.clone();
     let start_s = t0.elapsed().as_secs_f64();
-    let info = http::get(&addr, "/api/scene").json();
+    let info = http::send(&addr, "GET", "/api/scene", &[], None)
+        .map_err(|e| e.to_string())
+        .and_then(|r| r.try_json())
+        .map_err(|e| Error::input(format!("/api/scene: {e}")))?;
     let view0 = info["views"][0]["camera"].clone();
-    let cam = sized(&view0, w, h);
+    let cam = sized(&view0, w, h)?;
 
     // the objects of view 0 and a pixel well inside each (the middle of its mask's longest run)
-    let targets = |camera: &Value| {
-        let width = camera["width"].as_u64().unwrap();
+    let targets = |camera: &Value| -> Result<Vec<(u64, u64, u64)>> {
+        let width = num(&camera["width"], "a camera's width")? as u64;
         let mut t = vec![];
-        for o in info["objects"].as_array().expect("objects") {
-            let r = http::post(&addr, "/api/select", &json!({"camera": camera, "id": o["id"]})).json();
+        for o in info["objects"].as_array().ok_or_else(|| Error::input("/api/scene lists no objects"))? {
+            let r = post_json(&addr, "/api/select", &json!({"camera": camera, "id": o["id"]}))?;
             if let Some(runs) = r["object"]["mask"]["runs"].as_array().filter(|r| !r.is_empty()) {
-                let runs: Vec<u64> = runs.iter().map(|v| v.as_u64().unwrap()).collect();
-                let longest = runs.chunks(2).max_by_key(|r| r[1]).unwrap();
+                let runs: Vec<u64> = runs.iter().filter_map(|v| v.as_u64()).collect();
+                let Some(longest) = runs.chunks_exact(2).max_by_key(|r| r[1]) else { continue };
                 let p = longest[0] + longest[1] / 2;
-                t.push((o["id"].as_u64().unwrap(), p % width, p / width));
+                t.push((num(&o["id"], "an object's id")? as u64, p % width, p / width));
             }
         }
-        assert!(!t.is_empty(), "view 0 shows no object");
-        t
+        if t.is_empty() {
+            return Err(Error::input(format!("{}: view 0 shows no object", run.display())));
+        }
+        Ok(t)
     };
     // clicks as the page makes them (at most 320 px on the longest side: app.js, PICK_SIDE), and
     // at the full size
-    let picks = |camera: &Value| {
-        let at = targets(camera);
+    let picks = |camera: &Value| -> Result<Vec<f64>> {
+        let at = targets(camera)?;
         let mut ms = vec![];
         for i in 0..20 {
             let (id, x, y) = at[i % at.len()];
             let t = Instant::now();
-            let r = http::post(&addr, "/api/pick", &json!({"camera": camera, "x": x, "y": y})).json();
+            let r = post_json(&addr, "/api/pick", &json!({"camera": camera, "x": x, "y": y}))?;
             ms.push(t.elapsed().as_secs_f64() * 1e3);
-            assert_eq!(r["object"]["id"].as_u64(), Some(id), "{r}");
+            if r["object"]["id"].as_u64() != Some(id) {
+                return Err(Error::input(format!("a click inside object {id} picked {r}")));
+            }
         }
-        ms
+        Ok(ms)
     };
-    let mut pick_ms = picks(&sized(&view0, 320, 240));
-    let mut full_pick_ms = picks(&cam);
-    let first_token = |body: Value| -> (f64, String) {
-        let r = http::post(&addr, "/api/ask", &body);
+    let mut pick_ms = picks(&sized(&view0, 320, 240)?)?;
+    let mut full_pick_ms = picks(&cam)?;
+    let first_token = |body: Value| -> Result<f64> {
+        let r = post(&addr, "/api/ask", &body)?;
         let ev = r.events();
-        let done = &ev.iter().find(|e| e.0 == "done").unwrap_or_else(|| panic!("{}", r.text())).1;
-        (done["first_token_ms"].as_f64().unwrap(), done["text"].as_str().unwrap_or("").to_string())
+        let done = &ev.iter().find(|e| e.0 == "done").ok_or_else(|| Error::input(format!("/api/ask: {}", r.text())))?.1;
+        num(&done["first_token_ms"], "first_token_ms")
     };
     let mut object_ms = vec![];
-    for (id, _, _) in targets(&cam).into_iter().take(5) {
-        let (ms, _) = first_token(json!({"scope": "object", "camera": cam, "id": id, "question": "What is this?"}));
-        object_ms.push(ms);
+    for (id, _, _) in targets(&cam)?.into_iter().take(5) {
+        object_ms.push(first_token(json!({"scope": "object", "camera": cam, "id": id, "question": "What is this?"}))?);
     }
     // new cameras: view 0's pose turned about the scene's up axis through its centre
     let mut view_ms = vec![];
-    let centre: [f64; 3] = std::array::from_fn(|i| info["center"][i].as_f64().unwrap());
+    let coords = |v: &Value, n: usize, what: &str| -> Result<Vec<f64>> { (0..n).map(|i| num(&v[i], what)).collect() };
+    let centre = coords(&info["center"], 3, "the scene's centre")?;
     for k in 1..=5 {
         let a = 0.1 * k as f64;
         let mut c = cam.clone();
-        let p: Vec<f64> = (0..3).map(|i| c["position"][i].as_f64().unwrap() - centre[i]).collect();
+        let pos = coords(&c["position"], 3, "a camera's position")?;
+        let p: Vec<f64> = (0..3).map(|i| pos[i] - centre[i]).collect();
         // rotate about +y (the synthetic scenes' up) and turn the camera with it
         let (s, co) = (a.sin(), a.cos());
         c["position"] = json!([centre[0] + co * p[0] + s * p[2], centre[1] + p[1], centre[2] - s * p[0] + co * p[2]]);
-        let q: Vec<f64> = (0..4).map(|i| c["quaternion"][i].as_f64().unwrap()).collect();
+        let q = coords(&c["quaternion"], 4, "a camera's quaternion")?;
         let (hs, hc) = ((a / 2.0).sin(), (a / 2.0).cos());
         // (0, hs, 0, hc) * q
         c["quaternion"] =
             json!([hc * q[0] + hs * q[2], hc * q[1] + hs * q[3], hc * q[2] - hs * q[0], hc * q[3] - hs * q[1]]);
-        let (ms, _) = first_token(json!({"scope": "view", "camera": c, "question": "What objects are there?"}));
-        view_ms.push(ms);
+        view_ms.push(first_token(json!({"scope": "view", "camera": c, "question": "What objects are there?"}))?);
     }
-    let frames = |camera: &Value, seconds: f64| {
+    let frames = |camera: &Value, seconds: f64| -> Result<f64> {
         let t = Instant::now();
         let mut n = 0;
         while t.elapsed().as_secs_f64() < seconds {
-            let r = http::post(&addr, "/api/render", &json!({"camera": camera}));
-            assert_eq!(r.status, 200);
+            let r = post(&addr, "/api/render", &json!({"camera": camera}))?;
+            if r.status != 200 {
+                return Err(Error::input(format!("/api/render: HTTP {}: {}", r.status, r.text())));
+            }
             n += 1;
         }
-        n as f64 / t.elapsed().as_secs_f64()
+        Ok(n as f64 / t.elapsed().as_secs_f64())
     };
-    let full_fps = frames(&cam, 8.0);
-    let preview_fps = frames(&sized(&view0, 160, 120), 4.0);
+    let full_fps = frames(&cam, 8.0)?;
+    let preview_fps = frames(&sized(&view0, 160, 120)?, 4.0)?;
 
     let mut page = None;
     if let Some(exe) = browser::find() {
-        let mut b = Browser::launch(&exe, 1100, 700).expect("the browser");
+        let browser_err = |what: &str| {
+            let what = what.to_string();
+            move |e: String| Error::input(format!("the browser ({what}): {e}"))
+        };
+        let mut b = Browser::launch(&exe, 1100, 700).map_err(browser_err("start"))?;
         let t = Instant::now();
         b.goto(
             &format!("http://{addr}/"),
             "window.chatsplat && window.chatsplat.ready && window.chatsplat.frames > 0",
             Duration::from_secs(300),
         )
-        .expect("the page");
+        .map_err(browser_err("the page"))?;
         let load_s = t.elapsed().as_secs_f64();
-        b.wait_for("window.chatsplat.idle", Duration::from_secs(120)).expect("idle");
-        let r = b.eval("window.chatsplat.canvasRect()").expect("rect");
+        b.wait_for("window.chatsplat.idle", Duration::from_secs(120)).map_err(browser_err("idle"))?;
+        let r = b.eval("window.chatsplat.canvasRect()").map_err(browser_err("the canvas"))?;
         let canvas = format!("{}x{}", r[2], r[3]);
         // orbit a little every animation frame for 8 s, in the page (no input round trips)
         let orbit = "new Promise((done) => { const f0 = window.chatsplat.frames, t0 = performance.now(); \
@@ -166,10 +186,10 @@ fn main() {
               if (performance.now() - t0 < 8000) requestAnimationFrame(step); \
               else done((window.chatsplat.frames - f0) * 1000 / (performance.now() - t0)); }; \
             requestAnimationFrame(step); })";
-        let fps = b.eval(orbit).expect("orbit").as_f64().unwrap();
+        let fps = num(&b.eval(orbit).map_err(browser_err("orbit"))?, "the page's frames per second")?;
         page = Some((load_s, fps, canvas));
     }
-    drop(child);
+    drop(server);
 
     println!("\n## Viewer ({}, {} Gaussians, {w}x{h})\n", run.display(), info["gaussians"]);
     println!("| what | figure |\n|---|---|");
@@ -203,4 +223,5 @@ fn main() {
         }
         None => println!("| browser | not installed (apt-get install chromium-headless-shell) |"),
     }
+    Ok(())
 }

@@ -14,9 +14,9 @@ pub use eval::scratch::{Scratch, temp_dir};
 pub use eval::{browser, http};
 
 /// Host copy of a scene's inputs (the op's own host layout).
-pub type Scene = splat_kernels::ext::HostInputs;
+pub type HostScene = splat_kernels::ext::HostInputs;
 
-/// Test conveniences on [`Scene`].
+/// Test conveniences on [`HostScene`].
 pub trait SceneExt {
     fn inputs(&self) -> SplatInputsRef<'_>;
     fn empty(channels: usize) -> Self;
@@ -27,7 +27,7 @@ pub trait SceneExt {
     fn permuted(&self, order: &[usize]) -> Self;
 }
 
-impl SceneExt for Scene {
+impl SceneExt for HostScene {
     fn inputs(&self) -> SplatInputsRef<'_> {
         self.as_slices()
     }
@@ -81,9 +81,9 @@ pub fn front_camera(w: u32, h: u32, focal: f32) -> Camera {
 }
 
 /// `n` random Gaussians in front of `cam` with `c`-channel features in [0, 1].
-pub fn random_scene(n: usize, c: usize, cam: &Camera, seed: u64) -> Scene {
+pub fn random_scene(n: usize, c: usize, cam: &Camera, seed: u64) -> HostScene {
     let mut r = Rng::new(seed);
-    let mut s = Scene::empty(c);
+    let mut s = HostScene::empty(c);
     s.background = (0..c).map(|_| r.f()).collect();
     for _ in 0..n {
         let z = r.range(2.0, 6.0);
@@ -144,7 +144,7 @@ fn pick(r: &mut Rng, options: &[f32]) -> f32 {
 
 /// A scene mixing extreme but finite values in every tensor (zero, denormal and huge values,
 /// Gaussians at and behind the near plane, opacity logits of +-1e4), deterministic from `seed`.
-pub fn fuzz_scene(seed: u64) -> Scene {
+pub fn fuzz_scene(seed: u64) -> HostScene {
     let pos = [0.0, 1e-38, -1e-42, 0.3, -0.4, 1e6, -1e6, 3.0e38];
     let depth = [0.0, 0.0101, 0.5, 2.0, 1e3, 1e9, -1.0, 1e-30];
     let ls = [-1000.0, -40.0, -18.4, -3.0, 0.0, 9.2, 25.0, 1000.0];
@@ -153,7 +153,7 @@ pub fn fuzz_scene(seed: u64) -> Scene {
     let feat = [0.0, 1e-42, -1e3, 1e3, 0.5, -7.0];
     let mut r = Rng::new(seed);
     let c = 1 + (seed % 4) as usize;
-    let mut s = Scene::empty(c);
+    let mut s = HostScene::empty(c);
     s.background = (0..c).map(|_| pick(&mut r, &feat)).collect();
     for _ in 0..(1 + seed % 25) {
         let z = pick(&mut r, &depth);

@@ -1,5 +1,6 @@
 //! The paper's comparison, offline: every question of a question file answered three ways,
-//! scored by exact match (normalised as SQA3D / ScanQA do):
+//! scored by exact match (normalised as SQA3D / ScanQA do; lists as multisets of items, counts by
+//! their one number: [`offline_score`]):
 //!
 //! * (a) **ground truth** — the VLM on the dataset's own image (object level: the ground-truth
 //!   masked crop): the upper bound;
@@ -10,7 +11,7 @@
 //!
 //! All three feed the LLM the same layout: one token grid per image, projector, newline.
 
-use crate::score::normalize;
+use crate::score::{normalize, offline_score};
 use model::chat::{ChatSession, DEFAULT_SCENE_VIEWS, answer};
 use model::data::Dataset;
 use model::error::{Error, Result};
@@ -89,7 +90,8 @@ impl Tally {
     }
 }
 
-/// Whether `answer` is exactly the reference after normalisation.
+/// Whether `answer` is exactly `reference` after normalisation (plain text: the probes' check;
+/// question files are scored by [`offline_score`]).
 pub fn exact(answer: &str, reference: &str) -> bool {
     normalize(answer) == normalize(reference)
 }
@@ -219,7 +221,7 @@ pub fn answer_file(
         e.0 += t0.elapsed().as_secs_f64();
         e.1 += 1;
         let g = answer(vlm, &tokens, &q.question, &opts, |_| {})?;
-        out.tally.add(q, exact(&g.text, &q.answer));
+        out.tally.add(q, offline_score(&g.text, q).exact);
         out.answers.push(g.text);
     }
     Ok(out)

@@ -3,7 +3,7 @@
 //! that needs nothing, and an OpenAI-compatible LLM grader (the paper grades with GPT-4o on a
 //! 0-100 rubric).
 
-use model::vqa::Level;
+use model::vqa::{Level, Question};
 
 const NUMBERS: &str = "zero one two three four five six seven eight nine ten eleven twelve \
     thirteen fourteen fifteen sixteen seventeen eighteen nineteen twenty";
@@ -46,24 +46,114 @@ fn contains_phrase(hay: &[&str], needle: &[&str]) -> bool {
 /// The offline score of one answer.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct OfflineScore {
-    /// Normalized answer equals normalized reference.
+    /// Right (exact match), by the reference's kind: a list's items equal the reference's as
+    /// multisets, a count's one number equals the reference's, any other answer equals the
+    /// reference after [`normalize`].
     pub exact: bool,
     /// Fraction of keywords found as whole words (0-1).
     pub keyword_recall: f32,
-    /// 0-100.
+    /// The keyword score, 0-100: a list 100 x the F1 of its items, a count 100 or 0, any other
+    /// answer 100 when it holds the reference as a phrase, else 100 x keyword recall.
     pub score: f32,
+    /// A list's items against the reference's.
+    pub items: Option<ItemMatch>,
 }
 
-/// Scores `answer` against `reference`: 100 when the normalized texts are equal or the normalized
-/// reference occurs as a whole-word phrase in the answer, else 100 × keyword recall. Keywords are
-/// normalized and matched as whole-word phrases; without keywords the reference's content words
-/// (minus a few function words) are used. A plain string scorer: "not red" still contains "red".
-pub fn offline_score(answer: &str, reference: &str, keywords: &[String]) -> OfflineScore {
-    let (ans, refn) = (normalize(answer), normalize(reference));
+/// A list answer's items against the reference's, as multisets.
+#[derive(Clone, Copy, Debug, Default, PartialEq, Eq)]
+pub struct ItemMatch {
+    /// Items of the answer that are in the reference (each reference item matched once).
+    pub matched: usize,
+    /// Items in the answer, the invented ones included.
+    pub answered: usize,
+    /// Items in the reference.
+    pub expected: usize,
+}
+
+impl ItemMatch {
+    pub fn precision(&self) -> f32 {
+        if self.answered == 0 { (self.expected == 0) as u8 as f32 } else { self.matched as f32 / self.answered as f32 }
+    }
+    pub fn recall(&self) -> f32 {
+        if self.expected == 0 { (self.answered == 0) as u8 as f32 } else { self.matched as f32 / self.expected as f32 }
+    }
+    pub fn f1(&self) -> f32 {
+        let n = self.answered + self.expected;
+        if n == 0 { 1.0 } else { 2.0 * self.matched as f32 / n as f32 }
+    }
+    /// The same multiset.
+    pub fn equal(&self) -> bool {
+        self.matched == self.answered && self.matched == self.expected
+    }
+}
+
+/// Words that join a list's items ("a red cube and a blue cone") or say it is empty.
+fn is_filler(w: &str) -> bool {
+    w == "none" || STOPWORDS.split_whitespace().any(|s| s == w)
+}
+
+/// Reads the list in `answer` (normalized words) against the reference's `items`: at each word the
+/// longest reference item that starts there is taken; the other words (fillers aside) are items
+/// the answer invented, one per run of as many words as the reference's longest item.
+pub fn match_items(answer: &[&str], items: &[String]) -> ItemMatch {
+    let known: Vec<String> = items.iter().map(|i| normalize(i)).collect();
+    let phrases: Vec<Vec<&str>> = known.iter().map(|k| k.split_whitespace().collect()).collect();
+    let width = phrases.iter().map(Vec::len).max().unwrap_or(1).max(1);
+    let mut by_length: Vec<usize> = (0..phrases.len()).collect();
+    by_length.sort_by_key(|&i| std::cmp::Reverse(phrases[i].len()));
+    let mut left: Vec<bool> = vec![true; phrases.len()]; // reference items not matched yet
+    let (mut m, mut answered, mut unknown_run, mut invented) = (ItemMatch::default(), 0, 0usize, 0);
+    let mut i = 0;
+    while i < answer.len() {
+        let hit = by_length.iter().copied().find(|&k| !phrases[k].is_empty() && answer[i..].starts_with(&phrases[k]));
+        match hit {
+            Some(k) => {
+                invented += unknown_run.div_ceil(width);
+                unknown_run = 0;
+                answered += 1;
+                // the same item said again counts only while the reference has another of it
+                if let Some(j) = (0..phrases.len()).find(|&j| left[j] && phrases[j] == phrases[k]) {
+                    left[j] = false;
+                    m.matched += 1;
+                }
+                i += phrases[k].len();
+            }
+            None => {
+                if !is_filler(answer[i]) {
+                    unknown_run += 1;
+                }
+                i += 1;
+            }
+        }
+    }
+    invented += unknown_run.div_ceil(width);
+    m.answered = answered + invented;
+    m.expected = phrases.len();
+    m
+}
+
+/// The one whole number of a normalized text, `None` when it has none or several.
+fn count_of(words: &[&str]) -> Option<u64> {
+    let mut numbers = words.iter().filter(|w| w.chars().next().is_some_and(|c| c.is_ascii_digit()));
+    let first = numbers.next()?;
+    if numbers.next().is_some() {
+        return None;
+    }
+    first.parse().ok()
+}
+
+/// Scores `answer` against the question's reference (see [`OfflineScore`]). A list (the question
+/// has `items`) is compared as a multiset of items, so a missing or an invented item is never
+/// right; a count (a reference that is one whole number) needs exactly that number ("none" or
+/// "no" for 0); any other answer is exact when it equals the reference after [`normalize`], and
+/// its keyword score is 100 when it holds the reference as a whole-word phrase, else 100 x the
+/// recall of the keywords (normalized, whole-word phrases; without keywords the reference's
+/// content words minus a few function words). A plain string scorer: "not red" still holds "red".
+pub fn offline_score(answer: &str, q: &Question) -> OfflineScore {
+    let (ans, refn) = (normalize(answer), normalize(&q.answer));
     let ans_w: Vec<&str> = ans.split_whitespace().collect();
     let ref_w: Vec<&str> = refn.split_whitespace().collect();
-    let exact = ans == refn;
-    let mut keys: Vec<String> = keywords.iter().map(|k| normalize(k)).filter(|k| !k.is_empty()).collect();
+    let mut keys: Vec<String> = q.keywords.iter().map(|k| normalize(k)).filter(|k| !k.is_empty()).collect();
     if keys.is_empty() {
         for w in ref_w.iter().filter(|w| !STOPWORDS.split_whitespace().any(|s| s == **w)) {
             if !keys.iter().any(|k| k == w) {
@@ -76,8 +166,20 @@ pub fn offline_score(answer: &str, reference: &str, keywords: &[String]) -> Offl
     }
     let hits = keys.iter().filter(|k| contains_phrase(&ans_w, &k.split_whitespace().collect::<Vec<_>>())).count();
     let keyword_recall = if keys.is_empty() { 0.0 } else { hits as f32 / keys.len() as f32 };
+    if let Some(items) = &q.items {
+        let m = match_items(&ans_w, items);
+        let exact = !ans_w.is_empty() && m.equal();
+        let score = if exact { 100.0 } else { 100.0 * m.f1() };
+        return OfflineScore { exact, keyword_recall, score, items: Some(m) };
+    }
+    if let (true, Some(n)) = (ref_w.len() == 1, count_of(&ref_w)) {
+        let said = count_of(&ans_w).or_else(|| (ans_w == ["none"] || ans_w == ["no"]).then_some(0));
+        let exact = said == Some(n);
+        return OfflineScore { exact, keyword_recall, score: if exact { 100.0 } else { 0.0 }, items: None };
+    }
+    let exact = ans == refn;
     let score = if exact || contains_phrase(&ans_w, &ref_w) { 100.0 } else { 100.0 * keyword_recall };
-    OfflineScore { exact, keyword_recall, score }
+    OfflineScore { exact, keyword_recall, score, items: None }
 }
 
 /// Extracts the grade from a grader reply: the first number in it, skipping a rubric range echoed
@@ -304,23 +406,85 @@ mod tests {
         assert_eq!(normalize("?!"), "");
     }
 
+    /// A question with this reference, keywords and list items.
+    fn q(answer: &str, keywords: &[&str], items: Option<&[&str]>) -> Question {
+        Question {
+            id: "q".into(),
+            level: Level::Scene,
+            kind: None,
+            view: None,
+            object: None,
+            views: None,
+            question: "?".into(),
+            answer: answer.into(),
+            keywords: kw(keywords),
+            items: items.map(kw),
+        }
+    }
+
     #[test]
     fn offline_scoring() {
-        let s = offline_score("Red.", "red", &[]);
+        let plain = |a: &str, r: &str| offline_score(a, &q(r, &[], None));
+        let s = plain("Red.", "red");
         assert!(s.exact && s.score == 100.0);
-        let s = offline_score("The cube is red.", "red", &[]);
+        let s = plain("The cube is red.", "red");
         assert!(!s.exact && s.score == 100.0);
-        assert_eq!(offline_score("blue", "red", &[]).score, 0.0);
-        assert_eq!(offline_score("reddish", "red", &[]).score, 0.0, "whole words only");
-        assert_eq!(offline_score("3", "three", &[]).score, 100.0);
-        let s = offline_score("a red sphere", "red cube", &kw(&["Red", "cube"]));
+        assert_eq!(plain("blue", "red").score, 0.0);
+        assert_eq!(plain("reddish", "red").score, 0.0, "whole words only");
+        let s = offline_score("a red sphere", &q("red cube", &["Red", "cube"], None));
         assert_eq!((s.keyword_recall, s.score), (0.5, 50.0));
         // No keywords: the reference's content words ("wooden", "chair"; "is" is a stopword).
-        let s = offline_score("it looks wooden", "is a wooden chair", &[]);
+        let s = plain("it looks wooden", "is a wooden chair");
         assert_eq!((s.keyword_recall, s.score), (0.5, 50.0));
-        let s = offline_score("a dark red table", "dark red", &kw(&["dark red", "table"]));
+        let s = offline_score("a dark red table", &q("dark red", &["dark red", "table"], None));
         assert_eq!((s.keyword_recall, s.score), (1.0, 100.0));
-        assert_eq!(offline_score("", "red", &[]).score, 0.0);
+        assert_eq!(plain("", "red").score, 0.0);
+    }
+
+    #[test]
+    fn counts_need_exactly_the_number() {
+        let count = |a: &str, r: &str| offline_score(a, &q(r, &[], None));
+        assert!(count("3", "three").exact && count("There are three.", "3").exact);
+        // a second number, another number, or none at all is wrong, whatever the words
+        for wrong in ["3 or 4", "4", "some", "13", ""] {
+            let s = count(wrong, "3");
+            assert!(!s.exact && s.score == 0.0, "{wrong:?}: {s:?}");
+        }
+        assert!(count("none", "0").exact && count("No.", "zero").exact && !count("none", "2").exact);
+    }
+
+    #[test]
+    fn lists_are_multisets_of_items() {
+        let objects = ["red sphere", "red cone", "orange cylinder", "yellow cone", "blue cube"];
+        let list = q("red sphere red cone orange cylinder yellow cone blue cube", &[], Some(&objects));
+        // the issue's case: "red cone" missed; the deduplicated keywords all occur elsewhere
+        let s = offline_score("red sphere orange cylinder yellow cone blue cube", &list);
+        let m = s.items.unwrap();
+        assert_eq!((m.matched, m.answered, m.expected), (4, 4, 5));
+        assert!(!s.exact && s.score < 100.0 && m.precision() == 1.0 && m.recall() == 0.8, "{s:?}");
+        assert_eq!(s.keyword_recall, 1.0, "the keyword recall alone would call it right");
+        // an invented item ("green cube"), an item said twice, a colour swapped between two items
+        for wrong in [
+            "red sphere red cone orange cylinder yellow cone blue cube green cube",
+            "red sphere red cone orange cylinder yellow cone blue cube blue cube",
+            "red cone red sphere orange cube yellow cone blue cylinder",
+        ] {
+            let s = offline_score(wrong, &list);
+            assert!(!s.exact && s.score < 100.0, "{wrong:?}: {s:?}");
+        }
+        let s = offline_score("a red cone, a red sphere and a blue cube", &list);
+        assert!(s.items.unwrap().precision() == 1.0 && s.items.unwrap().recall() == 0.6, "{s:?}");
+        // another order, articles and "and": the same multiset
+        let s = offline_score("A blue cube, an orange cylinder, a red cone, a yellow cone and a red sphere.", &list);
+        assert!(s.exact && s.score == 100.0, "{s:?}");
+        // single-word items; an empty list is "none"
+        let colors = q("blue red", &[], Some(&["blue", "red"]));
+        assert!(offline_score("red blue", &colors).exact && !offline_score("red", &colors).exact);
+        assert!(!offline_score("red blue green", &colors).exact);
+        let empty = q("none", &[], Some(&[]));
+        assert!(offline_score("None.", &empty).exact && !offline_score("", &empty).exact);
+        let s = offline_score("red cube", &empty);
+        assert!(!s.exact && s.score == 0.0, "{s:?}");
     }
 
     #[test]

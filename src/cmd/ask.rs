@@ -123,6 +123,9 @@ pub fn answer(
     let t1 = std::time::Instant::now();
     let out = model::catch_backend("generation", || s.ask(target, question, opts, print_piece))??;
     println!();
+    if s.model_note.is_some() {
+        eprintln!("(the built-in tabletop model's answer: see the warning above)");
+    }
     eprintln!(
         "{} prompt tokens, {} new tokens in {:.2} s",
         out.prompt_tokens,

@@ -1,14 +1,18 @@
 //! `chatsplat batch`: many scenes as the jobs of a cluster scheduler. A manifest (TOML) lists the
 //! scenes; a worker takes its shard (`--shard I/N`, or the index a Kubernetes Indexed Job or a
 //! Slurm array gives it) and runs the pipeline for each of its scenes: geometry -> teacher tokens
-//! -> language field -> VQA (when the scene has questions). Idempotent: a scene with a summary is
-//! skipped, an interrupted one resumes from its checkpoints. Writes `OUT/<scene>/summary.json` per
-//! scene and `OUT/report.json`, every scene of the manifest merged (done or pending).
+//! -> language field -> VQA (when the scene has questions). Idempotent: a scene whose summary
+//! carries the fingerprint of its inputs and settings is skipped (other data or settings train it
+//! again, the earlier results kept aside), an interrupted one resumes from its checkpoints, and a
+//! scene that fails is recorded (`OUT/<scene>/failed.json`) while the shard goes on. Writes
+//! `OUT/<scene>/summary.json` per scene and `OUT/report.json`, every scene of the manifest merged
+//! (done, failed or pending).
 
 use super::SceneArgs;
 use super::bars::Bars;
 use super::vqa::Scoring;
 use anyhow::{Context, bail};
+use eval::score::LevelSummary;
 use model::Backend;
 use model::run::{GeometryRun, LanguageRun, TeacherDir};
 use serde::Deserialize;
@@ -213,11 +217,68 @@ impl JobDirs {
     fn summary(&self) -> PathBuf {
         self.dir.join("summary.json")
     }
+    fn failed(&self) -> PathBuf {
+        self.dir.join("failed.json")
+    }
+}
+
+/// The fingerprint of what makes a scene's results (16 hex digits): every file of its data folder
+/// (name, size and first 64 KiB), its question file, the model folder and the settings.
+fn job_fingerprint(plan: &Plan, s: &Job, vlm: &Path) -> anyhow::Result<String> {
+    fn files(dir: &Path, out: &mut Vec<PathBuf>) -> std::io::Result<()> {
+        for e in std::fs::read_dir(dir)? {
+            let p = e?.path();
+            if p.is_dir() { files(&p, out)? } else { out.push(p) }
+        }
+        Ok(())
+    }
+    let mut all = Vec::new();
+    files(&s.data, &mut all).with_context(|| format!("{}: cannot list", s.data.display()))?;
+    all.sort();
+    all.extend(s.questions.clone());
+    let mut h = model::data::Fnv::default();
+    for f in &all {
+        use std::io::Read;
+        h.eat(f.strip_prefix(&s.data).unwrap_or(f).to_string_lossy().as_bytes());
+        let file = std::fs::File::open(f).with_context(|| format!("{}: cannot read", f.display()))?;
+        h.eat(&file.metadata().map(|m| m.len()).unwrap_or(0).to_le_bytes());
+        let mut head = Vec::new();
+        file.take(64 << 10).read_to_end(&mut head).with_context(|| format!("{}: cannot read", f.display()))?;
+        h.eat(&head);
+    }
+    let settings = format!(
+        "{}|{}|{}|{}|{}",
+        s.geometry_iters,
+        s.language_iters,
+        plan.tower_tail,
+        plan.backend,
+        model::io::resolved(vlm).display()
+    );
+    h.eat(settings.as_bytes());
+    Ok(h.hex())
+}
+
+/// The manifest's global settings, checked before the first scene starts: the model folder is a
+/// LLaVA-OneVision whose tower is deep enough for the tower tail.
+fn check_globals(plan: &Plan, manifest: &Path) -> anyhow::Result<PathBuf> {
+    let vlm = super::vlm_dir(plan.vlm.as_ref())?;
+    let cfg = model::vlm::config::read_llava_config(&vlm).with_context(|| format!("{}: vlm", manifest.display()))?;
+    let layers = cfg.vision_layers_needed();
+    if plan.tower_tail > layers {
+        bail!(
+            "{}: tower_tail {}: the vision tower of {} runs {layers} layers (the tail is at most that many)",
+            manifest.display(),
+            plan.tower_tail,
+            vlm.display()
+        );
+    }
+    Ok(vlm)
 }
 
 /// Runs the pipeline on one scene, resuming whatever an earlier attempt left; returns its summary.
-fn run_scene(plan: &Plan, s: &Job, d: &JobDirs, shard: &str) -> anyhow::Result<serde_json::Value> {
+fn run_scene(plan: &Plan, s: &Job, d: &JobDirs, shard: &str, job: &str) -> anyhow::Result<serde_json::Value> {
     model::io::create_dir(&d.dir)?;
+    model::io::write_json(&d.dir.join("job.json"), &serde_json::json!({"fingerprint": job}))?;
     let lang: LanguageRun = d.run.language();
     let mut seconds = serde_json::Map::new();
     let mut resumed = serde_json::Map::new();
@@ -255,19 +316,23 @@ fn run_scene(plan: &Plan, s: &Job, d: &JobDirs, shard: &str) -> anyhow::Result<s
                 Scoring { views: model::chat::DEFAULT_SCENE_VIEWS, max_new_tokens: 16, show: false, keep_going: true };
             let grader = eval::score::Grader::from_env()?;
             let qf = model::vqa::load_questions(q)?;
-            let summary =
-                super::vqa::score(&scene.open()?, (q, &qf), &d.dir.join("vqa.json"), &scoring, grader.as_ref())?;
+            let s = super::vqa::score(&scene.open()?, (q, &qf), &d.dir.join("vqa.json"), &scoring, grader.as_ref())?;
             seconds.insert("vqa".into(), serde_json::json!((t0.elapsed().as_secs_f64() * 10.0).round() / 10.0));
-            let level = |l: eval::score::LevelSummary| serde_json::json!({"mean": l.mean, "questions": l.count});
+            // exact match (%) and the keyword score (0-100) of each level
+            let level = |e: LevelSummary, k: LevelSummary| {
+                let (exact, keyword, questions) = (e.mean, k.mean, e.count);
+                serde_json::json!({"exact": exact, "keyword": keyword, "questions": questions})
+            };
             serde_json::json!({
-                "view": level(summary.view), "object": level(summary.object), "scene": level(summary.scene),
-                "overall": level(summary.overall),
+                "view": level(s.exact.view, s.keyword.view), "object": level(s.exact.object, s.keyword.object),
+                "scene": level(s.exact.scene, s.keyword.scene), "overall": level(s.exact.overall, s.keyword.overall),
             })
         }
         None => serde_json::Value::Null,
     };
     Ok(serde_json::json!({
         "scene": s.name,
+        "job": job,
         "data": s.data.display().to_string(),
         "shard": shard,
         "resumed_from": resumed,
@@ -283,10 +348,14 @@ fn write_report(plan: &Plan) -> anyhow::Result<(usize, PathBuf)> {
     let mut done = 0;
     for s in &plan.scenes {
         let path = JobDirs::new(&plan.out, &s.name).summary();
+        let failed = JobDirs::new(&plan.out, &s.name).failed();
         if path.is_file() {
             done += 1;
             let summary: serde_json::Value = model::io::read_json(&path)?;
             rows.push(serde_json::json!({"scene": s.name, "status": "done", "summary": summary}));
+        } else if failed.is_file() {
+            let error = model::io::read_json::<serde_json::Value>(&failed)?["error"].clone();
+            rows.push(serde_json::json!({"scene": s.name, "status": "failed", "error": error}));
         } else {
             rows.push(serde_json::json!({"scene": s.name, "status": "pending"}));
         }
@@ -309,25 +378,87 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         println!("{done} of {} scenes done -> {}", plan.scenes.len(), path.display());
         return Ok(());
     }
+    let vlm = check_globals(&plan, &a.manifest)?;
     let mine: Vec<&Job> = plan.scenes.iter().skip(i).step_by(n).collect();
     let label = format!("{i}/{n}");
     let names: Vec<&str> = mine.iter().map(|s| s.name.as_str()).collect();
     eprintln!("batch: shard {label}: {} of {} scenes: {}", mine.len(), plan.scenes.len(), names.join(", "));
+    let mut failed = Vec::new();
     for (k, s) in mine.iter().enumerate() {
         let d = JobDirs::new(&plan.out, &s.name);
-        if d.summary().is_file() {
-            eprintln!("\n== scene {} ({} of {}): done earlier ({})", s.name, k + 1, mine.len(), d.summary().display());
-            continue;
+        let job = job_fingerprint(&plan, s, &vlm)?;
+        match earlier_job(&d)? {
+            Some(was) if was != job => set_aside(&plan.out, &s.name, &was)?,
+            // done with these inputs (or before fingerprints were recorded: kept as done)
+            _ if d.summary().is_file() => {
+                let at = d.summary();
+                eprintln!("\n== scene {} ({} of {}): done earlier ({})", s.name, k + 1, mine.len(), at.display());
+                continue;
+            }
+            _ => {}
         }
         eprintln!("\n== scene {} ({} of {})", s.name, k + 1, mine.len());
-        let summary = run_scene(&plan, s, &d, &label).with_context(|| format!("scene `{}`", s.name))?;
-        model::io::write_json(&d.summary(), &summary)?;
+        match run_scene(&plan, s, &d, &label, &job) {
+            Ok(summary) => {
+                model::io::write_json(&d.summary(), &summary)?;
+                let _ = std::fs::remove_file(d.failed());
+            }
+            Err(e) => {
+                let error = format!("{e:#}");
+                eprintln!("error: scene `{}`: {error} (the shard goes on)", s.name);
+                model::io::create_dir(&d.dir)?;
+                model::io::write_json(&d.failed(), &serde_json::json!({"job": job, "error": error}))?;
+                failed.push(s.name.as_str());
+            }
+        }
     }
     let (done, path) = write_report(&plan)?;
     println!(
         "shard {label} finished; {done} of {} scenes of the manifest done -> {}",
         plan.scenes.len(),
         path.display()
+    );
+    if !failed.is_empty() {
+        bail!(
+            "shard {label}: {} of its {} scenes failed: {} (each error in OUT/<scene>/failed.json and {})",
+            failed.len(),
+            mine.len(),
+            failed.join(", "),
+            path.display()
+        );
+    }
+    Ok(())
+}
+
+/// The job fingerprint a scene's folder was made for: its summary's, else the one an interrupted
+/// or failed attempt recorded; `None` for a new scene, or a summary from before fingerprints.
+fn earlier_job(d: &JobDirs) -> anyhow::Result<Option<String>> {
+    let read = |p: &Path, key: &str| -> anyhow::Result<Option<String>> {
+        if !p.is_file() {
+            return Ok(None);
+        }
+        let v: serde_json::Value = model::io::read_json(p)?;
+        Ok(v[key].as_str().map(str::to_string))
+    };
+    if d.summary().is_file() {
+        return read(&d.summary(), "job");
+    }
+    read(&d.dir.join("job.json"), "fingerprint")
+}
+
+/// Moves a scene's folder made from other inputs or settings (`was`) aside, so the scene trains
+/// again from scratch and nothing it had is lost.
+fn set_aside(out: &Path, name: &str, was: &str) -> anyhow::Result<()> {
+    let from = out.join(name);
+    let to = (0..)
+        .map(|k| out.join(if k == 0 { format!("{name}.superseded-{was}") } else { format!("{name}.superseded-{was}.{k}") }))
+        .find(|p| !p.exists())
+        .expect("a free name");
+    std::fs::rename(&from, &to).with_context(|| format!("{}: cannot move aside", from.display()))?;
+    eprintln!(
+        "scene `{name}`: its data, questions or settings changed since it ran (job {was}): it runs again; the \
+         earlier results are in {}",
+        to.display()
     );
     Ok(())
 }

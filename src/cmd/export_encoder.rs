@@ -17,7 +17,10 @@ pub struct Args {
 }
 
 pub fn run(a: Args) -> anyhow::Result<()> {
-    let lang = a.language.as_ref().map(LanguageRun::new).unwrap_or_else(|| GeometryRun::new(&a.run).language());
+    let geometry = GeometryRun::new(&a.run);
+    let lang = a.language.as_ref().map(LanguageRun::new).unwrap_or_else(|| geometry.language());
+    let inputs: Vec<_> = lang.own_files().into_iter().chain(geometry.own_files()).collect();
+    model::io::refuse_output_onto("--out", &a.out, &inputs)?;
     export(&lang, &a.out)
 }
 

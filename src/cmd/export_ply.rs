@@ -13,7 +13,9 @@ pub struct Args {
 }
 
 pub fn run(a: Args) -> anyhow::Result<()> {
-    let (m, state) = GeometryRun::new(&a.run).load_model(&burn::tensor::Device::ndarray())?;
+    let run = GeometryRun::new(&a.run);
+    model::io::refuse_output_onto("--out", &a.out, &run.own_files())?;
+    let (m, state) = run.load_model(&burn::tensor::Device::ndarray())?;
     let (cloud, _) = m.to_cloud();
     model::ply::write(&a.out, &cloud)?;
     println!("{} Gaussians (iteration {}) -> {}", cloud.len(), state.iter, a.out.display());

@@ -62,6 +62,10 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     }
     let out = TeacherDir::new(a.out.clone().unwrap_or_else(|| a.data.join("teacher")));
     let vlm_dir = super::vlm_dir(a.vlm.as_ref())?;
+    let mut inputs = vec![("the --data directory", a.data.clone()), ("the model directory", vlm_dir.clone())];
+    inputs.extend(a.masks.iter().map(|m| ("the --masks directory", m.clone())));
+    inputs.extend(a.run.iter().map(|r| ("the geometry run (--run)", r.clone())));
+    model::io::refuse_output_onto("--out", &out.dir, &inputs)?;
     let shard = a.shard.as_deref().map(super::parse_shard).transpose()?.unwrap_or((0, 1));
     let opts = ExtractOptions {
         margin: a.margin,

@@ -9,6 +9,7 @@ mod export_encoder;
 mod export_ply;
 mod extract;
 mod render;
+mod resume;
 mod serve;
 mod synth;
 mod train;
@@ -173,6 +174,11 @@ impl SceneArgs {
         self.language.as_ref().map(LanguageRun::new).unwrap_or_else(|| self.geometry().language())
     }
 
+    /// The files of both runs that no output may overwrite.
+    pub fn own_files(&self) -> Vec<(&'static str, PathBuf)> {
+        self.language().own_files().into_iter().chain(self.geometry().own_files()).collect()
+    }
+
     /// The VLM to chat with: `--vlm`, else the model the language run was taught by when it is
     /// still there (a warning when it is not), else the built-in model.
     pub fn vlm_dir(&self) -> anyhow::Result<PathBuf> {
@@ -210,6 +216,9 @@ impl SceneArgs {
             vlm.display(),
             t0.elapsed().as_secs_f64()
         );
+        if let Some(note) = &s.model_note {
+            model::error::warn(note);
+        }
         Ok(s)
     }
 }

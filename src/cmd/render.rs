@@ -76,6 +76,16 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     if a.width == 0 || a.height == 0 || a.width > MAX_SIDE || a.height > MAX_SIDE || !(1.0..179.0).contains(&a.fov) {
         bail!("--width/--height must be within 1..={MAX_SIDE} and --fov within 1..179 degrees");
     }
+    let outputs: Vec<(&str, &std::path::Path)> =
+        [("--out", Some(&a.out)), ("--depth", a.depth.as_ref()), ("--ids", a.ids.as_ref())]
+            .into_iter()
+            .filter_map(|(o, p)| p.map(|p| (o, p.as_path())))
+            .collect();
+    model::io::refuse_shared_outputs(&outputs)?;
+    for (option, out) in &outputs {
+        let inputs: Vec<_> = a.ply.iter().map(|p| ("the --ply file", p.clone())).collect();
+        model::io::refuse_output_onto(option, out, &inputs)?;
+    }
     let (cloud, source): (GaussianCloud, String) = match &a.ply {
         Some(path) => (model::ply::read(path)?, path.display().to_string()),
         None => {

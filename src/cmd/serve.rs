@@ -23,9 +23,32 @@ pub struct Args {
     pub allow_origin: Vec<String>,
 }
 
+/// An `--allow-origin` is one origin as a browser sends it (`scheme://host[:port]`): a wildcard
+/// would open the model to every page the user visits, and a path or a trailing slash would never
+/// match, so both are refused.
+fn check_origin(o: &str) -> anyhow::Result<()> {
+    if o.contains('*') {
+        anyhow::bail!(
+            "--allow-origin {o}: a wildcard would let every web page you visit use this scene and model; name each \
+             origin (e.g. --allow-origin http://localhost:3000)"
+        );
+    }
+    let rest = o.strip_prefix("http://").or_else(|| o.strip_prefix("https://"));
+    match rest {
+        Some(host) if !host.is_empty() && !host.contains('/') && !host.contains(char::is_whitespace) => Ok(()),
+        _ => anyhow::bail!(
+            "--allow-origin {o}: expected an origin as browsers send it, scheme://host[:port] with no path or \
+             trailing slash (e.g. http://localhost:3000)"
+        ),
+    }
+}
+
 pub fn run(a: Args) -> anyhow::Result<()> {
     if a.queue == 0 {
         anyhow::bail!("--queue must be at least 1");
+    }
+    for o in &a.allow_origin {
+        check_origin(o)?;
     }
     if !a.addr.ip().is_loopback() {
         eprintln!(

@@ -36,13 +36,13 @@ pub struct Args {
     /// A config.json with any GeometryConfig fields (others keep their defaults).
     #[arg(long)]
     pub config: Option<PathBuf>,
-    /// Background of transparent (RGBA) images: white or black.
-    #[arg(long, default_value = "white")]
-    pub background: String,
+    /// Background of transparent (RGBA) images: white (default) or black.
+    #[arg(long)]
+    pub background: Option<String>,
 }
 
 pub fn run(a: Args) -> anyhow::Result<()> {
-    let (bg, bgc) = match a.background.as_str() {
+    let (bg, bgc) = match a.background.as_deref().unwrap_or("white") {
         "white" => (Background::White, [1.0; 3]),
         "black" => (Background::Black, [0.0; 3]),
         other => bail!("--background {other}: expected white or black"),
@@ -54,16 +54,22 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         Some(p) => model::io::read_config::<GeometryConfig>(p)?,
         None => GeometryConfig { background: bgc, ..Default::default() },
     };
+    let stored_path = GeometryRun::new(&a.out).config();
+    if a.resume && stored_path.is_file() {
+        let stored = model::io::read_json::<GeometryConfig>(&stored_path)?;
+        let options: Vec<_> =
+            a.background.iter().map(|b| ("background", format!("--background {b}"), serde_json::json!(bgc))).collect();
+        super::resume::refuse_changes(&stored_path, &stored, a.config.as_deref(), &options)?;
+        // resuming without --iters: the run's own total
+        cfg.iters = stored.iters;
+    }
     if let Some(n) = a.iters {
         cfg.iters = n;
-    } else if a.resume {
-        // resuming without --iters: the run's own total
-        let stored = GeometryRun::new(&a.out).config();
-        if stored.is_file() {
-            cfg.iters = model::io::read_json::<GeometryConfig>(&stored)?.iters;
-        }
     }
     super::check_config(a.config.as_deref(), cfg.validate())?;
+    let mut inputs = vec![("the --data directory", a.data.clone())];
+    inputs.extend(a.masks.iter().map(|m| ("the --masks directory", m.clone())));
+    model::io::refuse_output_onto("--out", &a.out, &inputs)?;
     let load = LoadOptions { downscale: a.downscale, background: bg, masks: a.masks.clone(), ..Default::default() };
     fit(&a.data, &load, &GeometryRun::new(&a.out), cfg, a.backend, a.resume)
 }

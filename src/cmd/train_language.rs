@@ -3,7 +3,8 @@
 use super::bars::Bars;
 use anyhow::bail;
 use model::Backend;
-use model::run::{GeometryRun, LanguageRun};
+use model::run::{GeometryRun, LanguageRun, TeacherDir};
+use serde_json::json;
 use std::path::{Path, PathBuf};
 use train::language::{LanguageTrainConfig, fit as train_field};
 use train::pipeline::{Observer, Stage};
@@ -58,8 +59,19 @@ pub fn run(a: Args, ranks: &crate::ranks::Ranks) -> anyhow::Result<()> {
     super::check_config(a.config.as_deref(), cfg.validate())?;
     let geometry = GeometryRun::new(&a.run);
     let out = a.out.as_ref().map(LanguageRun::new).unwrap_or_else(|| geometry.language());
+    let inputs = [("the geometry run (--run)", a.run.clone()), ("the --teacher directory", a.teacher.clone())];
+    model::io::refuse_output_onto("--out", &out.dir, &inputs)?;
     if a.resume && out.config().is_file() {
         let saved = model::io::read_json::<LanguageTrainConfig>(&out.config())?;
+        let options: Vec<_> = a
+            .channels
+            .iter()
+            .flat_map(|&c| {
+                ["field.view_channels", "field.object_channels"].map(|k| (k, format!("--channels {c}"), json!(c)))
+            })
+            .collect();
+        super::resume::refuse_changes(&out.config(), &saved, a.config.as_deref(), &options)?;
+        refuse_other_teacher(&out, &a.teacher)?;
         if a.iters.is_none() {
             // resuming without --iters: the run's own total
             cfg.iters = saved.iters;
@@ -70,6 +82,26 @@ pub fn run(a: Args, ranks: &crate::ranks::Ranks) -> anyhow::Result<()> {
         cfg.compact_tolerance = 0.0;
     }
     fit(&geometry, &a.teacher, &out, cfg, a.backend, a.resume, ranks)
+}
+
+/// Refuses `--teacher` on a resume when it is not the teacher the run was trained on (the same
+/// directory, or a copy of it: the same index).
+fn refuse_other_teacher(out: &LanguageRun, teacher: &Path) -> anyhow::Result<()> {
+    let state = out.read_state()?;
+    let was = state.teacher.resolve(&out.dir);
+    let same_dir = std::fs::canonicalize(&was).ok().is_some_and(|w| std::fs::canonicalize(teacher).ok() == Some(w));
+    let index = |d: &Path| std::fs::read(TeacherDir::new(d).index()).ok();
+    if same_dir || index(&was).is_some_and(|w| index(teacher) == Some(w)) {
+        return Ok(());
+    }
+    bail!(
+        "--teacher {}: the language run {} was trained on the teacher in {}; --resume goes on with that one. \
+         Resume with --teacher {}, or train a new run into another --out",
+        teacher.display(),
+        out.dir.display(),
+        was.display(),
+        was.display()
+    )
 }
 
 /// Trains the language field of the geometry run `geometry` against the teacher tokens in

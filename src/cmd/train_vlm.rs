@@ -114,6 +114,8 @@ pub fn run(a: Args, ranks: &crate::ranks::Ranks) -> anyhow::Result<()> {
         cfg.seed = s;
     }
     super::check_config(a.config.as_deref(), cfg.validate())?;
+    let inputs: Vec<_> = a.base_model.iter().map(|b| ("the --base-model directory", b.clone())).collect();
+    model::io::refuse_output_onto("--out", &a.out, &inputs)?;
     let device = a.backend.device();
     let (stages, first) = stages(&cfg, &a.out, a.base_model.as_deref(), a.resume);
     let mut stage = first;

@@ -49,35 +49,50 @@ struct Row {
     answer: String,
     /// Why the question could not be asked.
     error: Option<String>,
-    offline: f32,
+    /// Right: exact match (lists as multisets of items, counts by their one number).
     exact: bool,
+    /// The keyword score, 0-100.
+    offline: f32,
+    /// A list's items: how many of the answer's are in the reference, said, expected.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    items: Option<[usize; 3]>,
     grader: Option<f32>,
+}
+
+/// A question file's offline figures by level: exact match (%, the headline) and the keyword
+/// score (0-100).
+pub struct Scores {
+    pub exact: Summary,
+    pub keyword: Summary,
 }
 
 pub fn run(a: Args) -> anyhow::Result<()> {
     let qf = load_questions(&a.questions)?;
     let grader = Grader::from_env()?;
     let out = a.out.clone().unwrap_or_else(|| a.scene.language().vqa());
+    let mut inputs = a.scene.own_files();
+    inputs.push(("the --questions file", a.questions.clone()));
+    model::io::refuse_output_onto("--out", &out, &inputs)?;
     score(&a.scene.open()?, (&a.questions, &qf), &out, &a.scoring, grader.as_ref()).map(|_| ())
 }
 
 /// Asks every question of the question file `qf` (read from `questions`) about the opened scene
 /// `s`, scores the answers (offline, and with `grader` when one is set), prints the table and
-/// writes the answers to `out`; returns the offline summary (exact match or keyword, 0-100 per
-/// level).
+/// writes the answers to `out`; returns the offline figures per level.
 pub fn score(
     s: &ChatSession,
     (questions, qf): (&Path, &QuestionFile),
     out: &Path,
     a: &Scoring,
     grader: Option<&Grader>,
-) -> anyhow::Result<Summary> {
+) -> anyhow::Result<Scores> {
     let opts = model::vlm::GenerateOptions { max_new_tokens: a.max_new_tokens, ..Default::default() };
     let bar = Progress::new("vqa", "questions");
     let total = qf.questions.len();
     let answers =
         model::catch_backend("answering", || answer_all(s, qf, &opts, a.views, |i, _, _| bar.update(i + 1, total)))??;
-    let (mut offline, mut graded, mut rows, mut invalid) = (Vec::new(), Vec::new(), Vec::new(), Vec::new());
+    let (mut offline, mut right, mut graded) = (Vec::new(), Vec::new(), Vec::new());
+    let (mut rows, mut invalid) = (Vec::new(), Vec::new());
     for (q, ans) in qf.questions.iter().zip(&answers) {
         let (text, error) = match &ans.text {
             Ok(t) => (t.clone(), None),
@@ -86,8 +101,9 @@ pub fn score(
         if let Some(e) = &error {
             invalid.push(format!("{}: {e}", q.id));
         }
-        let off = offline_score(&text, &q.answer, &q.keywords);
+        let off = offline_score(&text, q);
         offline.push((q.level, off.score));
+        right.push((q.level, if off.exact { 100.0 } else { 0.0 }));
         let grade = match (grader, &error) {
             (Some(g), None) => match g.grade(&q.question, &q.answer, &text) {
                 Ok(v) => {
@@ -102,7 +118,7 @@ pub fn score(
             _ => None,
         };
         if a.show {
-            let mark = if off.exact || off.score == 100.0 { "right" } else { "wrong" };
+            let mark = if off.exact { "right" } else { "wrong" };
             println!("[{} {}] {} -> {:?} (reference {:?}) {mark}", q.level, q.id, q.question, text.trim(), q.answer);
         }
         rows.push(Row {
@@ -112,14 +128,16 @@ pub fn score(
             reference: q.answer.clone(),
             answer: text,
             error,
-            offline: off.score,
             exact: off.exact,
+            offline: off.score,
+            items: off.items.map(|m| [m.matched, m.answered, m.expected]),
             grader: grade,
         });
     }
-    let so = summarize(&offline);
+    let scores = Scores { exact: summarize(&right), keyword: summarize(&offline) };
     println!("| scorer | view | object | scene | overall | questions |\n|---|---|---|---|---|---|");
-    println!("{}", table_row("offline (exact / keyword, 0-100)", &so));
+    println!("{}", table_row("exact match (%)", &scores.exact));
+    println!("{}", table_row("keyword score (0-100)", &scores.keyword));
     if !graded.is_empty() {
         let name = grader.map(|g| g.model.as_str()).unwrap_or("");
         println!("{}", table_row(&format!("grader {name} (0-100)"), &summarize(&graded)));
@@ -143,7 +161,7 @@ pub fn score(
     if !invalid.is_empty() {
         eprintln!("warning: {} question(s) could not be asked (scored 0): {}", invalid.len(), invalid.join("; "));
     }
-    Ok(so)
+    Ok(scores)
 }
 
 /// `| name | view | object | scene | overall | questions |` of a summary.

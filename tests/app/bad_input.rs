@@ -262,12 +262,17 @@ fn broken_datasets_configs_and_arguments_are_refused() {
     outputs_and_vlm_options(&mut s, &dir);
     teachers(&mut s, &dir, &base, &other, &r);
     let (bare_run, bare_teacher) = without_masks(&mut s, &dir, &base);
+    outputs_onto_inputs(&mut s, &dir, &base, &bare_run);
+    resumes_keep_the_command_line(&mut s, &dir, &r, &bare_run, &bare_teacher);
+    counts_and_shapes(&mut s, &dir, &base, &r);
+    teacher_files(&mut s, &dir, &r);
+    builtin_model_on_another_scene(&mut s, &dir, &base);
     chat_repl(&mut s, &bare_run);
     vqa_files(&mut s, &dir, &bare_run);
     relative_paths(&mut s, &dir);
     killed_geometry(&mut s, &dir, &base);
     killed_language(&mut s, &dir, &bare_run, &bare_teacher);
-    s.finish(70);
+    s.finish(100);
     std::fs::remove_dir_all(&dir).ok();
 }
 
@@ -408,6 +413,7 @@ fn bad_command_lines(s: &mut Suite, dir: &Path, base: &Path) {
     let out_dir = dir.join("cli");
     let o = out_dir.to_string_lossy().to_string();
     let b = base.to_string_lossy().to_string();
+    let no_masks = format!("{o}-masks");
     let lines: Vec<(Vec<&str>, &str)> = vec![
         (vec!["synth", "--width", "100000", "--height", "100000", "--out", &o], "width"),
         (vec!["synth", "--views", "0", "--out", &o], "views"),
@@ -429,7 +435,8 @@ fn bad_command_lines(s: &mut Suite, dir: &Path, base: &Path) {
         (vec!["extract", "--data", &b, "--out", &o, "--margin", "-1"], "margin"),
         (vec!["extract", "--data", &b, "--out", &o, "--downscale", "0"], "downscale"),
         (vec!["train", "--data", &b, "--out", &o, "--masks", "/no/such/masks"], "/no/such/masks"),
-        (vec!["extract", "--data", &b, "--out", &o, "--masks", &o], "is not a directory"),
+        (vec!["extract", "--data", &b, "--out", &o, "--masks", &no_masks], "is not a directory"),
+        (vec!["extract", "--data", &b, "--out", &o, "--masks", &o], "would overwrite the --masks directory"),
         (vec!["train", "--data", &b, "--out", &o, "--masks", &b], "is missing: every image needs a mask"),
         (vec!["ask", "--image", "x.png", "--run", &o, "What?"], "--image"),
         (vec!["ask", "--image", "x.png", "--half", "What?"], "--backend flex"),
@@ -650,6 +657,275 @@ fn without_masks(s: &mut Suite, dir: &Path, base: &Path) -> (PathBuf, PathBuf) {
         expect: vec!["needs instance masks".into()],
     });
     (bare_run, bare_teacher)
+}
+
+/// The bytes of every file under `p` (a file or a folder), by path: what must be left intact.
+fn snapshot(p: &Path) -> Vec<(PathBuf, Vec<u8>)> {
+    if p.is_file() {
+        return vec![(p.to_path_buf(), std::fs::read(p).unwrap())];
+    }
+    let mut out = Vec::new();
+    for e in std::fs::read_dir(p).unwrap().flatten() {
+        out.extend(snapshot(&e.path()));
+    }
+    out.sort();
+    out
+}
+
+/// A case that must fail and leave `keep` (files or folders) byte for byte as they were.
+fn fails_intact<A: AsRef<str>>(
+    s: &mut Suite,
+    name: &str,
+    keep: &[&Path],
+    args: &[A],
+    paths: &[&Path],
+    expect: &[&str],
+) {
+    let before: Vec<_> = keep.iter().map(|k| snapshot(k)).collect();
+    let args: Vec<&str> = args.iter().map(AsRef::as_ref).collect();
+    s.fails(Case { name: name.into(), out: run(&args, paths), expect: expect.iter().map(|e| e.to_string()).collect() });
+    let after: Vec<_> = keep.iter().map(|k| snapshot(k)).collect();
+    s.check(&format!("{name}: inputs intact"), before == after, "an input was changed");
+}
+
+/// An output onto one of the command's inputs or a run's own files: refused before anything is
+/// written, through a link too.
+fn outputs_onto_inputs(s: &mut Suite, dir: &Path, base: &Path, bare_run: &Path) {
+    let ply = dir.join("scene.ply");
+    std::fs::write(&ply, inria_ply(3)).unwrap();
+    let ply_s = ply.to_str().unwrap();
+    let render = |extra: &[&str]| -> Vec<String> {
+        ["render", "--ply", ply_s, "--width", "8", "--height", "8"].iter().chain(extra).map(|a| a.to_string()).collect()
+    };
+    fails_intact(s, "render --out onto --ply", &[&ply], &render(&["--out", ply_s]), &[], &["--out", "--ply"]);
+    let png = dir.join("r.png");
+    let png_s = png.to_str().unwrap();
+    let same = render(&["--out", png_s, "--depth", png_s]);
+    let same: Vec<&str> = same.iter().map(String::as_str).collect();
+    s.fails(Case { name: "render --out = --depth".into(), out: run(&same, &[]), expect: vec!["same file".into()] });
+    s.check("render --out = --depth: nothing written", !png.exists(), "r.png was written");
+    let lang = bare_run.join("language");
+    let ckpt = lang.join("language.safetensors");
+    fails_intact(
+        s,
+        "export-encoder --out onto the language checkpoint",
+        &[&lang],
+        &["export-encoder", "--run", bare_run.to_str().unwrap(), "--out"],
+        &[&ckpt],
+        &["language.safetensors", "language run's checkpoint"],
+    );
+    // a link to the geometry checkpoint is followed
+    let link = dir.join("link.ply");
+    std::os::unix::fs::symlink(bare_run.join("checkpoint.safetensors"), &link).unwrap();
+    fails_intact(
+        s,
+        "export-ply --out through a link onto the checkpoint",
+        &[bare_run],
+        &["export-ply", "--run", bare_run.to_str().unwrap(), "--out"],
+        &[&link],
+        &["geometry run's checkpoint"],
+    );
+    let q = dir.join("questions-one.json");
+    std::fs::write(
+        &q,
+        r#"{"questions": [{"id": "v", "level": "view", "view": 0, "question": "How many objects are there?",
+        "answer": "3"}]}"#,
+    )
+    .unwrap();
+    fails_intact(
+        s,
+        "vqa --out onto the question file",
+        &[&q],
+        &["vqa", "--run", bare_run.to_str().unwrap(), "--questions", q.to_str().unwrap(), "--out"],
+        &[&q],
+        &["--questions file"],
+    );
+    fails_intact(
+        s,
+        "train --out onto --data",
+        &[base],
+        &["train", "--data"],
+        &[base, Path::new("--out"), base],
+        &["--data directory"],
+    );
+    let teacher = dir.join("teacher-no-masks");
+    fails_intact(
+        s,
+        "train-language --out onto the geometry run",
+        &[bare_run],
+        &["train-language", "--iters", "1", "--teacher", teacher.to_str().unwrap(), "--run"],
+        &[bare_run, Path::new("--out"), bare_run],
+        &["geometry run (--run)"],
+    );
+}
+
+/// A resume refuses settings the command line asks for that the run does not have, naming each.
+fn resumes_keep_the_command_line(s: &mut Suite, dir: &Path, r: &Path, bare_run: &Path, bare_teacher: &Path) {
+    let cfg = dir.join("geometry-lr.json");
+    std::fs::write(&cfg, r#"{"lr_means": 0.5, "iters": 6}"#).unwrap();
+    fails_intact(
+        s,
+        "train --resume --config with another lr_means",
+        &[r],
+        &["train", "--resume", "--config"],
+        &[&cfg, Path::new("--data"), &dir.join("base"), Path::new("--out"), r],
+        &["geometry-lr.json", "lr_means", "--resume"],
+    );
+    fails_intact(
+        s,
+        "train --resume --background black",
+        &[r],
+        &["train", "--resume", "--background", "black", "--data"],
+        &[&dir.join("base"), Path::new("--out"), r],
+        &["--background black", "background"],
+    );
+    let lang = |extra: &[&str], teacher: &Path| -> Vec<String> {
+        let tail = ["--run", bare_run.to_str().unwrap(), "--teacher", teacher.to_str().unwrap()];
+        ["train-language", "--resume", "--iters", "2"].iter().chain(extra).chain(&tail).map(|a| a.to_string()).collect()
+    };
+    let language = bare_run.join("language");
+    fails_intact(
+        s,
+        "train-language --resume --channels 8",
+        &[&language],
+        &lang(&["--channels", "8"], bare_teacher),
+        &[],
+        &["--channels 8", "field.view_channels"],
+    );
+    let other = dir.join("teacher-base");
+    fails_intact(
+        s,
+        "train-language --resume --teacher another",
+        &[&language],
+        &lang(&[], &other),
+        &[],
+        &["--teacher", "teacher-no-masks"],
+    );
+}
+
+/// Counts and model shapes out of range: refused before any work, never a panic.
+fn counts_and_shapes(s: &mut Suite, dir: &Path, base: &Path, r: &Path) {
+    for n in ["18446744073709551615", "1000000"] {
+        s.fails(Case {
+            name: format!("extract --novel-views {n}"),
+            out: run(
+                &["extract", "--novel-views", n, "--data"],
+                &[base, Path::new("--run"), r, Path::new("--out"), &dir.join("teacher-novel")],
+            ),
+            expect: vec![format!("--novel-views {n}"), "at most".into()],
+        });
+    }
+    for (name, cfg, key) in [
+        ("a text width of 0", r#"{"model": {"text_width": 0}}"#, "model.text_width"),
+        ("0 tower layers", r#"{"model": {"vision_layers": 0}}"#, "model.vision_layers"),
+        ("0 steps", r#"{"steps": 0}"#, "steps"),
+        ("a negative weight decay", r#"{"weight_decay": -1}"#, "weight_decay"),
+        ("a model too large", r#"{"model": {"text_width": 4096, "text_layers": 64, "text_mlp": 16384}}"#, "parameters"),
+    ] {
+        let p = dir.join("vlm-shape.json");
+        std::fs::write(&p, cfg).unwrap();
+        let out = dir.join("vlm-shape");
+        s.fails(Case {
+            name: format!("train-vlm with {name}"),
+            out: run(&["train-vlm", "--config"], &[&p, Path::new("--out"), &out]),
+            expect: vec![key.into()],
+        });
+        s.check(&format!("train-vlm with {name}: nothing written"), !out.exists(), "the output folder was made");
+    }
+    s.fails(Case {
+        name: "serve --allow-origin '*'".into(),
+        out: run(&["serve", "--allow-origin", "*", "--run"], &[r]),
+        expect: vec!["wildcard".into()],
+    });
+    // a finished run's state.json edited to an absurd iteration: export-ply refuses it too
+    let state = r.join("state.json");
+    let kept = std::fs::read(&state).unwrap();
+    edit_json(&state, |v| v["iter"] = serde_json::json!(1_000_000_000u64));
+    s.fails(Case {
+        name: "export-ply of an absurd iteration count".into(),
+        out: run(&["export-ply", "--run"], &[r, Path::new("--out"), &dir.join("absurd.ply")]),
+        expect: vec!["state.json".into(), "iteration 1000000000".into()],
+    });
+    std::fs::write(&state, kept).unwrap();
+    // question files: a view question with an object pixel, a top level that is not an object
+    let q = dir.join("questions-mixed.json");
+    std::fs::write(
+        &q,
+        r#"{"questions": [{"id": "v", "level": "view", "view": 0, "object": [3, 4],
+        "question": "What is this?", "answer": "red cube"}]}"#,
+    )
+    .unwrap();
+    let vqa = |q: &Path| run(&["vqa", "--run"], &[r, Path::new("--questions"), q]);
+    s.fails(Case {
+        name: "vqa: a view question with an object pixel".into(),
+        out: vqa(&q),
+        expect: vec!["questions-mixed.json".into(), "\"object\" does not apply to view-level".into()],
+    });
+    std::fs::write(&q, r#"[{"id": "v", "level": "view", "view": 0, "question": "Q?", "answer": "x"}]"#).unwrap();
+    s.fails(Case {
+        name: "vqa: a question file that is an array".into(),
+        out: vqa(&q),
+        expect: vec!["the top level is an array".into(), "\"questions\"".into()],
+    });
+}
+
+/// Token files the index does not describe: swapped, or one file for two views.
+fn teacher_files(s: &mut Suite, dir: &Path, r: &Path) {
+    let teacher = dir.join("teacher-swapped");
+    copy_dir(&dir.join("teacher-base"), &teacher);
+    let (a, b) = (teacher.join("view_0000.safetensors"), teacher.join("view_0001.safetensors"));
+    let (ba, bb) = (std::fs::read(&a).unwrap(), std::fs::read(&b).unwrap());
+    std::fs::write(&a, &bb).unwrap();
+    std::fs::write(&b, &ba).unwrap();
+    let language = |teacher: &Path| {
+        run(
+            &["train-language", "--iters", "1", "--run"],
+            &[r, Path::new("--teacher"), teacher, Path::new("--out"), &dir.join("language-swapped")],
+        )
+    };
+    s.fails(Case {
+        name: "teacher token files swapped".into(),
+        out: language(&teacher),
+        expect: vec!["view_0000.safetensors".into(), "moved or swapped".into()],
+    });
+    std::fs::write(&a, &ba).unwrap();
+    std::fs::write(&b, &bb).unwrap();
+    edit_json(&teacher.join("teacher.json"), |v| v["views"][1]["file"] = v["views"][0]["file"].clone());
+    s.fails(Case {
+        name: "two teacher views on one file".into(),
+        out: language(&teacher),
+        expect: vec!["teacher.json".into(), "both point at view_0000.safetensors".into()],
+    });
+}
+
+/// The built-in tabletop model on a scene that is not a tabletop: said once on the terminal, and
+/// beside the answer.
+fn builtin_model_on_another_scene(s: &mut Suite, dir: &Path, base: &Path) {
+    let data = dir.join("not-a-tabletop");
+    copy_dir(base, &data);
+    std::fs::remove_file(data.join("scene.json")).unwrap();
+    let (run_dir, teacher) = (dir.join("run-not-a-tabletop"), dir.join("teacher-not-a-tabletop"));
+    s.succeeds("train on a capture that is not a tabletop", train(&data, &run_dir, &[]));
+    s.succeeds("extract it", run(&["extract", "--data"], &[&data, Path::new("--out"), &teacher]));
+    let lang = run(&["train-language", "--iters", "1", "--run"], &[&run_dir, Path::new("--teacher"), &teacher]);
+    s.succeeds("train-language on it", lang);
+    let out = run(&["ask", "--view", "0", "--max-new-tokens", "2", "--run"], &[&run_dir, Path::new("What is this?")]);
+    let err = String::from_utf8_lossy(&out.stderr).into_owned();
+    s.succeeds("ask with the built-in model about it", out);
+    s.check(
+        "the built-in model on another scene: said once, and beside the answer",
+        err.matches("knows only the synthetic tabletops").count() == 1
+            && err.contains("--vlm")
+            && err.contains("the built-in tabletop model's answer"),
+        &err,
+    );
+    // a tabletop says nothing of it
+    let tabletop = run(&["ask", "--view", "0", "--max-new-tokens", "2", "--run"], &[
+        &dir.join("run-no-masks"),
+        Path::new("What is this?"),
+    ]);
+    let err = String::from_utf8_lossy(&tabletop.stderr).into_owned();
+    s.check("a tabletop: no note", !err.contains("knows only the synthetic tabletops"), &err);
 }
 
 /// The chat REPL: bad commands are reported and the session goes on.

@@ -147,6 +147,49 @@ fn a_worker_killed_mid_scene_resumes_it_from_its_checkpoint() {
     assert_eq!(json(&dir.join("one-out/a/run/language/state.json"))["field"]["tower_tail"], tail);
 }
 
+/// A scene that fails is recorded and the shard goes on (exiting non-zero, naming it); a scene
+/// pointed at other data runs again, its earlier results kept aside.
+#[test]
+fn a_failed_scene_is_recorded_and_a_scene_on_other_data_runs_again() {
+    let dir = tmp("failed");
+    std::fs::create_dir_all(&*dir).unwrap();
+    scenes(&dir, &[30_205, 30_206]);
+    std::fs::create_dir_all(dir.join("broken")).unwrap();
+    std::fs::write(dir.join("broken/transforms.json"), "{\"frames\": [").unwrap();
+    let manifest = dir.join("m.toml");
+    let text = |good: &str| {
+        format!(
+            "geometry_iters = 10\nlanguage_iters = 2\n[[scene]]\nname = \"bad\"\ndata = \"broken\"\n\
+             [[scene]]\nname = \"good\"\ndata = \"{good}\"\n"
+        )
+    };
+    std::fs::write(&manifest, text("d30205")).unwrap();
+    let o = batch(&manifest, &[]).output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && !err.contains("panicked"), "{}", show(&o));
+    assert!(err.contains("1 of its 2 scenes failed: bad"), "{}", show(&o));
+    let out = dir.join("m-out");
+    let first = summary(&out, "good");
+    let failed = json(&out.join("bad/failed.json"));
+    assert!(failed["error"].as_str().unwrap().contains("transforms.json"), "{failed}");
+    let report = json(&out.join("report.json"));
+    let status: Vec<&str> = report["results"].as_array().unwrap().iter().map(|r| r["status"].as_str().unwrap()).collect();
+    assert_eq!(status, ["failed", "done"], "{report}");
+    // the same manifest again: "good" is done, "bad" fails again
+    let o = batch(&manifest, &[]).output().unwrap();
+    assert!(!o.status.success() && String::from_utf8_lossy(&o.stderr).contains("done earlier"), "{}", show(&o));
+    assert_eq!(summary(&out, "good"), first);
+    // "good" pointed at other data: it runs again, and its earlier folder is kept aside
+    std::fs::write(&manifest, text("d30206")).unwrap();
+    let o = batch(&manifest, &[]).output().unwrap();
+    assert!(String::from_utf8_lossy(&o.stderr).contains("runs again"), "{}", show(&o));
+    let second = summary(&out, "good");
+    assert_ne!(second["job"], first["job"], "{second}");
+    assert!(second["data"].as_str().unwrap().ends_with("d30206"), "{second}");
+    let aside = out.join(format!("good.superseded-{}", first["job"].as_str().unwrap()));
+    assert_eq!(json(&aside.join("summary.json")), first);
+}
+
 #[test]
 fn bad_manifests_and_shards_are_refused_naming_the_line() {
     let dir = tmp("bad");
@@ -168,6 +211,8 @@ fn bad_manifests_and_shards_are_refused_naming_the_line() {
         ("geometry_iters = 10\n", "", vec!["no [[scene]]"]),
         ("[[scene]]\nname = \"a\"\ndata = \"d\"\n", "2/2", vec!["--shard 2/2", "below the shard count"]),
         ("[[scene]]\nname = \"a\"\ndata = \"d\"\n", "x", vec!["--shard x", "I/N"]),
+        // a global setting the model cannot meet: refused before the first scene
+        ("tower_tail = 99\n[[scene]]\nname = \"a\"\ndata = \"d\"\n", "", vec!["tower_tail 99", "vision tower"]),
     ];
     for (k, (text, shard, want)) in cases.into_iter().enumerate() {
         let manifest = dir.join(format!("m{k}.toml"));

@@ -55,6 +55,34 @@ pub fn large_block_budget() -> usize {
     (pages.saturating_mul(4096) / 4).min(8 << 30)
 }
 
+/// Bytes free to this user on the file system that holds `path` (or its deepest existing
+/// ancestor, for a folder not made yet); `None` where it cannot be read.
+pub fn free_disk(path: &std::path::Path) -> Option<u64> {
+    let at = crate::io::resolved(path);
+    let existing = at.ancestors().find(|p| p.exists())?;
+    #[cfg(unix)]
+    {
+        use std::os::unix::ffi::OsStrExt;
+        let c = std::ffi::CString::new(existing.as_os_str().as_bytes()).ok()?;
+        let mut s = std::mem::MaybeUninit::<libc::statvfs>::uninit();
+        // SAFETY: `c` is a NUL-terminated path and `s` is a buffer of the struct statvfs fills.
+        let r = unsafe { libc::statvfs(c.as_ptr(), s.as_mut_ptr()) };
+        if r != 0 {
+            return None;
+        }
+        // SAFETY: statvfs returned 0, so it filled `s`.
+        let s = unsafe { s.assume_init() };
+        // both are 32-bit on some targets
+        #[allow(clippy::unnecessary_cast)]
+        Some((s.f_bavail as u64).saturating_mul(s.f_frsize as u64))
+    }
+    #[cfg(not(unix))]
+    {
+        let _ = existing;
+        None
+    }
+}
+
 use std::alloc::{GlobalAlloc, Layout, System};
 use std::sync::Mutex;
 use std::sync::atomic::{AtomicUsize, Ordering};

@@ -124,6 +124,30 @@ pub struct ChatSession {
     /// The image file name of each view.
     pub images: Vec<String>,
     pub train_views: usize,
+    /// Set when the built-in tabletop model answers about a scene that is not a built-in
+    /// tabletop: what to tell the user (once, and beside every answer).
+    pub model_note: Option<String>,
+}
+
+/// What to tell the user when the built-in tabletop model (`vlm_dir`) chats about the scene the
+/// geometry `run` (of state `state`) was trained on and that scene is not a built-in tabletop
+/// (its dataset holds no synthetic `scene.json`): its answers name tabletop colours and shapes
+/// whatever the scene shows. `None` for another model, a tabletop, or a dataset no longer there.
+pub fn builtin_model_note(run: &GeometryRun, state: &crate::run::GeometryState, vlm_dir: &Path) -> Option<String> {
+    let builtin = crate::vlm::default_model_dir().ok()?;
+    if crate::io::resolved(&builtin) != crate::io::resolved(vlm_dir) {
+        return None;
+    }
+    let data = state.data.dir.resolve(&run.dir);
+    let tabletop = crate::io::read_json::<crate::data::synth::scene::SynthScene>(&data.join("scene.json")).is_ok();
+    (data.is_dir() && !tabletop).then(|| {
+        format!(
+            "the built-in model knows only the synthetic tabletops (their colours, shapes and question types), and \
+             {} is not one: its answers are not about this scene. Give --vlm a LLaVA-OneVision folder \
+             (llava-onevision-qwen2-*-ov-hf) for real captures",
+            data.display()
+        )
+    })
 }
 
 impl ChatSession {
@@ -159,6 +183,7 @@ impl ChatSession {
                 opened.state.iter
             ));
         }
+        let model_note = builtin_model_note(run, &state, vlm_dir);
         let scene = LanguageScene::of(splats, &state, opened);
         let cams = run.read_cameras()?;
         let vlm = LlavaOnevision::load(vlm_dir, device)?;
@@ -191,6 +216,7 @@ impl ChatSession {
             cameras: cams.all(),
             images: cams.image_names(),
             train_views: cams.train.len(),
+            model_note,
         })
     }
 

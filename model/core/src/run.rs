@@ -198,6 +198,19 @@ impl GeometryRun {
     pub fn classifier(&self) -> PathBuf {
         self.dir.join("classifier.json")
     }
+    /// The files that make the run (what its commands read), named: no output may be written
+    /// onto them ([`io::refuse_output_onto`]).
+    pub fn own_files(&self) -> Vec<(&'static str, PathBuf)> {
+        vec![
+            ("the geometry run's checkpoint", self.checkpoint()),
+            ("the geometry run's config.json", self.config()),
+            ("the geometry run's state.json", self.state()),
+            ("the geometry run's cameras.json", self.cameras()),
+            ("the geometry run's metrics.json", self.metrics()),
+            ("the geometry run's classifier.json", self.classifier()),
+            ("the geometry run's point_cloud.ply", self.point_cloud()),
+        ]
+    }
     /// The default language run inside this run.
     pub fn language(&self) -> LanguageRun {
         LanguageRun::new(self.dir.join("language"))
@@ -217,6 +230,18 @@ impl GeometryRun {
             return Err(Error::invalid(&self.dir, "is not a geometry run directory (run `chatsplat train` first)"));
         }
         let state = self.read_state()?;
+        // a state past the run's own total does not belong to it (as a resume refuses it)
+        let total = io::read_json::<serde_json::Value>(&self.config()).ok().and_then(|c| c["iters"].as_u64());
+        if let Some(total) = total.filter(|t| state.iter as u64 > *t) {
+            return Err(Error::invalid(
+                self.state(),
+                format!(
+                    "iteration {} is past the {total} iterations the run's config.json asks for: the state does not \
+                     belong to this run",
+                    state.iter
+                ),
+            ));
+        }
         let path = self.checkpoint();
         let (mut tensors, _) = io::read_f32(&path)?;
         let mut err = None;
@@ -287,6 +312,17 @@ impl LanguageRun {
     /// [`Compaction`]: the Gaussians the language maps keep, when the run was compacted.
     pub fn compaction(&self) -> PathBuf {
         self.dir.join("compact.json")
+    }
+    /// The files that make the run (what its commands read), named: no output may be written
+    /// onto them ([`io::refuse_output_onto`]).
+    pub fn own_files(&self) -> Vec<(&'static str, PathBuf)> {
+        vec![
+            ("the language run's checkpoint", self.checkpoint()),
+            ("the language run's config.json", self.config()),
+            ("the language run's state.json", self.state()),
+            ("the language run's metrics.json", self.metrics()),
+            ("the language run's compact.json", self.compaction()),
+        ]
     }
     /// The run's [`Compaction`], if it has one, checked against a geometry of `gaussians` rows.
     pub fn read_compaction(&self, gaussians: usize) -> Result<Option<Compaction>> {

@@ -60,6 +60,25 @@ pub fn read_json<T: DeserializeOwned>(path: &Path) -> Result<T> {
         .map_err(|e| Error::invalid(path, format!("invalid JSON at line {}, column {}: {e}", e.line(), e.column())))
 }
 
+/// Reads a JSON file whose top level must be an object (`shape` says which, e.g.
+/// `{"questions": [...]}`): another top level is refused saying what it must be, other errors
+/// name the line and column.
+pub fn read_json_object<T: DeserializeOwned>(path: &Path, shape: &str) -> Result<T> {
+    let text = std::fs::read_to_string(path).at(path, "cannot read")?;
+    let at = |e: serde_json::Error| {
+        Error::invalid(path, format!("invalid JSON at line {}, column {}: {e}", e.line(), e.column()))
+    };
+    let top = match serde_json::from_str::<serde_json::Value>(&text).map_err(at)? {
+        serde_json::Value::Object(_) => return serde_json::from_str(&text).map_err(at),
+        serde_json::Value::Array(_) => "an array",
+        serde_json::Value::String(_) => "a string",
+        serde_json::Value::Number(_) => "a number",
+        serde_json::Value::Bool(_) => "a boolean",
+        serde_json::Value::Null => "null",
+    };
+    Err(Error::invalid(path, format!("the top level is {top}; it must be an object {shape}")))
+}
+
 /// Reads a config file a user wrote: a JSON object (not an array, which serde would map onto the
 /// fields by position), unknown keys refused by the type.
 pub fn read_config<T: DeserializeOwned>(path: &Path) -> Result<T> {
@@ -122,6 +141,51 @@ pub fn take_rank2(tensors: &mut NamedMap, name: &str, path: &Path) -> Result<(us
         [r, c] => Ok((r, c, v)),
         _ => Err(Error::invalid(path, format!("tensor {name} has shape {shape:?}, expected rank 2"))),
     }
+}
+
+/// Where `path` leads: its canonical form (links followed, `..` resolved) when it exists; else its
+/// deepest existing ancestor's canonical form joined with the rest.
+pub fn resolved(path: &Path) -> PathBuf {
+    let abs = std::path::absolute(path).unwrap_or_else(|_| path.to_path_buf());
+    let mut rest = Vec::new();
+    let mut at = abs.as_path();
+    loop {
+        if let Ok(c) = std::fs::canonicalize(at) {
+            return rest.iter().rev().fold(c, |p: PathBuf, part| p.join(part));
+        }
+        match (at.parent(), at.file_name()) {
+            (Some(parent), Some(name)) => {
+                rest.push(name.to_os_string());
+                at = parent;
+            }
+            _ => return abs,
+        }
+    }
+}
+
+/// The one rule every command keeps before it writes: an output (`option`, e.g. `--out`, at
+/// `out`) may not be anything the command reads (`inputs`: what each is and where, a run's own
+/// files among them). Paths are compared where they lead ([`resolved`]), so a link or `a/../b`
+/// is no way around it. Refused before anything is written.
+pub fn refuse_output_onto(option: &str, out: &Path, inputs: &[(&str, PathBuf)]) -> Result<()> {
+    let at = resolved(out);
+    match inputs.iter().find(|(_, p)| resolved(p) == at) {
+        Some((what, _)) => Err(Error::invalid(
+            out,
+            format!("{option} would overwrite {what}, which this command reads: choose another {option}"),
+        )),
+        None => Ok(()),
+    }
+}
+
+/// Refuses two outputs of one command (`option`, path) that lead to the same file.
+pub fn refuse_shared_outputs(outputs: &[(&str, &Path)]) -> Result<()> {
+    for (i, (a, p)) in outputs.iter().enumerate() {
+        if let Some((b, _)) = outputs[i + 1..].iter().find(|(_, q)| resolved(q) == resolved(p)) {
+            return Err(Error::invalid(p, format!("{a} and {b} are the same file: give each output its own path")));
+        }
+    }
+    Ok(())
 }
 
 /// `to` relative to directory `base` when `to` lies inside it (or both are relative), else `to`

@@ -102,13 +102,8 @@ impl Dataset {
     /// Runs and teacher directories store it so that resuming or training on other data is
     /// refused.
     pub fn fingerprint(&self) -> String {
-        // FNV-1a, 64 bit
-        let mut h: u64 = 0xcbf2_9ce4_8422_2325;
-        let mut eat = |bytes: &[u8]| {
-            for b in bytes {
-                h = (h ^ *b as u64).wrapping_mul(0x0100_0000_01b3);
-            }
-        };
+        let mut h = Fnv::default();
+        let mut eat = |bytes: &[u8]| h.eat(bytes);
         for (split, views) in [(0u8, &self.train), (1, &self.test)] {
             eat(&[split]);
             eat(&(views.len() as u64).to_le_bytes());
@@ -137,7 +132,30 @@ impl Dataset {
                 }
             }
         }
-        format!("{h:016x}")
+        h.hex()
+    }
+}
+
+/// FNV-1a, 64 bit: the hash of the fingerprints, the same on every machine and run.
+#[derive(Clone, Copy, Debug, PartialEq, Eq)]
+pub struct Fnv(pub u64);
+
+impl Default for Fnv {
+    fn default() -> Self {
+        Fnv(0xcbf2_9ce4_8422_2325)
+    }
+}
+
+impl Fnv {
+    pub fn eat(&mut self, bytes: &[u8]) {
+        for b in bytes {
+            self.0 = (self.0 ^ *b as u64).wrapping_mul(0x0100_0000_01b3);
+        }
+    }
+
+    /// 16 hex digits.
+    pub fn hex(&self) -> String {
+        format!("{:016x}", self.0)
     }
 }
 

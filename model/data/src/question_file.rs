@@ -12,15 +12,19 @@
 //!    "question": "What colour is the cube?", "answer": "red", "keywords": ["red"]},
 //!   {"id": "q2", "level": "object", "view": 0, "object": [120, 64],
 //!    "question": "What is this object?", "answer": "a wooden chair"},
-//!   {"id": "q3", "level": "scene", "question": "How many chairs are there?", "answer": "two"}
+//!   {"id": "q3", "level": "scene", "question": "How many chairs are there?", "answer": "two"},
+//!   {"id": "q4", "level": "scene", "question": "What objects are there?",
+//!    "answer": "red chair red cup", "items": ["red chair", "red cup"]}
 //! ]}
 //! ```
 //!
 //! `scene` is optional. `level` is `view`, `object` or `scene`; `view` (an image index) is
 //! required for view-level questions; `object` (an `[x, y]` pixel, in the image of `view` when
 //! given) is required for object-level ones; scene-level questions may list their `views`
-//! (default: views spread around the scene); `keywords` is optional. Ids must be unique and the
-//! question and answer texts non-empty. Unknown keys are rejected (typos).
+//! (default: views spread around the scene); `keywords` is optional. `items` marks a list answer
+//! and names its items (`[]` for an answer of "none"): a list is scored as a multiset of items, so
+//! an item missed or an item invented is never right. Ids must be unique and the question and
+//! answer texts non-empty. Unknown keys are rejected (typos).
 
 use crate::error::{Error, Result};
 use serde::{Deserialize, Serialize};
@@ -71,6 +75,9 @@ pub struct Question {
     pub answer: String,
     #[serde(default, skip_serializing_if = "Vec::is_empty")]
     pub keywords: Vec<String>,
+    /// A list answer's items (a multiset; empty for "none"); `None` when the answer is not a list.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub items: Option<Vec<String>>,
 }
 
 /// A question file: see the [module documentation](self) for the format.
@@ -89,7 +96,7 @@ pub struct QuestionFile {
 
 /// Reads and validates a question file; errors name the file and the problem.
 pub fn load_questions(path: &Path) -> Result<QuestionFile> {
-    let file: QuestionFile = crate::io::read_json(path)?;
+    let file: QuestionFile = crate::io::read_json_object(path, r#"{"questions": [...]} (a "scene" name optional)"#)?;
     if file.questions.is_empty() {
         return Err(Error::invalid(path, "holds no questions"));
     }
@@ -114,6 +121,13 @@ pub fn load_questions(path: &Path) -> Result<QuestionFile> {
         if q.level == Level::Object && q.object.is_none() {
             return fail("object-level question without \"object\" pixel");
         }
+        // as the viewer's API: a field of another level is a mistake, not something to ignore
+        if q.level != Level::Object && q.object.is_some() {
+            return fail(&format!("\"object\" does not apply to {}-level questions", q.level));
+        }
+        if q.level != Level::Scene && q.views.is_some() {
+            return fail(&format!("\"views\" does not apply to {}-level questions", q.level));
+        }
         if let Some([x, y]) = q.object
             && !(x.is_finite() && y.is_finite() && x >= 0.0 && y >= 0.0)
         {
@@ -121,6 +135,9 @@ pub fn load_questions(path: &Path) -> Result<QuestionFile> {
         }
         if q.views.as_ref().is_some_and(|v| v.is_empty()) {
             return fail("\"views\" is empty");
+        }
+        if q.items.iter().flatten().any(|i| i.trim().is_empty()) {
+            return fail("an empty item in \"items\"");
         }
         if let Some(frames) = &file.views {
             let n = frames.len();
@@ -190,6 +207,26 @@ mod tests {
         assert!(e.contains("question 1") && e.contains("duplicate id"), "{e}");
         let e = err("level", &q(r#"{"id": "e", "level": "room", "question": "Q?", "answer": "x"}"#));
         assert!(e.contains("invalid JSON") && e.contains("room"), "{e}");
+        let e = err("top", &format!("[{one}]"));
+        assert!(e.contains("the top level is an array") && e.contains(r#"{"questions": [...]}"#), "{e}");
+        let e = err(
+            "viewobj",
+            &q(r#"{"id": "f", "level": "view", "view": 0, "object": [1, 2], "question": "Q?", "answer": "x"}"#),
+        );
+        assert!(e.contains("\"object\" does not apply to view-level"), "{e}");
+        let e = err(
+            "objviews",
+            &q(r#"{"id": "g", "level": "object", "object": [1, 2], "views": [0], "question": "Q?", "answer": "x"}"#),
+        );
+        assert!(e.contains("\"views\" does not apply to object-level"), "{e}");
+        let e =
+            err("items", &q(r#"{"id": "h", "level": "scene", "question": "Q?", "answer": "x", "items": ["x", " "]}"#));
+        assert!(e.contains("empty item"), "{e}");
+        let list = q(r#"{"id": "i", "level": "scene", "question": "Q?", "answer": "none", "items": []}"#);
+        let p = tmp("list", &list);
+        let f = load_questions(&p).unwrap();
+        let _ = std::fs::remove_file(p);
+        assert_eq!(f.questions[0].items, Some(vec![]));
         let missing = std::env::temp_dir().join("chatsplat-vqa-no-such-file.json");
         let e = load_questions(&missing).unwrap_err().to_string();
         assert!(e.contains("no-such-file") && e.contains("cannot read"), "{e}");

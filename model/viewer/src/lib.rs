@@ -150,6 +150,9 @@ fn load(opts: &ServeOptions) -> Result<(Engine, Served)> {
     if !session.scene.masks {
         warnings.push("the scene was trained without instance masks: clicking objects is off".into());
     }
+    if let Some(note) = &session.model_note {
+        warnings.push(note.clone());
+    }
     let model_name = opts.vlm.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
     let info = SceneInfo::new(&session, &run, &names, model_name, opts.backend.to_string(), opts.max_new_tokens)?;
     let served = Served {

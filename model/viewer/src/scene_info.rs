@@ -77,6 +77,9 @@ pub struct SceneInfo {
     /// Whether object picking works (the geometry was trained with instance masks).
     pub masks: bool,
     pub model: String,
+    /// Set when the built-in tabletop model chats about a scene that is not a tabletop: the page
+    /// shows it as a banner and marks every answer.
+    pub model_note: Option<String>,
     pub backend: String,
     pub scene_views: usize,
     pub max_new_tokens: usize,
@@ -147,6 +150,7 @@ impl SceneInfo {
             background: s.scene.background,
             masks: s.scene.masks,
             model,
+            model_note: s.model_note.clone(),
             backend,
             scene_views: DEFAULT_SCENE_VIEWS.min(s.train_views),
             max_new_tokens,

@@ -444,6 +444,8 @@ function updateTurn(turn) {
   const a = turn.el.querySelector(".a");
   a.textContent = turn.error || turn.answer || turn.waiting || "";
   a.classList.toggle("error", Boolean(turn.error));
+  // the built-in tabletop model on a scene that is not a tabletop: every answer says so
+  a.classList.toggle("tabletop-model", Boolean(state.scene && state.scene.model_note) && !turn.error);
   turn.el.querySelector(".t").textContent = turn.timing || "";
   turn.el.dataset.state = turn.state;
   $("history").scrollTop = $("history").scrollHeight;
@@ -559,6 +561,11 @@ async function main() {
   installControls();
   installChat();
   setScope("view");
+  if (s.model_note) {
+    const b = $("model-note");
+    b.textContent = `Built-in tabletop model: ${s.model_note}`;
+    b.hidden = false;
+  }
   state.mode = params.get("render") === "server" || !webgl2() ? "server" : "webgl";
   if (state.mode === "webgl") {
     status(`loading ${s.gaussians.toLocaleString()} Gaussians…`);

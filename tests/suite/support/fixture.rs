@@ -73,14 +73,13 @@ fn source_hash() -> u64 {
     }
     files.push(top.join("Cargo.lock"));
     files.sort();
-    let mut h: u64 = 0xcbf2_9ce4_8422_2325;
+    let mut h = model::data::Fnv::default();
     for f in files {
         let name = f.strip_prefix(&top).unwrap_or(&f).to_string_lossy().into_owned();
-        for b in name.bytes().chain(std::fs::read(&f).unwrap_or_default()) {
-            h = (h ^ b as u64).wrapping_mul(0x0100_0000_01b3);
-        }
+        h.eat(name.as_bytes());
+        h.eat(&std::fs::read(&f).unwrap_or_default());
     }
-    h
+    h.0
 }
 
 fn collect(dir: &Path, out: &mut Vec<PathBuf>) {

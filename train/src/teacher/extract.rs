@@ -98,6 +98,29 @@ pub struct ExtractSummary {
     pub views: usize,
 }
 
+/// Novel views a capture may ask for, per training photo.
+pub const MAX_NOVEL_PER_PHOTO: usize = 10;
+
+/// Refuses a plan of `bytes` (less what `out` already holds) that the disk under `out` cannot
+/// take; `what` names what asked for it.
+fn fits_on_disk(out: &TeacherDir, bytes: u64, what: &str) -> Result<()> {
+    let held: u64 = std::fs::read_dir(&out.dir)
+        .map(|d| d.flatten().filter_map(|e| e.metadata().ok()).map(|m| m.len()).sum())
+        .unwrap_or(0);
+    let needed = bytes.saturating_sub(held);
+    match model::alloc::free_disk(&out.dir) {
+        Some(free) if needed > free => Err(Error::invalid(
+            &out.dir,
+            format!(
+                "{what} need about {:.1} GB of disk here, and {:.1} GB are free: nothing was written",
+                needed as f64 / 1e9,
+                free as f64 / 1e9
+            ),
+        )),
+        _ => Ok(()),
+    }
+}
+
 /// Runs the vision tower over every training view of the dataset in `data` (any supported format)
 /// and its masked objects, writing one token file per view and `teacher.json` into `out`.
 /// Complete files made with the same settings are kept (an interrupted run resumes);
@@ -131,7 +154,21 @@ pub fn extract(
     let photos = ds.train.len();
     let fingerprint = ds.fingerprint();
     let novel = match &opts.novel {
-        Some(n) if n.count > 0 => Some(Novel::open(n, &ds, &fingerprint, data, out, &vlm.device())?),
+        Some(n) if n.count > 0 => {
+            // bounded before any camera is drawn or view rendered: a novel view costs the disk of
+            // an average photo's tokens
+            let most = MAX_NOVEL_PER_PHOTO * photos;
+            if n.count > most {
+                return Err(Error::input(format!(
+                    "--novel-views {}: at most {most} for this capture ({MAX_NOVEL_PER_PHOTO} per training photo, \
+                     {photos} photos)",
+                    n.count
+                )));
+            }
+            let per_view = plan.bytes / photos as u64;
+            fits_on_disk(out, plan.bytes + per_view * n.count as u64, "--novel-views")?;
+            Some(Novel::open(n, &ds, &fingerprint, data, out, &vlm.device())?)
+        }
         _ => None,
     };
     // novel view `k` of plan index `index`, with its geometry
@@ -146,6 +183,7 @@ pub fn extract(
         }
     }
     let gaussians = |vp: &ViewPlan| novel_at(vp.index).map(|(n, _)| n.source.gaussians_hash.clone());
+    fits_on_disk(out, plan.bytes, "the teacher tokens")?;
     on_start(&plan);
     io::create_dir(&out.dir)?;
     // tokens made from other data, another downscale or masks, or by another teacher are redone,

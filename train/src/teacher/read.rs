@@ -49,14 +49,49 @@ pub struct TeacherSet {
 
 impl TeacherSet {
     /// Reads `teacher.json` and every view file's object boxes.
+    /// Every file is checked against the index: one file per view, holding that view's tokens
+    /// (the image its metadata names), of the index's shape, with boxes of the objects the index
+    /// lists; files moved, swapped or shared between views are refused.
     pub fn open(dir: &Path) -> Result<Self> {
         let dir = TeacherDir::new(dir);
         let index = dir.read_index()?;
         let mut views = Vec::with_capacity(index.views.len());
-        for v in &index.views {
+        let mut files = std::collections::HashMap::new();
+        for (i, v) in index.views.iter().enumerate() {
+            if let Some(j) = files.insert(v.file.as_str(), i) {
+                return Err(Error::invalid(
+                    dir.index(),
+                    format!("views {j} and {i} both point at {}: run `chatsplat extract` again", v.file),
+                ));
+            }
             let file = dir.dir.join(&v.file);
-            let objects = read_boxes(&file)?;
-            views.push(TeacherViewInfo { file, objects });
+            let header = read_header(&file)?;
+            if header.image.as_ref().is_some_and(|img| *img != v.image) {
+                return Err(Error::invalid(
+                    &file,
+                    format!(
+                        "holds the tokens of {}, but {} lists it for view {i} ({}): the token files were moved or \
+                         swapped; run `chatsplat extract` again",
+                        header.image.as_deref().unwrap_or_default(),
+                        dir.index().display(),
+                        v.image
+                    ),
+                ));
+            }
+            let (g, d) = (index.grid, index.dim);
+            if let Some((name, shape)) = header.shapes.iter().find(|(_, s)| *s != [g, g, d]) {
+                return Err(Error::invalid(
+                    &file,
+                    format!("{name} has shape {shape:?}, but the index says [{g}, {g}, {d}]"),
+                ));
+            }
+            if let Some(o) = header.objects.iter().find(|o| !v.objects.contains(&o.id)) {
+                return Err(Error::invalid(
+                    &file,
+                    format!("holds object {}, which {} does not list for view {i}", o.id, dir.index().display()),
+                ));
+            }
+            views.push(TeacherViewInfo { file, objects: header.objects });
         }
         Ok(Self { dir, index, views })
     }
@@ -114,6 +149,16 @@ impl TeacherSet {
                 None => out.extend(photos.next()),
             }
         }
+        // an object's box lies in its view
+        for ((info, cam), i) in self.views.iter().zip(&out).zip(0..) {
+            let (w, h) = (cam.width as usize, cam.height as usize);
+            if let Some(o) = info.objects.iter().find(|o| o.bbox[2] > w || o.bbox[3] > h) {
+                return Err(Error::invalid(
+                    &info.file,
+                    format!("object {}'s box {:?} reaches outside view {i} ({w}x{h})", o.id, o.bbox),
+                ));
+            }
+        }
         Ok(out)
     }
 
@@ -151,12 +196,21 @@ impl TeacherSet {
     }
 }
 
-fn read_boxes(file: &Path) -> Result<Vec<TeacherObject>> {
+/// What a token file says of itself: the image it was made from, its object boxes and its
+/// tensors' shapes.
+struct Header {
+    image: Option<String>,
+    objects: Vec<TeacherObject>,
+    shapes: Vec<(String, Vec<usize>)>,
+}
+
+fn read_header(file: &Path) -> Result<Header> {
     let bytes = std::fs::read(file).at(file, "cannot read")?;
     let (_, meta) = SafeTensors::read_metadata(&bytes)
         .map_err(|e| Error::invalid(file, format!("not a valid safetensors file: {e}")))?;
-    let boxes = meta.metadata().as_ref().and_then(|m| m.get("boxes_xyxy").cloned()).unwrap_or_default();
-    let mut out = Vec::new();
+    let text = meta.metadata().clone().unwrap_or_default();
+    let boxes = text.get("boxes_xyxy").cloned().unwrap_or_default();
+    let mut objects = Vec::new();
     for item in boxes.split_whitespace() {
         let bad = || Error::invalid(file, format!("malformed box \"{item}\" in boxes_xyxy"));
         let (id, rest) = item.split_once(':').ok_or_else(bad)?;
@@ -164,7 +218,10 @@ fn read_boxes(file: &Path) -> Result<Vec<TeacherObject>> {
         if c.len() != 4 || c[2] <= c[0] || c[3] <= c[1] {
             return Err(bad());
         }
-        out.push(TeacherObject { id: id.parse().map_err(|_| bad())?, bbox: [c[0], c[1], c[2], c[3]] });
+        objects.push(TeacherObject { id: id.parse().map_err(|_| bad())?, bbox: [c[0], c[1], c[2], c[3]] });
     }
-    Ok(out)
+    let mut shapes: Vec<(String, Vec<usize>)> =
+        meta.tensors().into_iter().map(|(name, info)| (name, info.shape.clone())).collect();
+    shapes.sort();
+    Ok(Header { image: text.get("image").cloned(), objects, shapes })
 }

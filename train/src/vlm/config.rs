@@ -34,6 +34,26 @@ pub struct Shape {
     pub text_mlp: usize,
 }
 
+/// Bounds of a trained model's shape, checked before any work ([`VlmTrainConfig::validate`]).
+const MAX_IMAGE: usize = 1024;
+const MAX_WIDTH: usize = 4096;
+const MAX_LAYERS: usize = 64;
+/// 4 GB of f32 weights, 16 GB with AdamW's moments.
+const MAX_PARAMETERS: usize = 1_000_000_000;
+
+impl Shape {
+    /// About how many weights the model has (the towers' layers, the projector, the word
+    /// embeddings of a tabletop vocabulary of ~100 words left out).
+    pub fn parameters(&self) -> usize {
+        let (vw, tw) = (self.vision_width, self.text_width);
+        let kv = tw / self.text_heads.max(1) * self.text_kv_heads;
+        let vision = self.vision_layers.saturating_mul(4 * vw * vw + 2 * vw * self.vision_mlp);
+        let text = self.text_layers.saturating_mul(2 * tw * tw + 2 * tw * kv + 3 * tw * self.text_mlp);
+        let patch = 3 * self.patch_size * self.patch_size * vw;
+        vision.saturating_add(text).saturating_add(patch + vw * tw + tw * tw)
+    }
+}
+
 impl Default for Shape {
     fn default() -> Self {
         Self {
@@ -239,6 +259,37 @@ impl VlmTrainConfig {
     pub fn validate(&self) -> Result<()> {
         let bad = |key: &str, why: &str| Err(Error::input(format!("vlm config: {key} {why}")));
         let m = &self.model;
+        if self.steps == 0 {
+            return bad("steps", "must be at least 1 (0 would save an untrained model)");
+        }
+        if !(self.weight_decay >= 0.0 && self.weight_decay.is_finite()) {
+            return bad("weight_decay", "must be finite and >= 0");
+        }
+        let sizes = [
+            ("model.image_size", m.image_size, MAX_IMAGE),
+            ("model.vision_width", m.vision_width, MAX_WIDTH),
+            ("model.vision_layers", m.vision_layers, MAX_LAYERS),
+            ("model.vision_mlp", m.vision_mlp, MAX_WIDTH * 4),
+            ("model.text_width", m.text_width, MAX_WIDTH),
+            ("model.text_layers", m.text_layers, MAX_LAYERS),
+            ("model.text_mlp", m.text_mlp, MAX_WIDTH * 4),
+        ];
+        for (key, v, max) in sizes {
+            if !(1..=max).contains(&v) {
+                return bad(key, &format!("must be in 1..={max} (is {v})"));
+            }
+        }
+        if m.parameters() > MAX_PARAMETERS {
+            return bad(
+                "model",
+                &format!(
+                    "has about {:.2e} parameters (over {MAX_PARAMETERS:.0e}): train-vlm trains small tabletop \
+                     models (the built-in one has about {:.1e}); real LLaVA-OneVision weights load with --vlm",
+                    m.parameters() as f64,
+                    Shape::default().parameters() as f64
+                ),
+            );
+        }
         if m.patch_size == 0 || m.image_size < m.patch_size {
             return bad("model.patch_size", "must be in 1..=image_size");
         }

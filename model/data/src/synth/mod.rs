@@ -258,6 +258,7 @@ fn question_file(
                 question: qa.question.clone(),
                 answer: qa.answer.clone(),
                 keywords: vec![],
+                items: qa.items(),
             }
         };
     for (i, f) in facts.iter().enumerate().filter(|(i, _)| held_out(*i)) {

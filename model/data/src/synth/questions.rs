@@ -124,6 +124,21 @@ impl Qa {
     fn new(kind: Kind, question: String, answer: impl Into<String>) -> Self {
         Self { kind, question, answer: answer.into() }
     }
+
+    /// A list answer's items (colours, shapes, or "colour shape" names; none for "none"), `None`
+    /// for the other kinds: what a question file's `items` holds.
+    pub fn items(&self) -> Option<Vec<String>> {
+        let per_item = match self.kind {
+            Kind::Colors | Kind::Shapes => 1,
+            Kind::Objects | Kind::List => 2,
+            _ => return None,
+        };
+        if self.answer == "none" {
+            return Some(vec![]);
+        }
+        let words: Vec<&str> = self.answer.split_whitespace().collect();
+        Some(words.chunks(per_item).map(|c| c.join(" ")).collect())
+    }
 }
 
 /// One object as a view shows it.

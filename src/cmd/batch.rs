@@ -316,6 +316,7 @@ fn run_scene(plan: &Plan, s: &Job, d: &JobDirs, shard: &str, job: &str) -> anyho
                 Scoring { views: model::chat::DEFAULT_SCENE_VIEWS, max_new_tokens: 16, show: false, keep_going: true };
             let grader = eval::score::Grader::from_env()?;
             let qf = model::vqa::load_questions(q)?;
+            model::question_file::check_scene(&qf, q, &s.data)?;
             let s = super::vqa::score(&scene.open()?, (q, &qf), &d.dir.join("vqa.json"), &scoring, grader.as_ref())?;
             seconds.insert("vqa".into(), serde_json::json!((t0.elapsed().as_secs_f64() * 10.0).round() / 10.0));
             // exact match (%) and the keyword score (0-100) of each level
@@ -451,7 +452,9 @@ fn earlier_job(d: &JobDirs) -> anyhow::Result<Option<String>> {
 fn set_aside(out: &Path, name: &str, was: &str) -> anyhow::Result<()> {
     let from = out.join(name);
     let to = (0..)
-        .map(|k| out.join(if k == 0 { format!("{name}.superseded-{was}") } else { format!("{name}.superseded-{was}.{k}") }))
+        .map(|k| {
+            out.join(if k == 0 { format!("{name}.superseded-{was}") } else { format!("{name}.superseded-{was}.{k}") })
+        })
         .find(|p| !p.exists())
         .expect("a free name");
     std::fs::rename(&from, &to).with_context(|| format!("{}: cannot move aside", from.display()))?;

@@ -68,6 +68,11 @@ pub struct Scores {
 
 pub fn run(a: Args) -> anyhow::Result<()> {
     let qf = load_questions(&a.questions)?;
+    // (a run that cannot be read is reported when the scene opens)
+    let geometry = a.scene.geometry();
+    if let Ok(state) = geometry.read_state() {
+        model::question_file::check_scene(&qf, &a.questions, &state.data.dir.resolve(&geometry.dir))?;
+    }
     let grader = Grader::from_env()?;
     let out = a.out.clone().unwrap_or_else(|| a.scene.language().vqa());
     let mut inputs = a.scene.own_files();

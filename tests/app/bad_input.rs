@@ -748,6 +748,19 @@ fn outputs_onto_inputs(s: &mut Suite, dir: &Path, base: &Path, bare_run: &Path) 
         &[base, Path::new("--out"), base],
         &["--data directory"],
     );
+    // synth over a folder of the user's that is not a synthetic tabletop
+    let photos = dir.join("user-photos");
+    std::fs::create_dir_all(photos.join("images")).unwrap();
+    std::fs::write(photos.join("transforms.json"), "{}").unwrap();
+    std::fs::write(photos.join("images/frame_0000.png"), "a photo").unwrap();
+    fails_intact(
+        s,
+        "synth --out over a capture",
+        &[&photos],
+        &["synth", "--views", "2", "--out"],
+        &[&photos],
+        &["user-photos", "not a synthetic tabletop"],
+    );
     let teacher = dir.join("teacher-no-masks");
     fails_intact(
         s,
@@ -861,6 +874,19 @@ fn counts_and_shapes(s: &mut Suite, dir: &Path, base: &Path, r: &Path) {
         out: vqa(&q),
         expect: vec!["questions-mixed.json".into(), "\"object\" does not apply to view-level".into()],
     });
+    // another scene's question file (the same frame names, another tabletop)
+    let theirs = dir.join("questions-seed-7.json");
+    std::fs::write(
+        &theirs,
+        r#"{"scene": "synthetic tabletop, seed 7", "questions": [{"id": "v", "level": "view",
+        "view": 0, "question": "How many objects are there?", "answer": "3"}]}"#,
+    )
+    .unwrap();
+    s.fails(Case {
+        name: "vqa: another scene's question file".into(),
+        out: vqa(&theirs),
+        expect: vec!["seed 7".into(), "seed 46".into(), "give a question file of this scene".into()],
+    });
     std::fs::write(&q, r#"[{"id": "v", "level": "view", "view": 0, "question": "Q?", "answer": "x"}]"#).unwrap();
     s.fails(Case {
         name: "vqa: a question file that is an array".into(),
@@ -920,10 +946,10 @@ fn builtin_model_on_another_scene(s: &mut Suite, dir: &Path, base: &Path) {
         &err,
     );
     // a tabletop says nothing of it
-    let tabletop = run(&["ask", "--view", "0", "--max-new-tokens", "2", "--run"], &[
-        &dir.join("run-no-masks"),
-        Path::new("What is this?"),
-    ]);
+    let tabletop = run(
+        &["ask", "--view", "0", "--max-new-tokens", "2", "--run"],
+        &[&dir.join("run-no-masks"), Path::new("What is this?")],
+    );
     let err = String::from_utf8_lossy(&tabletop.stderr).into_owned();
     s.check("a tabletop: no note", !err.contains("knows only the synthetic tabletops"), &err);
 }

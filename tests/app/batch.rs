@@ -173,7 +173,8 @@ fn a_failed_scene_is_recorded_and_a_scene_on_other_data_runs_again() {
     let failed = json(&out.join("bad/failed.json"));
     assert!(failed["error"].as_str().unwrap().contains("transforms.json"), "{failed}");
     let report = json(&out.join("report.json"));
-    let status: Vec<&str> = report["results"].as_array().unwrap().iter().map(|r| r["status"].as_str().unwrap()).collect();
+    let status: Vec<&str> =
+        report["results"].as_array().unwrap().iter().map(|r| r["status"].as_str().unwrap()).collect();
     assert_eq!(status, ["failed", "done"], "{report}");
     // the same manifest again: "good" is done, "bad" fails again
     let o = batch(&manifest, &[]).output().unwrap();

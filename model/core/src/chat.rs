@@ -138,7 +138,7 @@ pub fn builtin_model_note(run: &GeometryRun, state: &crate::run::GeometryState, 
     if crate::io::resolved(&builtin) != crate::io::resolved(vlm_dir) {
         return None;
     }
-    let data = state.data.dir.resolve(&run.dir);
+    let data = crate::io::resolved(&state.data.dir.resolve(&run.dir));
     let tabletop = crate::io::read_json::<crate::data::synth::scene::SynthScene>(&data.join("scene.json")).is_ok();
     (data.is_dir() && !tabletop).then(|| {
         format!(

@@ -149,6 +149,30 @@ pub fn load_questions(path: &Path) -> Result<QuestionFile> {
     Ok(file)
 }
 
+/// Refuses a question file (read from `path`) that names another scene than the dataset in
+/// `data` (the data a run was trained on): the dataset's own `questions.json` names its scene (as
+/// `chatsplat synth` writes it); a file that names none, or a dataset without its own file, is
+/// taken as it is.
+pub fn check_scene(file: &QuestionFile, path: &Path, data: &Path) -> Result<()> {
+    let own = data.join("questions.json");
+    let Some(name) = &file.scene else { return Ok(()) };
+    if !own.is_file() || crate::io::resolved(&own) == crate::io::resolved(path) {
+        return Ok(());
+    }
+    let theirs = crate::io::read_json::<QuestionFile>(&own).ok().and_then(|f| f.scene);
+    match theirs {
+        Some(t) if t != *name => Err(Error::invalid(
+            path,
+            format!(
+                "is about the scene \"{name}\", but the run was trained on {}, whose questions.json is about \
+                 \"{t}\": give a question file of this scene",
+                data.display()
+            ),
+        )),
+        _ => Ok(()),
+    }
+}
+
 /// The scene view a question's view index means: through the file's frame list (by image file
 /// name, among `images`, the run's view image names) when it has one, else the index itself.
 pub fn scene_view(file: &QuestionFile, images: &[String], view: usize) -> Result<usize> {

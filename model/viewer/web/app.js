@@ -563,7 +563,7 @@ async function main() {
   setScope("view");
   if (s.model_note) {
     const b = $("model-note");
-    b.textContent = `Built-in tabletop model: ${s.model_note}`;
+    b.textContent = s.model_note.charAt(0).toUpperCase() + s.model_note.slice(1);
     b.hidden = false;
   }
   state.mode = params.get("render") === "server" || !webgl2() ? "server" : "webgl";

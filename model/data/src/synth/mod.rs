@@ -184,6 +184,15 @@ pub fn write_dataset(dir: &Path, opts: &SynthOptions, mut progress: impl FnMut(u
             return Err(Error::input(format!("synth: --{name} {v} is out of range (at most {max})")));
         }
     }
+    // a folder the user had: only an earlier synthetic tabletop is written over
+    let holds_something = std::fs::read_dir(dir).is_ok_and(|mut d| d.next().is_some());
+    if holds_something && io::read_json::<SynthScene>(&dir.join("scene.json")).is_err() {
+        return Err(Error::invalid(
+            dir,
+            "holds files and is not a synthetic tabletop (`chatsplat synth` writes scene.json): nothing was \
+             written over it; give a new or empty --out",
+        ));
+    }
     let scene = SynthScene::from_seed(opts.seed);
     for sub in ["images", "masks", "depth"] {
         io::create_dir(&dir.join(sub))?;

@@ -56,18 +56,21 @@ fn same(a: &Value, s: &Value) -> bool {
 
 /// Refuses a resume of the run whose settings are `stored` (in `stored_path`) when the command
 /// line asks for others: the `--config` file's keys (`config`) and the options in `options` (a
-/// setting's dotted key, the option as typed, its value). Each differing setting is named.
+/// setting's dotted key, the option as typed, its value). Each differing setting is named, except
+/// those the stage sets itself whatever was asked (`resolved(key, asked)`: e.g. taken from the
+/// teacher, or "auto").
 pub fn refuse_changes(
     stored_path: &Path,
     stored: &impl Serialize,
     config: Option<&Path>,
     options: &[(&str, String, Value)],
+    resolved: impl Fn(&str, &Value) -> bool,
 ) -> anyhow::Result<()> {
     let stored = serde_json::to_value(stored)?;
     let mut problems = Vec::new();
     if let Some(p) = config {
         let asked: Value = model::io::read_json(p)?;
-        for c in changed(&asked, &stored) {
+        for c in changed(&asked, &stored).into_iter().filter(|c| !resolved(&c.key, &c.asked)) {
             problems.push(format!("{} sets {} to {}, the run has {}", p.display(), c.key, c.asked, c.run));
         }
     }
@@ -76,7 +79,7 @@ pub fn refuse_changes(
         for part in key.rsplit('.') {
             asked = serde_json::json!({ part: asked });
         }
-        for c in changed(&asked, &stored) {
+        for c in changed(&asked, &stored).into_iter().filter(|c| !resolved(&c.key, &c.asked)) {
             problems.push(format!("{option} asks {} = {}, the run has {}", c.key, c.asked, c.run));
         }
     }

@@ -59,7 +59,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         let stored = model::io::read_json::<GeometryConfig>(&stored_path)?;
         let options: Vec<_> =
             a.background.iter().map(|b| ("background", format!("--background {b}"), serde_json::json!(bgc))).collect();
-        super::resume::refuse_changes(&stored_path, &stored, a.config.as_deref(), &options)?;
+        super::resume::refuse_changes(&stored_path, &stored, a.config.as_deref(), &options, |_, _| false)?;
         // resuming without --iters: the run's own total
         cfg.iters = stored.iters;
     }

@@ -70,7 +70,16 @@ pub fn run(a: Args, ranks: &crate::ranks::Ranks) -> anyhow::Result<()> {
                 ["field.view_channels", "field.object_channels"].map(|k| (k, format!("--channels {c}"), json!(c)))
             })
             .collect();
-        super::resume::refuse_changes(&out.config(), &saved, a.config.as_deref(), &options)?;
+        // what the stage takes from the teacher whatever was asked, an automatic patch, and the
+        // channels of a field without lifting (the teacher's width)
+        let resolved = |key: &str, asked: &serde_json::Value| {
+            let from_teacher = ["grid", "dim", "teacher_image", "teacher_patch", "tower_tail"];
+            let channels = ["field.view_channels", "field.object_channels"].contains(&key);
+            key.strip_prefix("field.").is_some_and(|k| from_teacher.contains(&k))
+                || (key == "field.patch" && asked.as_u64() == Some(0))
+                || (channels && !saved.field.lifting)
+        };
+        super::resume::refuse_changes(&out.config(), &saved, a.config.as_deref(), &options, resolved)?;
         refuse_other_teacher(&out, &a.teacher)?;
         if a.iters.is_none() {
             // resuming without --iters: the run's own total

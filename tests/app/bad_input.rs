@@ -814,6 +814,12 @@ fn resumes_keep_the_command_line(s: &mut Suite, dir: &Path, r: &Path, bare_run: 
         &[],
         &["--teacher", "teacher-no-masks"],
     );
+    // what the stage sets itself (an automatic patch) is no change: the resume goes on
+    let auto = dir.join("language-auto.json");
+    std::fs::write(&auto, r#"{"field": {"patch": 0}}"#).unwrap();
+    let args = lang(&["--config", auto.to_str().unwrap()], bare_teacher);
+    let args: Vec<&str> = args.iter().map(String::as_str).collect();
+    s.succeeds("train-language --resume --config with an automatic patch", run(&args, &[]));
 }
 
 /// Counts and model shapes out of range: refused before any work, never a panic.

@@ -39,7 +39,9 @@ bins=(chatsplat splat-bench vlm-bench lang-bench)
 unpacked=""
 
 pack() {
-    cargo build --release -p chatsplat -p eval --bin chatsplat --bin splat-bench --bin vlm-bench --bin lang-bench
+    # burn's autotuner on (off in the default build: on lavapipe each candidate kernel costs seconds)
+    cargo build --release -p chatsplat -p eval --features chatsplat/autotune,eval/autotune \
+        --bin chatsplat --bin splat-bench --bin vlm-bench --bin lang-bench
     rm -rf .gpu/bin
     mkdir -p .gpu/bin
     local stripped

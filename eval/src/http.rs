@@ -23,8 +23,9 @@ impl Reply {
     pub fn text(&self) -> String {
         String::from_utf8_lossy(&self.body).into_owned()
     }
+    /// The body as JSON, whatever the status (error replies carry JSON too); panics on other bodies.
     pub fn json(&self) -> serde_json::Value {
-        self.try_json().unwrap_or_else(|e| panic!("{e}"))
+        serde_json::from_slice(&self.body).unwrap_or_else(|e| panic!("not JSON ({e}): {}", self.text()))
     }
     /// The body as JSON of a 200 response; otherwise the status or the parse error, with the body.
     pub fn try_json(&self) -> Result<serde_json::Value, String> {

@@ -52,6 +52,8 @@ pub struct RasterConfig {
     /// How the wgpu backward adds per-pixel gradients into each Gaussian's slots (the CPU
     /// backends ignore it).
     pub grad_reduce: GradReduce,
+    /// Which atomic add the wgpu backward uses (the CPU backends ignore it).
+    pub float_add: FloatAdd,
 }
 
 /// How the wgpu backward accumulates a tile's per-pixel contributions to one Gaussian's gradient.
@@ -69,9 +71,30 @@ pub enum GradReduce {
     Plane,
 }
 
+/// How the wgpu backward adds a float into a Gaussian's gradient slot.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum FloatAdd {
+    /// [`FloatAdd::Native`] where the adapter has float atomic add (NVIDIA and AMD through Vulkan's
+    /// `shaderBufferFloat32AtomicAdd`), else [`FloatAdd::Cas`]. The environment variable
+    /// `CHATSPLAT_WGPU_FLOAT_ADD=native|cas` overrides the choice (to compare them).
+    #[default]
+    Auto,
+    /// The hardware's atomic float add: one instruction per add.
+    Native,
+    /// A compare-and-swap loop on the float's bits: runs everywhere, slower under contention.
+    Cas,
+}
+
 impl Default for RasterConfig {
     fn default() -> Self {
-        Self { alpha_max: 0.99, alpha_min: 1.0 / 255.0, t_min: 1e-4, extent: 3.0, grad_reduce: GradReduce::Auto }
+        Self {
+            alpha_max: 0.99,
+            alpha_min: 1.0 / 255.0,
+            t_min: 1e-4,
+            extent: 3.0,
+            grad_reduce: GradReduce::Auto,
+            float_add: FloatAdd::Auto,
+        }
     }
 }
 

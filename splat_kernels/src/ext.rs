@@ -53,6 +53,34 @@ pub struct SplatFwdPrims<B: Backend> {
     pub final_t: FloatTensor<B>,
     /// `[H, W]` number of tile-list entries visited.
     pub n_visited: IntTensor<B>,
+    /// The binning, for the backward.
+    #[extension_type]
+    pub bins: SplatBins<B>,
+}
+
+/// The forward's binning, kept for the backward so that it neither projects, sorts nor reads the
+/// intersection count back again. The wgpu forward fills it (`[N, PROJ]` projected Gaussians,
+/// `[N, 4]` tile rectangles, `[tiles]` tile offsets, `[intersections]` depth-sorted ids); the CPU
+/// backends bin again in the backward and hand 1-element placeholders
+/// ([`SplatBins::placeholder`]). A backward handed bins of another shape bins again.
+#[derive(ExtensionType, Debug, Clone)]
+pub struct SplatBins<B: Backend> {
+    pub proj: FloatTensor<B>,
+    pub rects: IntTensor<B>,
+    pub offsets: IntTensor<B>,
+    pub ids: IntTensor<B>,
+}
+
+impl<B: Backend> SplatBins<B> {
+    /// What a backend that keeps no binning hands on.
+    pub fn placeholder(device: &B::Device) -> Self {
+        Self {
+            proj: float_prim::<B>(vec![0.0], vec![1], device),
+            rects: int_prim::<B>(vec![0], vec![1], device),
+            offsets: int_prim::<B>(vec![0], vec![1], device),
+            ids: int_prim::<B>(vec![0], vec![1], device),
+        }
+    }
 }
 
 /// Saved forward state handed to the backward pass.
@@ -62,6 +90,9 @@ pub struct SplatSaved<B: Backend> {
     pub n_visited: IntTensor<B>,
     /// Upstream gradient of `packed`, `[H, W, C+2]`.
     pub grad_packed: FloatTensor<B>,
+    /// The forward's binning.
+    #[extension_type]
+    pub bins: SplatBins<B>,
 }
 
 /// Splatting as a backend operation.
@@ -171,6 +202,7 @@ pub fn cpu_forward<B: Backend>(inputs: SplatPrims<B>, camera: &Camera, config: &
         top_id: int_prim::<B>(out.top_id, vec![h, w], &device),
         final_t: float_prim::<B>(out.final_t, vec![h, w], &device),
         n_visited: int_prim::<B>(out.n_visited, vec![h, w], &device),
+        bins: SplatBins::placeholder(&device),
     }
 }
 
@@ -241,6 +273,7 @@ struct SplatState<B: Backend> {
     inputs: SplatPrims<B>,
     final_t: FloatTensor<B>,
     n_visited: IntTensor<B>,
+    bins: SplatBins<B>,
     camera: Camera,
     config: RasterConfig,
 }
@@ -253,7 +286,7 @@ impl<B: Backend + SplatBackend> Backward<B, 7> for SplatBackwardOp {
         let s = ops.state;
         let g = B::splat_backward(
             s.inputs,
-            SplatSaved { final_t: s.final_t, n_visited: s.n_visited, grad_packed },
+            SplatSaved { final_t: s.final_t, n_visited: s.n_visited, grad_packed, bins: s.bins },
             s.camera,
             s.config,
         );
@@ -282,6 +315,11 @@ fn untracked<B: Backend, C: CheckpointStrategy>(t: FloatTensor<B>) -> FloatTenso
     <Autodiff<B, C> as burn::backend::AutodiffBackend>::from_inner(t)
 }
 
+/// The inner backend's bins as the autodiff backend's (untracked).
+fn lift_bins<B: Backend, C: CheckpointStrategy>(b: SplatBins<B>) -> SplatBins<Autodiff<B, C>> {
+    SplatBins { proj: untracked::<B, C>(b.proj), rects: b.rects, offsets: b.offsets, ids: b.ids }
+}
+
 impl<B: Backend + SplatBackend, C: CheckpointStrategy> SplatBackend for Autodiff<B, C> {
     fn splat_forward(inputs: SplatPrims<Self>, camera: Camera, config: RasterConfig) -> SplatFwdPrims<Self> {
         let nodes = [
@@ -301,6 +339,7 @@ impl<B: Backend + SplatBackend, C: CheckpointStrategy> SplatBackend for Autodiff
                     inputs: prims,
                     final_t: out.final_t.clone(),
                     n_visited: out.n_visited.clone(),
+                    bins: out.bins.clone(),
                     camera,
                     config,
                 };
@@ -309,6 +348,7 @@ impl<B: Backend + SplatBackend, C: CheckpointStrategy> SplatBackend for Autodiff
                     top_id: out.top_id,
                     final_t: untracked::<B, C>(out.final_t),
                     n_visited: out.n_visited,
+                    bins: lift_bins::<B, C>(out.bins),
                 }
             }
             OpsKind::UnTracked(prep) => {
@@ -318,6 +358,7 @@ impl<B: Backend + SplatBackend, C: CheckpointStrategy> SplatBackend for Autodiff
                     top_id: out.top_id,
                     final_t: untracked::<B, C>(out.final_t),
                     n_visited: out.n_visited,
+                    bins: lift_bins::<B, C>(out.bins),
                 }
             }
         }
@@ -336,6 +377,12 @@ impl<B: Backend + SplatBackend, C: CheckpointStrategy> SplatBackend for Autodiff
                 final_t: saved.final_t.into_primitive(),
                 n_visited: saved.n_visited,
                 grad_packed: saved.grad_packed.into_primitive(),
+                bins: SplatBins {
+                    proj: saved.bins.proj.into_primitive(),
+                    rects: saved.bins.rects,
+                    offsets: saved.bins.offsets,
+                    ids: saved.bins.ids,
+                },
             },
             camera,
             config,

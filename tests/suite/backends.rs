@@ -7,7 +7,7 @@
 use burn::tensor::{Device, Tensor, TensorData};
 use chatsplat_tests::*;
 use splat_kernels::api::{SplatOptions, splat};
-use splat_kernels::{Camera, GradReduce, RasterConfig, SplatError, cpu, reference};
+use splat_kernels::{Camera, FloatAdd, GradReduce, RasterConfig, SplatError, cpu, reference};
 
 struct Grads {
     means: Vec<f32>,
@@ -255,8 +255,9 @@ fn wgpu_matches_ndarray_forward_backward_and_hard_cases() {
         assert!(same * 1000 >= 999 * want_ids.len(), "C={c}: top ids differ on {} pixels", want_ids.len() - same);
     }
     // Gradients on a smooth configuration (no thresholds, so no rounding-induced branch flips).
+    // (3 and 32 channels in registers, 80 in global memory: both kernel variants)
     let cam = front_camera(45, 37, 50.0);
-    for (k, c) in [3usize, 32].into_iter().enumerate() {
+    for (k, c) in [3usize, 32, 80].into_iter().enumerate() {
         let scene = random_scene(40, c, &cam, 60 + k as u64);
         let (fw, gw) = render_and_grad(&scene, &cam, RasterConfig::smooth(), &wgpu.clone().autodiff(), 5);
         let (fnd, gnd) = render_and_grad(&scene, &cam, RasterConfig::smooth(), &nd.clone().autodiff(), 5);
@@ -265,15 +266,29 @@ fn wgpu_matches_ndarray_forward_backward_and_hard_cases() {
             assert_close(&format!("C={c} grad {name}"), a, b, 1e-3);
         }
     }
-    // The plane-summed backward (what GPUs run by default) matches too, here forced on lavapipe.
-    let plane = RasterConfig { grad_reduce: GradReduce::Plane, ..RasterConfig::smooth() };
-    for (k, c) in [3usize, 32].into_iter().enumerate() {
-        let scene = random_scene(40, c, &cam, 60 + k as u64);
-        let (fw, gw) = render_and_grad(&scene, &cam, plane, &wgpu.clone().autodiff(), 5);
-        let (fnd, gnd) = render_and_grad(&scene, &cam, RasterConfig::smooth(), &nd.clone().autodiff(), 5);
-        assert_close("smooth forward (plane)", &fw, &fnd, 1e-4);
-        for ((name, a), (_, b)) in grad_list(&gw).into_iter().zip(grad_list(&gnd)) {
-            assert_close(&format!("C={c} plane grad {name}"), a, b, 1e-3);
+    // Every other way of adding a tile's gradients matches too: the plane-summed backward (what
+    // GPUs run by default, forced here on lavapipe) and each atomic float add the adapter has
+    // (the compare-and-swap loop always; the native add where the adapter reports it).
+    let native = splat_kernels::cube::native_float_add_on(&wgpu) == Some(true);
+    if !native {
+        eprintln!("skipping the native float add: this adapter has none (the compare-and-swap loop is tested)");
+    }
+    let mut ways = vec![
+        ("plane", RasterConfig { grad_reduce: GradReduce::Plane, ..RasterConfig::smooth() }),
+        ("cas", RasterConfig { float_add: FloatAdd::Cas, ..RasterConfig::smooth() }),
+    ];
+    if native {
+        ways.push(("native", RasterConfig { float_add: FloatAdd::Native, ..RasterConfig::smooth() }));
+    }
+    for (way, config) in ways {
+        for (k, c) in [3usize, 32].into_iter().enumerate() {
+            let scene = random_scene(40, c, &cam, 60 + k as u64);
+            let (fw, gw) = render_and_grad(&scene, &cam, config, &wgpu.clone().autodiff(), 5);
+            let (fnd, gnd) = render_and_grad(&scene, &cam, RasterConfig::smooth(), &nd.clone().autodiff(), 5);
+            assert_close(&format!("smooth forward ({way})"), &fw, &fnd, 1e-4);
+            for ((name, a), (_, b)) in grad_list(&gw).into_iter().zip(grad_list(&gnd)) {
+                assert_close(&format!("C={c} {way} grad {name}"), a, b, 1e-3);
+            }
         }
     }
     // Hard cases stay finite on wgpu too.
@@ -339,20 +354,25 @@ fn wgpu_matches_ndarray_forward_backward_and_hard_cases() {
     assert_right_or_refused_past_the_loop_limit(&wgpu, &nd);
 }
 
-/// One 16x16 tile under 3,000 faint Gaussians with 64 channels: about 110,000 loop iterations per
-/// pixel, past the 65,535 at which Mesa lavapipe silently ends a shader's loops. The wgpu op must
-/// then refuse (panic naming the limit) instead of returning an image and gradients that lost
-/// Gaussians; on a GPU, without the limit, it must match ndarray.
+/// One 16x16 tile under 3,000 faint Gaussians with 80 channels (above the kernels' register limit,
+/// so their channel loops run in global memory): about 240,000 loop iterations per pixel, past the
+/// 65,535 at which Mesa lavapipe silently ends a shader's loops. The wgpu op must then refuse
+/// (panic naming the limit) instead of returning an image and gradients that lost Gaussians; on a
+/// GPU, without the limit, it must match ndarray. (Up to 64 channels the channel loops are
+/// unrolled and such a tile stays below the limit.) The Gaussians are anisotropic, so that every
+/// gradient, the rotations' too, is well above rounding.
 fn assert_right_or_refused_past_the_loop_limit(wgpu: &Device, nd: &Device) {
     let cam = front_camera(16, 16, 16.0);
     let mut r = Rng::new(91);
-    let mut heavy = HostScene::empty(64);
+    let c = 80;
+    assert!(c > splat_kernels::cube::MAX_REG_CHANNELS);
+    let mut heavy = HostScene::empty(c);
     for _ in 0..3000 {
-        let feat: Vec<f32> = (0..64).map(|_| r.f()).collect();
+        let feat: Vec<f32> = (0..c).map(|_| r.f()).collect();
         heavy.push(
             [r.range(-0.5, 0.5), r.range(-0.5, 0.5), r.range(1.9, 2.1)],
-            [0.0; 3],
-            [1.0, 0.0, 0.0, 0.0],
+            [0.3, -0.4, 0.0],
+            [0.9, 0.1, 0.3, 0.2],
             -5.2,
             &feat,
         );

@@ -12,7 +12,7 @@ use clap::Parser;
 use model::rng::Rng;
 use model::{Backend, catch_backend};
 use splat_kernels::api::{SplatOptions, splat};
-use splat_kernels::{Camera, Gaussians, GradReduce, RasterConfig, dense};
+use splat_kernels::{Camera, FloatAdd, Gaussians, GradReduce, RasterConfig, dense};
 use std::time::Instant;
 
 #[derive(Parser)]
@@ -43,6 +43,27 @@ struct Args {
     /// plane operations), atomic (one atomic per pixel) or plane.
     #[arg(long, value_enum, default_value_t = Reduce::Auto)]
     grad_reduce: Reduce,
+    /// Which atomic add the wgpu backward uses: auto (native where the adapter has it), native or
+    /// cas (a compare-and-swap loop).
+    #[arg(long, value_enum, default_value_t = Add::Auto)]
+    float_add: Add,
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum Add {
+    Auto,
+    Native,
+    Cas,
+}
+
+impl From<Add> for FloatAdd {
+    fn from(a: Add) -> Self {
+        match a {
+            Add::Auto => FloatAdd::Auto,
+            Add::Native => FloatAdd::Native,
+            Add::Cas => FloatAdd::Cas,
+        }
+    }
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -150,10 +171,10 @@ fn grad_accuracy() {
 fn grad_errors(n: usize, c: usize, w: u32, h: u32) {
     let cam = Camera::look_at(glam::Vec3::ZERO, glam::Vec3::Z, -glam::Vec3::Y, 50.0, w, h);
     let host = scene(n, c);
-    let grads = |device: &Device, reduce: GradReduce| -> Vec<Vec<f32>> {
+    let grads = |device: &Device, (grad_reduce, float_add): (GradReduce, FloatAdd)| -> Vec<Vec<f32>> {
         let device = device.clone().autodiff();
         let (g, bg) = tensors(&host, n, c, &device, true);
-        let config = RasterConfig { grad_reduce: reduce, t_min: 1e-4, ..RasterConfig::smooth() };
+        let config = RasterConfig { grad_reduce, float_add, t_min: 1e-4, ..RasterConfig::smooth() };
         let out = splat(&g, &cam, bg, &SplatOptions { config, ..Default::default() }).expect("valid");
         let loss = (out.features.clone() * out.features).sum() + out.alpha.sum() + out.depth.sum();
         let gr = loss.backward();
@@ -166,9 +187,19 @@ fn grad_errors(n: usize, c: usize, w: u32, h: u32) {
             get(g.features),
         ]
     };
-    let want = grads(&Device::ndarray(), GradReduce::Atomic);
-    for (name, reduce) in [("atomic", GradReduce::Atomic), ("plane", GradReduce::Plane), ("auto", GradReduce::Auto)] {
-        let Ok(got) = catch_backend("wgpu", || grads(&Backend::Wgpu.device(), reduce)) else { continue };
+    let want = grads(&Device::ndarray(), (GradReduce::Atomic, FloatAdd::Auto));
+    let wgpu = Backend::Wgpu.device();
+    let mut ways = vec![
+        ("atomic, cas", (GradReduce::Atomic, FloatAdd::Cas)),
+        ("plane, cas", (GradReduce::Plane, FloatAdd::Cas)),
+        ("auto", (GradReduce::Auto, FloatAdd::Auto)),
+    ];
+    if catch_backend("wgpu", || splat_kernels::cube::native_float_add_on(&wgpu)).ok().flatten() == Some(true) {
+        ways.push(("atomic, native", (GradReduce::Atomic, FloatAdd::Native)));
+        ways.push(("plane, native", (GradReduce::Plane, FloatAdd::Native)));
+    }
+    for (name, way) in ways {
+        let Ok(got) = catch_backend("wgpu", || grads(&wgpu, way)) else { continue };
         let cells: Vec<String> = got
             .iter()
             .zip(&want)
@@ -248,10 +279,9 @@ fn op_fwd(host: &[Vec<f32>], n: usize, c: usize, cam: &Camera, device: &Device) 
     })
 }
 
-fn op_fwd_bwd(host: &[Vec<f32>], n: usize, c: usize, cam: &Camera, device: &Device, reduce: GradReduce) -> f64 {
+fn op_fwd_bwd(host: &[Vec<f32>], n: usize, c: usize, cam: &Camera, device: &Device, config: RasterConfig) -> f64 {
     let device = device.clone().autodiff();
     let (g, bg) = tensors(host, n, c, &device, true);
-    let config = RasterConfig { grad_reduce: reduce, ..Default::default() };
     let opts = SplatOptions { validate: false, config, ..Default::default() };
     time_runs(|| {
         let out = splat(&g, cam, bg.clone(), &opts).expect("valid");
@@ -307,7 +337,17 @@ fn bench(a: &Args) -> model::Result<()> {
         return Ok(());
     }
     let want = |s: &str| a.impls.iter().any(|x| x == s);
-    let reduce = GradReduce::from(a.grad_reduce);
+    let config = RasterConfig {
+        grad_reduce: GradReduce::from(a.grad_reduce),
+        float_add: FloatAdd::from(a.float_add),
+        ..Default::default()
+    };
+    if want("wgpu") {
+        match catch_backend("wgpu", || splat_kernels::cube::adapter_report(&Backend::Wgpu.device())) {
+            Ok(Some(line)) => println!("{line}"),
+            _ => println!("wgpu: no adapter"),
+        }
+    }
     println!(
         "| res | N | C | ndarray fwd | ndarray f+b | wgpu fwd | wgpu f+b | dense fwd | dense f+b | ndarray vs \
             dense (fwd / f+b) |"
@@ -336,13 +376,13 @@ fn bench(a: &Args) -> model::Result<()> {
                 };
                 let nd = Device::ndarray();
                 let ndf = run(0, want("ndarray"), &mut || op_fwd(&host, n, c, &cam, &nd));
-                let ndb = run(1, want("ndarray"), &mut || op_fwd_bwd(&host, n, c, &cam, &nd, reduce));
+                let ndb = run(1, want("ndarray"), &mut || op_fwd_bwd(&host, n, c, &cam, &nd, config));
                 let wg = Backend::Wgpu.device();
                 let wgf = run(2, want("wgpu"), &mut || {
                     catch_backend("wgpu", || op_fwd(&host, n, c, &cam, &wg)).unwrap_or(f64::NAN)
                 });
                 let wgb = run(3, want("wgpu"), &mut || {
-                    catch_backend("wgpu", || op_fwd_bwd(&host, n, c, &cam, &wg, reduce)).unwrap_or(f64::NAN)
+                    catch_backend("wgpu", || op_fwd_bwd(&host, n, c, &cam, &wg, config)).unwrap_or(f64::NAN)
                 });
                 let (mut df, mut db) = (None, None);
                 let (mut cf, mut cb) = (1.0, 1.0);

@@ -10,12 +10,16 @@
 //! 4. `tile_sort_kernel` (workgroup per tile): bitonic sort of the segment by (depth, id), so the
 //!    order is the same total order as on the CPU.
 //! 5. `raster_fwd_kernel` (workgroup per 16x16 tile, thread per pixel): front-to-back compositing
-//!    with Gaussians staged through shared memory in batches of 256.
+//!    with Gaussians staged through shared memory in batches of 256, a pixel's features summed in
+//!    registers (up to [`MAX_REG_CHANNELS`] channels), the tile stopped once every pixel is
+//!    saturated.
 //!
-//! Backward: steps 1-4 again, then (6) `raster_bwd_kernel` walks each pixel's list back to front
-//! and adds per-Gaussian screen-space gradients with atomic float adds (compare-and-swap on the
-//! bits; where the adapter has plane operations each plane sums its pixels' contributions
-//! first, [`crate::GradReduce`]), then (7) `project_bwd_kernel` maps them to the 3D parameters.
+//! Backward: the forward's bins (steps 1-4 are not run again, nor the host read;
+//! [`crate::ext::SplatBins`]), then (6) `raster_bwd_kernel` walks each pixel's list back to front
+//! and adds per-Gaussian screen-space gradients with atomic float adds (the adapter's native add
+//! where it has one, else compare-and-swap on the bits, [`crate::FloatAdd`]; where the adapter
+//! has plane operations each plane sums its pixels' contributions first, [`crate::GradReduce`]),
+//! then (7) `project_bwd_kernel` maps them to the 3D parameters.
 //! Float atomics make the wgpu gradients order-dependent in the last bits (the CPU path is
 //! bitwise deterministic).
 //!
@@ -29,19 +33,21 @@ mod raster;
 mod sort;
 
 use crate::camera::Camera;
-use crate::constants::{GradReduce, RasterConfig, TILE_PIXELS};
-use crate::ext::{SplatBackend, SplatFwdPrims, SplatPrims, SplatSaved};
+use crate::constants::{FloatAdd, GradReduce, RasterConfig, TILE_PIXELS};
+use crate::ext::{SplatBackend, SplatBins, SplatFwdPrims, SplatPrims, SplatSaved};
 use burn::backend::ops::FloatTensorOps;
 use burn::backend::try_read_sync;
 use burn::backend::wgpu::{CubeBackend, CubeTensor};
 use burn::tensor::{DType, Shape, TensorData};
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::{empty_device_dtype, zeros_client};
+use cubecl::features::AtomicUsage;
 use cubecl::features::Plane;
+use cubecl::ir::FloatKind;
 use cubecl::prelude::*;
 use layout::{CAM, CANARY_TRIPS, G2D, PROJ};
 use project::{project_bwd_kernel, project_kernel};
-use raster::{raster_bwd_kernel, raster_fwd_kernel};
+use raster::{CasAdd, NativeAdd, raster_bwd_kernel, raster_fwd_kernel};
 use sort::{emit_kernel, scan_kernel, tile_sort_kernel};
 
 // ---------------------------------------------------------------------------------------------
@@ -50,14 +56,93 @@ use sort::{emit_kernel, scan_kernel, tile_sort_kernel};
 /// Overrides [`GradReduce::Auto`]'s choice for the whole process: `atomic` or `plane`.
 pub const GRAD_REDUCE_ENV: &str = "CHATSPLAT_WGPU_GRAD_REDUCE";
 
-/// [`GRAD_REDUCE_ENV`]'s choice, read once: `Some(true)` for `plane`, `Some(false)` for `atomic`.
-fn forced_plane() -> Option<bool> {
-    static FORCED: std::sync::OnceLock<Option<bool>> = std::sync::OnceLock::new();
-    *FORCED.get_or_init(|| match std::env::var(GRAD_REDUCE_ENV).as_deref() {
-        Ok("atomic") => Some(false),
-        Ok("plane") => Some(true),
+/// Channel counts up to this are compiled into the raster kernels, rounded up to a bucket of 4,
+/// 8, 16, 32 or 64 (one kernel per bucket): a pixel's features (forward) and feature gradient
+/// (backward) then live in registers. Above it the kernels keep them in global memory, for any
+/// count.
+pub const MAX_REG_CHANNELS: usize = 64;
+
+/// The raster kernels' `reg_channels` for `c` channels: its bucket, or 0 above the largest.
+pub(super) fn reg_channels(c: usize) -> usize {
+    if c <= MAX_REG_CHANNELS { c.next_power_of_two().max(4) } else { 0 }
+}
+
+/// Overrides [`FloatAdd::Auto`]'s choice for the whole process: `native` or `cas`.
+pub const FLOAT_ADD_ENV: &str = "CHATSPLAT_WGPU_FLOAT_ADD";
+
+/// An environment variable's two-way choice, read once per variable: `Some(true)` for `yes`,
+/// `Some(false)` for `no`, `None` when unset or anything else.
+fn forced(var: &'static str, yes: &str, no: &str, cell: &'static std::sync::OnceLock<Option<bool>>) -> Option<bool> {
+    *cell.get_or_init(|| match std::env::var(var).as_deref() {
+        Ok(v) if v == yes => Some(true),
+        Ok(v) if v == no => Some(false),
         _ => None,
     })
+}
+
+/// Whether the backward sums per plane ([`GradReduce`]).
+fn use_plane(client: &Client, choice: GradReduce) -> bool {
+    static CELL: std::sync::OnceLock<Option<bool>> = std::sync::OnceLock::new();
+    match choice {
+        GradReduce::Auto => forced(GRAD_REDUCE_ENV, "plane", "atomic", &CELL)
+            .unwrap_or_else(|| client.properties().features.plane.contains(Plane::Ops)),
+        GradReduce::Atomic => false,
+        GradReduce::Plane => true,
+    }
+}
+
+/// Whether the adapter has a native atomic add on `f32` in storage buffers.
+pub fn native_float_add(client: &Client) -> bool {
+    let f32_atomic = Type::atomic(ElemType::Float(FloatKind::F32));
+    client.properties().atomic_type_usage(f32_atomic).contains(AtomicUsage::Add)
+}
+
+/// Whether `device` is a CubeCL (wgpu) adapter with a native atomic float add; `None` for a host
+/// device. What [`FloatAdd::Auto`] picks there, and whether [`FloatAdd::Native`] can run.
+pub fn native_float_add_on(device: &burn::tensor::Device) -> Option<bool> {
+    match device.clone().inner().as_dispatch() {
+        burn::backend::DispatchDevice::Cube(d) => {
+            let probe = CubeBackend::float_from_data(TensorData::new(vec![0.0f32], [1]), &d);
+            Some(native_float_add(&probe.client))
+        }
+        _ => None,
+    }
+}
+
+/// What the CubeCL (wgpu) adapter behind `device` offers the op and the port, on one line: its
+/// name, native float atomic add, plane (subgroup) operations and their size, cooperative-matrix
+/// (tensor core) configurations, the largest buffer binding and shared memory. `None` for a host
+/// device. Benchmarks print it above their figures, so each figure says which path ran.
+pub fn adapter_report(device: &burn::tensor::Device) -> Option<String> {
+    let inner = device.clone().inner();
+    let burn::backend::DispatchDevice::Cube(d) = inner.as_dispatch() else { return None };
+    let probe = CubeBackend::float_from_data(TensorData::new(vec![0.0f32], [1]), &d);
+    let props = probe.client.properties();
+    let hw = &props.hardware;
+    let plane = if props.features.plane.contains(Plane::Ops) {
+        format!("yes, {}-{} wide", hw.plane_size_min, hw.plane_size_max)
+    } else {
+        "no".to_string()
+    };
+    Some(format!(
+        "adapter `{}`: native f32 atomic add {}, plane ops {plane}, cooperative-matrix configs {}, largest binding \
+         {} MiB, shared memory {} KiB",
+        props.identity.name,
+        if native_float_add(&probe.client) { "yes" } else { "no (compare-and-swap loop)" },
+        props.features.matmul.cmma.len(),
+        props.memory.max_page_size >> 20,
+        hw.max_shared_memory_size >> 10,
+    ))
+}
+
+/// Whether the backward adds with the native float atomic ([`FloatAdd`]).
+fn use_native_add(client: &Client, choice: FloatAdd) -> bool {
+    static CELL: std::sync::OnceLock<Option<bool>> = std::sync::OnceLock::new();
+    match choice {
+        FloatAdd::Auto => forced(FLOAT_ADD_ENV, "native", "cas", &CELL).unwrap_or_else(|| native_float_add(client)),
+        FloatAdd::Native => true,
+        FloatAdd::Cas => false,
+    }
 }
 
 fn buf(t: &CubeTensor) -> BufferArg {
@@ -208,6 +293,35 @@ fn bin(p: &SplatPrims<CubeBackend>, camera: &Camera, config: &RasterConfig) -> D
     DeviceBins { proj, rects, offsets, counts, gids, cam, truncated }
 }
 
+/// The forward's bins for the backward: no projection, sort or host read again. Bins of another
+/// shape than these inputs' (handed by a caller other than this crate's autodiff) are made anew.
+fn reuse_bins(
+    saved: SplatBins<CubeBackend>,
+    p: &SplatPrims<CubeBackend>,
+    camera: &Camera,
+    config: &RasterConfig,
+) -> DeviceBins {
+    let n = p.opacity_logits.meta.shape().num_elements();
+    let [tx, ty] = camera.tiles();
+    let fits = saved.proj.meta.shape().num_elements() == n.max(1) * PROJ
+        && saved.rects.meta.shape().num_elements() == n.max(1) * 4
+        && saved.offsets.meta.shape().num_elements() == (tx * ty) as usize;
+    if !fits {
+        return bin(p, camera, config);
+    }
+    let like = &p.means;
+    DeviceBins {
+        proj: into_contiguous(saved.proj),
+        rects: into_contiguous(saved.rects),
+        offsets: into_contiguous(saved.offsets),
+        // the backward reads no tile counts (each pixel's own count bounds its walk)
+        counts: zeros(like, vec![1], DType::I32),
+        gids: into_contiguous(saved.ids),
+        cam: cam_block(like, camera, config),
+        truncated: zeros(like, vec![1], DType::I32),
+    }
+}
+
 /// Mesa lavapipe ends every loop of a shader invocation, silently, once it has run 65,535 loop
 /// iterations in all; the kernels mark `truncated` when that happened (`raster::loop_canary`).
 /// Read back on software adapters only (no physical card: a GPU has no such limit, and the read
@@ -254,30 +368,35 @@ impl SplatBackend for CubeBackend {
         let top_id = alloc(&p.means, vec![h, w], DType::I32);
         let final_t = alloc(&p.means, vec![h, w], DType::F32);
         let n_visited = alloc(&p.means, vec![h, w], DType::I32);
-        raster_fwd_kernel::launch(
-            &p.means.client,
-            CubeCount::Static(tx, ty, 1),
-            CubeDim::new_1d(TILE_PIXELS),
-            buf(&b.proj),
-            buf(&p.features),
-            buf(&p.background),
-            buf(&b.offsets),
-            buf(&b.counts),
-            buf(&b.gids),
-            buf(&b.cam),
-            buf(&packed),
-            buf(&top_id),
-            buf(&final_t),
-            buf(&n_visited),
-            camera.width,
-            camera.height,
-            tx,
-            c as u32,
-            CANARY_TRIPS,
-            buf(&b.truncated),
-        );
+        // SAFETY: every index of the kernel is in range (see its docs).
+        unsafe {
+            raster_fwd_kernel::launch_unchecked(
+                &p.means.client,
+                CubeCount::Static(tx, ty, 1),
+                CubeDim::new_1d(TILE_PIXELS),
+                buf(&b.proj),
+                buf(&p.features),
+                buf(&p.background),
+                buf(&b.offsets),
+                buf(&b.counts),
+                buf(&b.gids),
+                buf(&b.cam),
+                buf(&packed),
+                buf(&top_id),
+                buf(&final_t),
+                buf(&n_visited),
+                camera.width,
+                camera.height,
+                tx,
+                c as u32,
+                CANARY_TRIPS,
+                buf(&b.truncated),
+                reg_channels(c),
+            );
+        }
         check_loops(&b.truncated, "forward");
-        SplatFwdPrims { packed, top_id, final_t, n_visited }
+        let bins = SplatBins { proj: b.proj, rects: b.rects, offsets: b.offsets, ids: b.gids };
+        SplatFwdPrims { packed, top_id, final_t, n_visited, bins }
     }
 
     fn splat_backward(
@@ -289,47 +408,60 @@ impl SplatBackend for CubeBackend {
         let c = inputs.background.meta.shape().num_elements();
         let n = inputs.opacity_logits.meta.shape().num_elements();
         let p = contiguous_inputs(inputs);
-        let b = bin(&p, &camera, &config);
+        let b = reuse_bins(saved.bins, &p, &camera, &config);
         let (w, h) = (camera.width as usize, camera.height as usize);
         let [tx, ty] = camera.tiles();
         let final_t = into_contiguous(saved.final_t);
         let n_visited = into_contiguous(saved.n_visited);
         let grad_packed = into_contiguous(saved.grad_packed);
-        let rec = alloc(&p.means, vec![h * w * c], DType::F32);
         let g2d = zeros(&p.means, vec![n.max(1), G2D], DType::F32);
         let gfeat = zeros(&p.means, vec![n.max(1), c], DType::F32);
         let client = p.means.client.clone();
-        let plane = match config.grad_reduce {
-            GradReduce::Auto => {
-                forced_plane().unwrap_or_else(|| client.properties().features.plane.contains(Plane::Ops))
-            }
-            GradReduce::Atomic => false,
-            GradReduce::Plane => true,
-        };
-        raster_bwd_kernel::launch(
-            &client,
-            CubeCount::Static(tx, ty, 1),
-            CubeDim::new_1d(TILE_PIXELS),
-            buf(&b.proj),
-            buf(&p.features),
-            buf(&p.background),
-            buf(&b.offsets),
-            buf(&b.gids),
-            buf(&b.cam),
-            buf(&final_t),
-            buf(&n_visited),
-            buf(&grad_packed),
-            buf(&rec),
-            buf(&g2d),
-            buf(&gfeat),
-            camera.width,
-            camera.height,
-            tx,
-            c as u32,
-            CANARY_TRIPS,
-            buf(&b.truncated),
-            plane,
-        );
+        let plane = use_plane(&client, config.grad_reduce);
+        let native = use_native_add(&client, config.float_add);
+        if native && !native_float_add(&client) {
+            panic!(
+                "FloatAdd::Native was asked for, but `{}` has no atomic float add (use FloatAdd::Auto or Cas)",
+                client.properties().identity.name
+            );
+        }
+        // One launch, the atomic chosen at run time: the kernel is generic over it.
+        // SAFETY: every index of the kernel is in range (see its docs).
+        macro_rules! launch_bwd {
+            ($add:ty) => {
+                unsafe {
+                    raster_bwd_kernel::launch_unchecked::<$add>(
+                        &client,
+                        CubeCount::Static(tx, ty, 1),
+                        CubeDim::new_1d(TILE_PIXELS),
+                        buf(&b.proj),
+                        buf(&p.features),
+                        buf(&p.background),
+                        buf(&b.offsets),
+                        buf(&b.gids),
+                        buf(&b.cam),
+                        buf(&final_t),
+                        buf(&n_visited),
+                        buf(&grad_packed),
+                        buf(&g2d),
+                        buf(&gfeat),
+                        camera.width,
+                        camera.height,
+                        tx,
+                        c as u32,
+                        CANARY_TRIPS,
+                        buf(&b.truncated),
+                        plane,
+                        reg_channels(c),
+                    )
+                }
+            };
+        }
+        if native {
+            launch_bwd!(NativeAdd)
+        } else {
+            launch_bwd!(CasAdd)
+        }
         check_loops(&b.truncated, "backward");
         let g_means = alloc(&p.means, vec![n.max(1), 3], DType::F32);
         let g_scales = alloc(&p.means, vec![n.max(1), 3], DType::F32);

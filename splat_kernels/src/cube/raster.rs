@@ -97,7 +97,16 @@ fn falloff(s_p: &Shared<[f32]>, ju: usize, pxf: f32, pyf: f32) -> Falloff {
 }
 
 /// Workgroup per tile, thread per pixel: front-to-back compositing.
-#[cube(launch)]
+///
+/// With `reg_channels` > 0 (a bucket of at least the channel count, [`super::reg_channels`]) a
+/// pixel's features are summed in registers and written once; with 0 they are summed in `packed`
+/// in global memory, one read and write per channel and contact (any channel count).
+///
+/// Launched unchecked (no bounds test on each index): the tile comes from the launch grid (`tx` x
+/// `ty`), every tile-list read stays inside the tile's `offsets`/`counts` segment that the binning
+/// kernels wrote, every id in it is below N (`emit_kernel`), feature reads stay below the channel
+/// count, and every write to a per-pixel output is under `inside`.
+#[cube(launch_unchecked)]
 pub(super) fn raster_fwd_kernel(
     proj: &[f32],
     features: &[f32],
@@ -116,10 +125,12 @@ pub(super) fn raster_fwd_kernel(
     channels: u32,
     canary: u32,
     truncated: &mut [u32],
+    #[comptime] reg_channels: usize,
 ) {
     // Shared staging for one batch: TILE_PIXELS ids and STAGED floats each (256 x 7: sizes must be literals).
     let mut s_gid = Shared::<[u32]>::new_slice(256usize);
     let mut s_p = Shared::<[f32]>::new_slice(1792usize);
+    let mut acc = Array::<f32>::new(comptime![usize::max(reg_channels, 1)]);
     let at = tile_pixel(width, height, tiles_x, channels, cam);
     let (pix, c2, ch_n) = (at.pix, at.c2, at.ch_n);
     let t_min = cam[C_T_MIN];
@@ -131,16 +142,35 @@ pub(super) fn raster_fwd_kernel(
     let mut best = 0.0f32;
     let mut top = i32::new(-1);
     let mut nv = 0i32;
-    if at.inside {
+    if comptime![reg_channels > 0] {
+        #[unroll]
+        for ch in 0..reg_channels {
+            acc[ch] = 0.0;
+        }
+    } else if at.inside {
         for ch in 0usize..ch_n {
             packed[pix * c2 + ch] = 0.0;
         }
     }
+    // The tile stops early once every pixel is saturated (or outside the image): each pixel
+    // counts itself into `s_done` once when it is done, and the count is read uniformly.
+    let s_done = Shared::<[Atomic<u32>]>::new_slice(1usize);
+    if UNIT_POS == 0 {
+        s_done[0].store(0u32);
+    }
+    sync_cube();
+    if done {
+        s_done[0].fetch_add(1u32);
+    }
     let mut base = 0u32;
     while base < count {
+        if workgroup_uniform_load_atomic(&s_done[0]) >= TILE_PIXELS {
+            break;
+        }
         stage_batch(gids, proj, &mut s_gid, &mut s_p, start + base, count - base);
         sync_cube();
         let batch = u32::min(TILE_PIXELS, count - base);
+        let was_done = done;
         for j in 0u32..batch {
             if !done {
                 let ju = j as usize;
@@ -155,8 +185,17 @@ pub(super) fn raster_fwd_kernel(
                             let w = alpha * t;
                             let g = s_gid[ju];
                             let fo = (g * channels) as usize;
-                            for ch in 0usize..ch_n {
-                                packed[pix * c2 + ch] += w * features[fo + ch];
+                            if comptime![reg_channels > 0] {
+                                #[unroll]
+                                for ch in 0..reg_channels {
+                                    if ch < ch_n {
+                                        acc[ch] += w * features[fo + ch];
+                                    }
+                                }
+                            } else {
+                                for ch in 0usize..ch_n {
+                                    packed[pix * c2 + ch] += w * features[fo + ch];
+                                }
                             }
                             depth_acc += w * s_p[ju * STAGED + P_DEPTH];
                             if w > best {
@@ -170,12 +209,24 @@ pub(super) fn raster_fwd_kernel(
                 }
             }
         }
+        if done && !was_done {
+            s_done[0].fetch_add(1u32);
+        }
         sync_cube();
         base += TILE_PIXELS;
     }
     if at.inside {
-        for ch in 0usize..ch_n {
-            packed[pix * c2 + ch] += t * background[ch];
+        if comptime![reg_channels > 0] {
+            #[unroll]
+            for ch in 0..reg_channels {
+                if ch < ch_n {
+                    packed[pix * c2 + ch] = acc[ch] + t * background[ch];
+                }
+            }
+        } else {
+            for ch in 0usize..ch_n {
+                packed[pix * c2 + ch] += t * background[ch];
+            }
         }
         packed[pix * c2 + ch_n] = 1.0 - t;
         packed[pix * c2 + ch_n + 1] = depth_acc;
@@ -186,17 +237,46 @@ pub(super) fn raster_fwd_kernel(
     loop_canary(canary, truncated);
 }
 
-/// `buf[idx] += val` on f32 bits stored in u32 atomics (compare-and-swap loop).
+/// How a kernel adds an `f32` into a gradient slot. [`NativeAdd`] where the adapter has float
+/// atomic add (Vulkan's `shaderBufferFloat32AtomicAdd`: NVIDIA, AMD), else [`CasAdd`]; the host
+/// picks one at launch from the adapter's properties ([`super::native_float_add`]).
 #[cube]
-fn atomic_add_f32(buf: &[Atomic<u32>], idx: usize, val: f32) {
-    let mut old = buf[idx].load();
-    loop {
-        let new_bits = u32::reinterpret(f32::reinterpret(old) + val);
-        let prev = buf[idx].compare_exchange_weak(old, new_bits);
-        if prev == old {
-            break;
+pub(super) trait FloatAdd: Send + Sync + 'static {
+    /// The word the slots are bound as: `f32` (native) or the bits in `u32` (compare-and-swap).
+    type Word: Numeric;
+    fn add_to(slot: &Atomic<Self::Word>, val: f32);
+}
+
+/// One hardware atomic add per call.
+#[derive(CubeType)]
+pub(super) struct NativeAdd;
+
+/// A compare-and-swap loop on the bits: two dependent round trips per try, retried while
+/// another unit wrote the slot in between. Runs on every adapter (Mesa lavapipe included).
+#[derive(CubeType)]
+pub(super) struct CasAdd;
+
+#[cube]
+impl FloatAdd for NativeAdd {
+    type Word = f32;
+    fn add_to(slot: &Atomic<f32>, val: f32) {
+        slot.fetch_add(val);
+    }
+}
+
+#[cube]
+impl FloatAdd for CasAdd {
+    type Word = u32;
+    fn add_to(slot: &Atomic<u32>, val: f32) {
+        let mut old = slot.load();
+        loop {
+            let new_bits = u32::reinterpret(f32::reinterpret(old) + val);
+            let prev = slot.compare_exchange_weak(old, new_bits);
+            if prev == old {
+                break;
+            }
+            old = prev;
         }
-        old = prev;
     }
 }
 
@@ -204,14 +284,14 @@ fn atomic_add_f32(buf: &[Atomic<u32>], idx: usize, val: f32) {
 /// plane's first unit, one atomic instead of one per unit; then every unit of the plane must
 /// call it (uniform control flow per plane).
 #[cube]
-fn add_grad(buf: &[Atomic<u32>], idx: usize, val: f32, #[comptime] plane: bool) {
+fn add_grad<A: FloatAdd>(buf: &[Atomic<A::Word>], idx: usize, val: f32, #[comptime] plane: bool) {
     if plane {
         let s = plane_sum(val);
         if UNIT_POS_PLANE == 0 && s != 0.0 {
-            atomic_add_f32(buf, idx, s);
+            A::add_to(&buf[idx], s);
         }
     } else {
-        atomic_add_f32(buf, idx, val);
+        A::add_to(&buf[idx], val);
     }
 }
 
@@ -222,8 +302,20 @@ fn add_grad(buf: &[Atomic<u32>], idx: usize, val: f32, #[comptime] plane: bool) 
 /// target of up to 256 atomics at once. With `plane` the units of each plane (subgroup, 32 on
 /// NVIDIA) first sum their contributions and one of them adds the sum: 8 atomics per slot and
 /// tile instead of 256 (the launch picks it where the adapter reports plane operations).
-#[cube(launch)]
-pub(super) fn raster_bwd_kernel(
+///
+/// No per-pixel, per-channel record of the colour behind the current Gaussian is kept: the
+/// alpha gradient needs only its dot product with the pixel's feature gradient `gf`,
+/// `gf . (f - behind)`, so one scalar `behind_dot = gf . behind` per pixel carries it
+/// (`behind' = alpha f + (1 - alpha) behind`, hence `behind_dot' = alpha gf.f + (1 - alpha)
+/// behind_dot`), in a register. The CPU twin keeps the vector (`crate::cpu`); the two agree to
+/// rounding. With `reg_channels` > 0 (a bucket of at least the channel count) the pixel's feature gradient is read
+/// once into registers; with 0 it is read from `grad_packed` at every contact.
+///
+/// Launched unchecked for the forward's reasons; in addition a pixel walks at most its own
+/// `n_visited` entries, which the forward counted inside the same tile segment (the bins are
+/// the forward's own, `super::reuse_bins`), and reads the per-pixel buffers only when `inside`.
+#[cube(launch_unchecked)]
+pub(super) fn raster_bwd_kernel<A: FloatAdd>(
     proj: &[f32],
     features: &[f32],
     background: &[f32],
@@ -233,9 +325,8 @@ pub(super) fn raster_bwd_kernel(
     final_t: &[f32],
     n_visited: &[i32],
     grad_packed: &[f32],
-    rec: &mut [f32],
-    g2d: &[Atomic<u32>],
-    gfeat: &[Atomic<u32>],
+    g2d: &[Atomic<A::Word>],
+    gfeat: &[Atomic<A::Word>],
     width: u32,
     height: u32,
     tiles_x: u32,
@@ -243,7 +334,9 @@ pub(super) fn raster_bwd_kernel(
     canary: u32,
     truncated: &mut [u32],
     #[comptime] plane: bool,
+    #[comptime] reg_channels: usize,
 ) {
+    let mut gf = Array::<f32>::new(comptime![usize::max(reg_channels, 1)]);
     // Shared staging for one batch: TILE_PIXELS ids and STAGED floats each (256 x 7: sizes must be literals).
     let mut s_gid = Shared::<[u32]>::new_slice(256usize);
     let mut s_p = Shared::<[f32]>::new_slice(1792usize);
@@ -256,16 +349,34 @@ pub(super) fn raster_bwd_kernel(
     let mut tf = 1.0f32;
     let mut last = 0u32;
     let mut rec_z = 0.0f32;
+    let mut behind_dot = 0.0f32;
     let mut g_a = 0.0f32;
     let mut g_z = 0.0f32;
     if inside {
         tt = final_t[pix];
         tf = tt;
-        last = u32::cast_from(n_visited[pix]);
+        // never past the intersection list, whatever `n_visited` a caller hands in
+        last = u32::min(u32::cast_from(n_visited[pix]), gids.len() as u32 - start);
         g_a = grad_packed[pix * c2 + ch_n];
         g_z = grad_packed[pix * c2 + ch_n + 1];
-        for ch in 0usize..ch_n {
-            rec[pix * ch_n + ch] = background[ch];
+        if comptime![reg_channels > 0] {
+            #[unroll]
+            for ch in 0..reg_channels {
+                gf[ch] = 0.0;
+                if ch < ch_n {
+                    gf[ch] = grad_packed[pix * c2 + ch];
+                    behind_dot += gf[ch] * background[ch];
+                }
+            }
+        } else {
+            for ch in 0usize..ch_n {
+                behind_dot += grad_packed[pix * c2 + ch] * background[ch];
+            }
+        }
+    } else if comptime![reg_channels > 0] {
+        #[unroll]
+        for ch in 0..reg_channels {
+            gf[ch] = 0.0;
         }
     }
     s_max[UNIT_POS as usize] = last;
@@ -317,14 +428,21 @@ pub(super) fn raster_bwd_kernel(
                         let depth = s_p[ju * STAGED + P_DEPTH];
                         let t_k = tt / (1.0 - alpha);
                         w = alpha * t_k;
-                        let mut d_alpha = 0.0f32;
-                        for ch in 0usize..ch_n {
-                            let gf = grad_packed[pix * c2 + ch];
-                            let f = features[fo + ch];
-                            let r = rec[pix * ch_n + ch];
-                            d_alpha += gf * (f - r);
-                            rec[pix * ch_n + ch] = alpha * f + (1.0 - alpha) * r;
+                        let mut gf_f = 0.0f32;
+                        if comptime![reg_channels > 0] {
+                            #[unroll]
+                            for ch in 0..reg_channels {
+                                if ch < ch_n {
+                                    gf_f += gf[ch] * features[fo + ch];
+                                }
+                            }
+                        } else {
+                            for ch in 0usize..ch_n {
+                                gf_f += grad_packed[pix * c2 + ch] * features[fo + ch];
+                            }
                         }
+                        let mut d_alpha = gf_f - behind_dot;
+                        behind_dot = alpha * gf_f + (1.0 - alpha) * behind_dot;
                         d_alpha += g_z * (depth - rec_z);
                         d_alpha *= t_k;
                         d_alpha += g_a * tf / (1.0 - alpha);
@@ -349,25 +467,38 @@ pub(super) fn raster_bwd_kernel(
                 adding = plane_any(hit);
             }
             if adding {
-                for ch in 0usize..ch_n {
-                    let mut v = 0.0f32;
-                    if hit {
-                        v = w * grad_packed[pix * c2 + ch];
+                if comptime![reg_channels > 0] {
+                    #[unroll]
+                    for ch in 0..reg_channels {
+                        if ch < ch_n {
+                            let mut v = 0.0f32;
+                            if hit {
+                                v = w * gf[ch];
+                            }
+                            add_grad::<A>(gfeat, fo + ch, v, plane);
+                        }
                     }
-                    add_grad(gfeat, fo + ch, v, plane);
+                } else {
+                    for ch in 0usize..ch_n {
+                        let mut v = 0.0f32;
+                        if hit {
+                            v = w * grad_packed[pix * c2 + ch];
+                        }
+                        add_grad::<A>(gfeat, fo + ch, v, plane);
+                    }
                 }
-                add_grad(g2d, go + G_DEPTH, w * g_z, plane);
+                add_grad::<A>(g2d, go + G_DEPTH, w * g_z, plane);
                 let mut adding_screen = screen;
                 if plane {
                     adding_screen = plane_any(screen);
                 }
                 if adding_screen {
-                    add_grad(g2d, go + G_OPACITY, c_opacity, plane);
-                    add_grad(g2d, go + G_MX, c_mx, plane);
-                    add_grad(g2d, go + G_MY, c_my, plane);
-                    add_grad(g2d, go + G_CA, c_ca, plane);
-                    add_grad(g2d, go + G_CB, c_cb, plane);
-                    add_grad(g2d, go + G_CC, c_cc, plane);
+                    add_grad::<A>(g2d, go + G_OPACITY, c_opacity, plane);
+                    add_grad::<A>(g2d, go + G_MX, c_mx, plane);
+                    add_grad::<A>(g2d, go + G_MY, c_my, plane);
+                    add_grad::<A>(g2d, go + G_CA, c_ca, plane);
+                    add_grad::<A>(g2d, go + G_CB, c_cb, plane);
+                    add_grad::<A>(g2d, go + G_CC, c_cc, plane);
                 }
             }
         }

@@ -19,7 +19,9 @@
 #          lang-bench's views/s and objects/s (real-size encoder too) on it;
 #   accuracy  splat-bench --accuracy: forward error against the f64 reference and the wgpu
 #          backward's error against ndarray, for each way of adding a tile's gradients;
-#   reduce splat-bench's wgpu forward+backward with each way (--grad-reduce atomic, plane).
+#   reduce splat-bench's wgpu forward+backward with each way (--grad-reduce atomic, plane);
+#   cas    splat-bench's wgpu table again with the compare-and-swap float add (--float-add cas),
+#          against the native add that the first table used where the adapter has one.
 # CHATSPLAT_GPU_TRAIN_REDUCE: the language stage runs once per word in it (default "auto"; e.g.
 # "atomic plane", each through CHATSPLAT_WGPU_GRAD_REDUCE), CHATSPLAT_GPU_GEO_ITERS and
 # CHATSPLAT_GPU_LANG_ITERS shorten the training (defaults 1000 and 300).
@@ -27,6 +29,7 @@
 # transformers": split them over two calls if one would pass the device's 10-minute limit per
 # command; vlm takes its reference from CHATSPLAT_GPU_REFERENCE, default
 # OUTDIR/transformers_cuda.json, when there is one).
+# CHATSPLAT_GPU_VLM_BACKENDS: vlm-bench's backends (default "wgpu flex ndarray").
 # CHATSPLAT_GPU_IMPLS: splat-bench's implementations (default wgpu,ndarray); CHATSPLAT_GPU_STEP_SECS:
 # a limit on each step (default 300 s), so that one that hangs leaves the others their time; a
 # step that fails or runs out prints its exit status and the next one runs. CHATSPLAT_GPU_QUICK=1 shrinks every
@@ -111,7 +114,6 @@ bench() {
     if [ -f /usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json ]; then
         export VK_DRIVER_FILES=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json
     fi
-    command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv
     local quick=${CHATSPLAT_GPU_QUICK:-0} parts=" ${CHATSPLAT_GPU_PARTS:-splat peers vlm train} "
     parts=${parts/ peers / gsplat transformers }
     local n=100000,1000000 c=3,32 res=384x384,1280x720 vlm=0.5b views=32 side=96 be=wgpu
@@ -125,8 +127,14 @@ bench() {
         cuda=1
     fi
     {
+        # the GPU and its driver, in the log (eval/gpu/collect.py reads them from there)
+        command -v nvidia-smi >/dev/null && nvidia-smi --query-gpu=name,memory.total,driver_version --format=csv,noheader
         if [[ $parts == *" splat "* ]]; then
             step "$bin/splat-bench" --n "$n" --c "$c" --res "$res" --impls "$impls" --max-secs 20 || true
+        fi
+        if [[ $parts == *" cas "* ]]; then
+            # the same table with the compare-and-swap loop in place of the native float add
+            step "$bin/splat-bench" --n "$n" --c "$c" --res "$res" --impls wgpu --max-secs 20 --float-add cas || true
         fi
         if [[ $parts == *" accuracy "* ]]; then
             step "$bin/splat-bench" --accuracy || true
@@ -161,7 +169,9 @@ bench() {
             if [ "$quick" = 1 ]; then
                 step "$bin/vlm-bench" --backend wgpu flex ndarray --reps 1 --decode 4 || true
             else
-                step "$bin/vlm-bench" --random "$vlm" --backend wgpu flex ndarray --reps 2 --decode 16 \
+                # shellcheck disable=SC2086
+                step "$bin/vlm-bench" --random "$vlm" --backend ${CHATSPLAT_GPU_VLM_BACKENDS:-wgpu flex ndarray} \
+                    --reps 2 --decode 16 \
                     "${reference[@]}" || true
             fi
         fi

@@ -222,7 +222,8 @@ fn wgpu_matches_ndarray_forward_backward_and_hard_cases() {
     let cfg = RasterConfig::default();
     // Forward, several channel counts, an image size that is not a multiple of 16.
     let cam = front_camera(97, 61, 70.0);
-    for (k, c) in [1usize, 3, 16, 32, 64, 80].into_iter().enumerate() {
+    // (every register bucket of the raster kernels, 4 to 64 channels, and 80 in global memory)
+    for (k, c) in [1usize, 3, 6, 16, 32, 64, 80].into_iter().enumerate() {
         let scene = random_scene(150, c, &cam, 40 + k as u64);
         let (g, bg) = scene.gaussians(&wgpu);
         let out = splat(&g, &cam, bg, &SplatOptions::default()).unwrap();
@@ -255,9 +256,9 @@ fn wgpu_matches_ndarray_forward_backward_and_hard_cases() {
         assert!(same * 1000 >= 999 * want_ids.len(), "C={c}: top ids differ on {} pixels", want_ids.len() - same);
     }
     // Gradients on a smooth configuration (no thresholds, so no rounding-induced branch flips).
-    // (3 and 32 channels in registers, 80 in global memory: both kernel variants)
+    // (every register bucket, 4 to 64 channels, and 80 in global memory)
     let cam = front_camera(45, 37, 50.0);
-    for (k, c) in [3usize, 32, 80].into_iter().enumerate() {
+    for (k, c) in [3usize, 6, 16, 32, 64, 80].into_iter().enumerate() {
         let scene = random_scene(40, c, &cam, 60 + k as u64);
         let (fw, gw) = render_and_grad(&scene, &cam, RasterConfig::smooth(), &wgpu.clone().autodiff(), 5);
         let (fnd, gnd) = render_and_grad(&scene, &cam, RasterConfig::smooth(), &nd.clone().autodiff(), 5);

@@ -202,6 +202,14 @@ fn bench(a: &Args) -> model::Result<()> {
     if a.half {
         println!("(linear layers and embeddings held in f16)");
     }
+    if a.backend.contains(&Backend::Wgpu) {
+        match catch_backend("wgpu", || splat_kernels::cube::adapter_report(&Backend::Wgpu.device())) {
+            Ok(Some(line)) => {
+                println!("{line}; burn autotune {}", if cfg!(feature = "autotune") { "on" } else { "off" })
+            }
+            _ => println!("wgpu: no adapter"),
+        }
+    }
     println!();
     println!(
         "| backend | vision tower (1 view 384x384) | images/s | anyres image (3 views) | prefill tokens | \

@@ -100,10 +100,15 @@ pub fn native_float_add(client: &Client) -> bool {
 /// Whether `device` is a CubeCL (wgpu) adapter with a native atomic float add; `None` for a host
 /// device. What [`FloatAdd::Auto`] picks there, and whether [`FloatAdd::Native`] can run.
 pub fn native_float_add_on(device: &burn::tensor::Device) -> Option<bool> {
+    cube_client(device).map(|c| native_float_add(&c))
+}
+
+/// The CubeCL client behind `device` (through a one-element tensor made there); `None` for a host
+/// device.
+fn cube_client(device: &burn::tensor::Device) -> Option<Client> {
     match device.clone().inner().as_dispatch() {
         burn::backend::DispatchDevice::Cube(d) => {
-            let probe = CubeBackend::float_from_data(TensorData::new(vec![0.0f32], [1]), &d);
-            Some(native_float_add(&probe.client))
+            Some(CubeBackend::float_from_data(TensorData::new(vec![0.0f32], [1]), d).client)
         }
         _ => None,
     }
@@ -114,10 +119,8 @@ pub fn native_float_add_on(device: &burn::tensor::Device) -> Option<bool> {
 /// (tensor core) configurations, the largest buffer binding and shared memory. `None` for a host
 /// device. Benchmarks print it above their figures, so each figure says which path ran.
 pub fn adapter_report(device: &burn::tensor::Device) -> Option<String> {
-    let inner = device.clone().inner();
-    let burn::backend::DispatchDevice::Cube(d) = inner.as_dispatch() else { return None };
-    let probe = CubeBackend::float_from_data(TensorData::new(vec![0.0f32], [1]), &d);
-    let props = probe.client.properties();
+    let client = cube_client(device)?;
+    let props = client.properties();
     let hw = &props.hardware;
     let plane = if props.features.plane.contains(Plane::Ops) {
         format!("yes, {}-{} wide", hw.plane_size_min, hw.plane_size_max)
@@ -128,7 +131,7 @@ pub fn adapter_report(device: &burn::tensor::Device) -> Option<String> {
         "adapter `{}`: native f32 atomic add {}, plane ops {plane}, cooperative-matrix configs {}, largest binding \
          {} MiB, shared memory {} KiB",
         props.identity.name,
-        if native_float_add(&probe.client) { "yes" } else { "no (compare-and-swap loop)" },
+        if native_float_add(&client) { "yes" } else { "no (compare-and-swap loop)" },
         props.features.matmul.cmma.len(),
         props.memory.max_page_size >> 20,
         hw.max_shared_memory_size >> 10,
@@ -426,9 +429,9 @@ impl SplatBackend for CubeBackend {
             );
         }
         // One launch, the atomic chosen at run time: the kernel is generic over it.
-        // SAFETY: every index of the kernel is in range (see its docs).
         macro_rules! launch_bwd {
             ($add:ty) => {
+                // SAFETY: every index of the kernel is in range (see its docs).
                 unsafe {
                     raster_bwd_kernel::launch_unchecked::<$add>(
                         &client,

@@ -13,11 +13,9 @@ use super::bars::Bars;
 use super::vqa::Scoring;
 use anyhow::{Context, bail};
 use eval::score::LevelSummary;
-use model::Backend;
 use model::run::{GeometryRun, LanguageRun, TeacherDir};
-use serde::Deserialize;
 use std::path::{Path, PathBuf};
-use toml::Spanned;
+use train::manifest::{Job, Plan};
 use train::pipeline::{Recipe, TeacherModel, train_scene};
 
 #[derive(clap::Args)]
@@ -35,143 +33,6 @@ pub struct Args {
     /// Only merge the scenes' summaries into OUT/report.json (no training).
     #[arg(long)]
     pub report: bool,
-}
-
-/// The manifest file.
-#[derive(Deserialize)]
-#[serde(deny_unknown_fields)]
-struct Manifest {
-    /// Output folder (default: `<manifest stem>-out` beside the manifest).
-    out: Option<PathBuf>,
-    /// LLaVA-OneVision directory (default: the built-in model).
-    vlm: Option<PathBuf>,
-    backend: Option<Spanned<String>>,
-    #[serde(default = "default_geometry_iters")]
-    geometry_iters: usize,
-    #[serde(default = "default_language_iters")]
-    language_iters: usize,
-    /// The vision tower's last layers left to run on the fields' tokens (`extract --tower-tail`).
-    #[serde(default = "default_tower_tail")]
-    tower_tail: usize,
-    #[serde(default)]
-    scene: Vec<SceneEntry>,
-}
-
-fn default_geometry_iters() -> usize {
-    600
-}
-
-fn default_language_iters() -> usize {
-    100
-}
-
-fn default_tower_tail() -> usize {
-    train::teacher::DEFAULT_TOWER_TAIL
-}
-
-/// One `[[scene]]` table.
-#[derive(Deserialize)]
-#[serde(deny_unknown_fields)]
-struct SceneEntry {
-    name: Spanned<String>,
-    /// The dataset (any format `chatsplat train` reads).
-    data: Spanned<PathBuf>,
-    /// A question file (default: DATA/questions.json when there is one).
-    questions: Option<Spanned<PathBuf>>,
-    geometry_iters: Option<usize>,
-    language_iters: Option<usize>,
-}
-
-/// A scene ready to run: a job of the batch.
-struct Job {
-    name: String,
-    data: PathBuf,
-    questions: Option<PathBuf>,
-    geometry_iters: usize,
-    language_iters: usize,
-}
-
-/// A checked manifest.
-struct Plan {
-    out: PathBuf,
-    vlm: Option<PathBuf>,
-    backend: Backend,
-    tower_tail: usize,
-    scenes: Vec<Job>,
-}
-
-/// `path:line: message` for the byte offset `at` of `text`.
-fn at_line(path: &Path, text: &str, at: usize, message: impl std::fmt::Display) -> anyhow::Error {
-    let line = text[..at.min(text.len())].matches('\n').count() + 1;
-    anyhow::anyhow!("{}:{line}: {message}", path.display())
-}
-
-/// Reads and checks the manifest: every error names the file and the line.
-fn read_manifest(path: &Path) -> anyhow::Result<Plan> {
-    let text = std::fs::read_to_string(path).with_context(|| format!("{}: cannot read", path.display()))?;
-    let m: Manifest = toml::from_str(&text).map_err(|e| {
-        let line = e.span().map(|s| text[..s.start.min(text.len())].matches('\n').count() + 1);
-        let msg = e.message().to_string();
-        match line {
-            Some(l) => anyhow::anyhow!("{}:{l}: {msg}", path.display()),
-            None => anyhow::anyhow!("{}: {msg}", path.display()),
-        }
-    })?;
-    let base = path.parent().unwrap_or(Path::new("."));
-    let backend = match &m.backend {
-        Some(b) => b.get_ref().parse::<Backend>().map_err(|e| at_line(path, &text, b.span().start, e))?,
-        None => Backend::Ndarray,
-    };
-    if m.scene.is_empty() {
-        bail!("{}: no [[scene]] tables: the manifest lists no scene", path.display());
-    }
-    if m.geometry_iters == 0 || m.language_iters == 0 {
-        bail!("{}: geometry_iters and language_iters must be at least 1", path.display());
-    }
-    let mut scenes: Vec<Job> = Vec::new();
-    for s in &m.scene {
-        let name = s.name.get_ref();
-        let bad = |at: usize, msg: String| at_line(path, &text, at, format!("scene `{name}`: {msg}"));
-        let ok_name = !name.is_empty() && name.chars().all(|c| c.is_ascii_alphanumeric() || "._-".contains(c));
-        if !ok_name || name.starts_with('.') {
-            return Err(bad(s.name.span().start, "a name is letters, digits, `.`, `_` and `-` (a folder name)".into()));
-        }
-        if scenes.iter().any(|o| o.name == *name) {
-            return Err(bad(s.name.span().start, "is listed twice".into()));
-        }
-        let data = base.join(s.data.get_ref());
-        if !data.is_dir() {
-            return Err(bad(s.data.span().start, format!("data {} is not a directory", data.display())));
-        }
-        // how many questions a file holds (a file that cannot be read or parsed is an error)
-        let count = |p: &Path| model::io::read_json::<model::vqa::QuestionFile>(p).map(|f| f.questions.len());
-        let questions = match &s.questions {
-            Some(q) => {
-                let p = base.join(q.get_ref());
-                if !p.is_file() {
-                    return Err(bad(q.span().start, format!("questions {} is not a file", p.display())));
-                }
-                if count(&p).map_err(|e| bad(q.span().start, e.to_string()))? == 0 {
-                    return Err(bad(q.span().start, format!("questions {} holds no questions", p.display())));
-                }
-                Some(p)
-            }
-            // the dataset's own question file, when it has questions (a small capture may have none)
-            None => match data.join("questions.json") {
-                p if p.is_file() => (count(&p).map_err(|e| bad(s.data.span().start, e.to_string()))? > 0).then_some(p),
-                _ => None,
-            },
-        };
-        let (geometry_iters, language_iters) =
-            (s.geometry_iters.unwrap_or(m.geometry_iters), s.language_iters.unwrap_or(m.language_iters));
-        if geometry_iters == 0 || language_iters == 0 {
-            return Err(bad(s.name.span().start, "geometry_iters and language_iters must be at least 1".into()));
-        }
-        scenes.push(Job { name: name.clone(), data, questions, geometry_iters, language_iters });
-    }
-    let stem = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "batch".into());
-    let out = m.out.as_ref().map(|o| base.join(o)).unwrap_or_else(|| base.join(format!("{stem}-out")));
-    Ok(Plan { out, vlm: m.vlm.as_ref().map(|v| base.join(v)), backend, tower_tail: m.tower_tail, scenes })
 }
 
 /// `(I, N)` from `--shard I/N` or the scheduler's environment.
@@ -371,7 +232,7 @@ fn write_report(plan: &Plan) -> anyhow::Result<(usize, PathBuf)> {
 }
 
 pub fn run(a: Args) -> anyhow::Result<()> {
-    let plan = read_manifest(&a.manifest)?;
+    let plan = train::manifest::read(&a.manifest)?;
     let (i, n) = shard(a.shard.as_deref())?;
     model::io::create_dir(&plan.out)?;
     if a.report {

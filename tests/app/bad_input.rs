@@ -918,10 +918,34 @@ fn teacher_files(s: &mut Suite, dir: &Path, r: &Path) {
     s.fails(Case {
         name: "teacher token files swapped".into(),
         out: language(&teacher),
+        expect: vec!["view_0000.safetensors".into(), "changed or replaced".into()],
+    });
+    // an index without the files' hashes (written before they were recorded): the files' own
+    // metadata still tells them apart
+    let index = teacher.join("teacher.json");
+    let with_hashes = std::fs::read(&index).unwrap();
+    edit_json(&index, |v| {
+        for view in v["views"].as_array_mut().unwrap() {
+            view.as_object_mut().unwrap().remove("hash");
+        }
+    });
+    s.fails(Case {
+        name: "teacher token files swapped, an index without hashes".into(),
+        out: language(&teacher),
         expect: vec!["view_0000.safetensors".into(), "moved or swapped".into()],
     });
-    std::fs::write(&a, &ba).unwrap();
+    std::fs::write(&index, with_hashes).unwrap();
     std::fs::write(&b, &bb).unwrap();
+    // one token changed inside a file (its last byte): only the hash sees it
+    let mut edited = ba.clone();
+    *edited.last_mut().unwrap() ^= 0x40;
+    std::fs::write(&a, &edited).unwrap();
+    s.fails(Case {
+        name: "a teacher token file edited".into(),
+        out: language(&teacher),
+        expect: vec!["view_0000.safetensors".into(), "changed or replaced".into()],
+    });
+    std::fs::write(&a, &ba).unwrap();
     edit_json(&teacher.join("teacher.json"), |v| v["views"][1]["file"] = v["views"][0]["file"].clone());
     s.fails(Case {
         name: "two teacher views on one file".into(),

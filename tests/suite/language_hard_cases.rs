@@ -134,6 +134,13 @@ impl Case {
                 out.iter().map(|(n, s, b)| (n.clone(), TensorView::new(Dtype::F16, s.clone(), b).unwrap())).collect();
             safetensors::serialize_to_file(views, Some(m), &info.file).unwrap();
         }
+        // the index records each file's content: record the new ones
+        let index = self.teacher.join("teacher.json");
+        let mut json: serde_json::Value = serde_json::from_slice(&std::fs::read(&index).unwrap()).unwrap();
+        for (v, info) in set.views.iter().enumerate() {
+            json["views"][v]["hash"] = train::teacher::content_hash(&std::fs::read(&info.file).unwrap()).into();
+        }
+        std::fs::write(&index, serde_json::to_vec_pretty(&json).unwrap()).unwrap();
     }
 
     /// Trains the language stage into `run/language` with `cfg`.

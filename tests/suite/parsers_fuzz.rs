@@ -4,7 +4,11 @@
 //! with extreme counts and floats) and loaded through the public API. Every case must return
 //! (no panic), allocate nothing larger than [`ALLOC_LIMIT`] at once (sizes are checked before
 //! allocating, see `main.rs`'s allocator), and an error must name the file (its folder for the
-//! loaders of a capture, whose errors may name any file in it).
+//! loaders of a capture, whose errors may name any file in it). Covered: the capture formats, the
+//! model files, question files, `.ply`, `chatsplat batch`'s manifest, and a teacher index with
+//! its token files.
+
+#![allow(deprecated)] // the teacher is extracted on burn-ndarray (deprecated in burn 0.22)
 
 use crate::loaders_formats::{colmap_dir, llff_dir, replica_dir};
 use crate::{largest_allocation, track_allocations};
@@ -13,6 +17,7 @@ use model::data::{LoadOptions, colmap, llff, load_any, replica};
 use proptest::prelude::*;
 use proptest::test_runner::{Config, RngAlgorithm, TestRng, TestRunner};
 use std::path::{Path, PathBuf};
+use train::teacher::TeacherSet;
 
 /// Cases per parser (each a fresh random edit of the valid file).
 const CASES: u32 = 1000;
@@ -119,6 +124,11 @@ fn apply(seed: &[u8], edits: &[Edit]) -> Vec<u8> {
 /// Runs `CASES` edits of `target`'s current bytes through `load`; every error must contain
 /// `names`. Returns (cases, errors).
 fn fuzz(parser: &str, target: &Path, names: &str, load: impl Fn() -> Result<(), String>) -> (u32, u32) {
+    fuzz_any(parser, target, &[names], load)
+}
+
+/// [`fuzz`] where an error may name any of `names` (a reader whose index names other files).
+fn fuzz_any(parser: &str, target: &Path, names: &[&str], load: impl Fn() -> Result<(), String>) -> (u32, u32) {
     let seed = std::fs::read(target).unwrap();
     load().unwrap_or_else(|e| panic!("{parser}: the unedited file must load: {e}"));
     let config = Config { cases: CASES, failure_persistence: None, ..Config::default() };
@@ -134,7 +144,10 @@ fn fuzz(parser: &str, target: &Path, names: &str, load: impl Fn() -> Result<(), 
         prop_assert!(largest <= ALLOC_LIMIT, "{parser}: allocated {largest} bytes at once on {e:?}");
         if let Err(msg) = r {
             errors.set(errors.get() + 1);
-            prop_assert!(msg.contains(names), "{parser}: the error does not name {names}: {msg} ({e:?})");
+            prop_assert!(
+                names.iter().any(|n| msg.contains(n)),
+                "{parser}: the error names none of {names:?}: {msg} ({e:?})"
+            );
         }
         Ok(())
     });
@@ -197,6 +210,43 @@ fn capture_parsers_survive_random_edits() {
     total += report("transforms.json", fuzz("nerfstudio", &tf, &name, || ok(load_any(&dir, &opts()))));
     eprintln!("fuzz captures: {total} cases");
     assert!(total >= 9 * CASES);
+}
+
+/// `chatsplat batch`'s manifest, and a teacher index with one of its token files, through their
+/// readers: the manifest's scenes and settings (`train::manifest::read`), the index opened and
+/// checked against its files and its dataset (`TeacherSet::open`, `cameras`, a view's tokens).
+#[test]
+fn batch_manifest_and_teacher_index_survive_random_edits() {
+    let mut total = 0;
+    let dir = temp_dir("fuzz-batch");
+    std::fs::create_dir_all(dir.join("d")).unwrap();
+    let manifest = dir.join("scenes.toml");
+    let text = "out = \"o\"\nbackend = \"ndarray\"\ngeometry_iters = 600\nlanguage_iters = 100\ntower_tail = 1\n\n\
+                [[scene]]\nname = \"a\"\ndata = \"d\"\ngeometry_iters = 10\n\n[[scene]]\nname = \"b\"\ndata = \"d\"\n";
+    std::fs::write(&manifest, text).unwrap();
+    let read = || ok(train::manifest::read(&manifest));
+    total += report("batch manifest", fuzz("batch manifest", &manifest, "scenes.toml", read));
+
+    let fixture = Path::new(env!("CARGO_MANIFEST_DIR")).join("../../checkpoints/tiny-llava-ov");
+    let vlm = model::vlm::LlavaOnevision::load(&fixture, &burn::tensor::Device::ndarray()).unwrap();
+    let data = llff_dir("fuzz-teacher-data");
+    let out = temp_dir("fuzz-teacher");
+    let teacher = model::run::TeacherDir::new(&out);
+    train::teacher::extract(&vlm, &data, &teacher, &Default::default(), |_| {}, |_, _| {}).unwrap();
+    let open = || -> Result<(), String> {
+        let set = TeacherSet::open(&out).map_err(|e| e.to_string())?;
+        set.cameras().map_err(|e| e.to_string())?;
+        ok(set.tokens(0, None))
+    };
+    let (out_name, data_name) =
+        (out.file_name().unwrap().to_string_lossy(), data.file_name().unwrap().to_string_lossy());
+    let names = [out_name.as_ref(), data_name.as_ref()];
+    total += report("teacher.json", fuzz_any("teacher.json", &teacher.index(), &names, open));
+    let set = TeacherSet::open(&out).unwrap();
+    let file = set.views[0].file.clone();
+    total += report("teacher token file", fuzz_any("teacher token file", &file, &names, open));
+    eprintln!("fuzz manifests and teacher indexes: {total} cases");
+    assert!(total >= 3 * CASES);
 }
 
 fn nerfstudio_file(dir: &Path) -> PathBuf {

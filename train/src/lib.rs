@@ -12,6 +12,7 @@ pub mod dist;
 pub mod geometry;
 pub mod guard;
 pub mod language;
+pub mod manifest;
 pub use language::compact;
 pub mod pipeline;
 pub mod schedule;

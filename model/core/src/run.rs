@@ -469,6 +469,10 @@ pub struct TeacherViewEntry {
     /// ([`NovelSource`]), not photographed. `None`: a training photo of the dataset.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub camera: Option<StoredCamera>,
+    /// FNV-1a 64 of the token file's bytes as `extract` wrote it (16 hex digits; absent in
+    /// indexes written before 2026-12-04): a file changed or replaced since is refused.
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub hash: Option<String>,
 }
 
 /// Where a teacher's novel views came from: renders of a geometry run at cameras between the

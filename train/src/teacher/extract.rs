@@ -240,7 +240,7 @@ pub fn extract(
         written += 1;
         progress(vp.index + 1, total);
     }
-    let index = TeacherIndex {
+    let mut index = TeacherIndex {
         // absolute: a scene's commands find the model from any directory
         teacher: std::path::absolute(&vlm.dir).unwrap_or_else(|_| vlm.dir.clone()).display().to_string(),
         data: StoredPath::new(data, &out.dir),
@@ -264,6 +264,7 @@ pub fn extract(
                 image: v.image.display().to_string(),
                 objects: v.objects.clone(),
                 camera: novel_at(v.index).map(|(n, k)| StoredCamera::new(&v.image, &n.cameras[k])),
+                hash: None,
             })
             .collect(),
         novel: new_novel,
@@ -277,6 +278,11 @@ pub fn extract(
         .count();
     let indexed = done == total;
     if indexed {
+        // each file's content, so that a file changed or swapped later is refused
+        for (entry, vp) in index.views.iter_mut().zip(&plan.views) {
+            let file = out.view_file(vp.index);
+            entry.hash = Some(super::read::content_hash(&std::fs::read(&file).at(&file, "cannot read")?));
+        }
         let text = serde_json::to_string_pretty(&index)
             .map_err(|e| Error::invalid(out.index(), format!("cannot encode JSON: {e}")))?;
         let tmp = out.dir.join(format!("teacher.json.{}.tmp", std::process::id()));

@@ -18,7 +18,7 @@ mod read;
 
 pub use extract::{ExtractSummary, extract};
 pub use novel::{NOVEL_BETWEEN, NOVEL_NEIGHBOURS, NovelViews, gaussians_hash, novel_cameras};
-pub use read::{TeacherObject, TeacherSet, TeacherViewInfo, read_tokens};
+pub use read::{TeacherObject, TeacherSet, TeacherViewInfo, content_hash, read_tokens};
 
 use model::data::{LoadOptions, View};
 use model::language::objects_in;

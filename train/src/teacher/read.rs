@@ -65,7 +65,21 @@ impl TeacherSet {
                 ));
             }
             let file = dir.dir.join(&v.file);
-            let header = read_header(&file)?;
+            let bytes = std::fs::read(&file).at(&file, "cannot read")?;
+            if let Some(want) = &v.hash {
+                let got = content_hash(&bytes);
+                if got != *want {
+                    return Err(Error::invalid(
+                        &file,
+                        format!(
+                            "its content (hash {got}) is not what `chatsplat extract` wrote for view {i} (hash \
+                             {want} in {}): the file was changed or replaced; run `chatsplat extract` again",
+                            dir.index().display()
+                        ),
+                    ));
+                }
+            }
+            let header = read_header(&file, &bytes)?;
             if header.image.as_ref().is_some_and(|img| *img != v.image) {
                 return Err(Error::invalid(
                     &file,
@@ -204,9 +218,15 @@ struct Header {
     shapes: Vec<(String, Vec<usize>)>,
 }
 
-fn read_header(file: &Path) -> Result<Header> {
-    let bytes = std::fs::read(file).at(file, "cannot read")?;
-    let (_, meta) = SafeTensors::read_metadata(&bytes)
+/// The hash `teacher.json` records of a token file's bytes (FNV-1a 64, 16 hex digits).
+pub fn content_hash(bytes: &[u8]) -> String {
+    let mut h = model::data::Fnv::default();
+    h.eat(bytes);
+    h.hex()
+}
+
+fn read_header(file: &Path, bytes: &[u8]) -> Result<Header> {
+    let (_, meta) = SafeTensors::read_metadata(bytes)
         .map_err(|e| Error::invalid(file, format!("not a valid safetensors file: {e}")))?;
     let text = meta.metadata().clone().unwrap_or_default();
     let boxes = text.get("boxes_xyxy").cloned().unwrap_or_default();

@@ -290,6 +290,19 @@ fn model_and_question_parsers_survive_random_edits() {
     });
     std::fs::write(&q, serde_json::to_string_pretty(&questions).unwrap()).unwrap();
     total += report("questions", fuzz("questions", &q, "questions.json", || ok(model::vqa::load_questions(&q))));
+    // a question file of a synthetic scene, read and checked against the dataset a run was trained on
+    // (whose own questions.json names the scene)
+    let data = dir.join("scene-data");
+    let o = model::data::synth::SynthOptions { seed: 5, views: 2, width: 16, height: 12, ..Default::default() };
+    model::data::synth::write_dataset(&data, &o, |_, _| {}).unwrap();
+    let theirs = dir.join("scene-questions.json");
+    std::fs::copy(data.join("questions.json"), &theirs).unwrap();
+    let against_scene = || -> Result<(), String> {
+        let f = model::vqa::load_questions(&theirs).map_err(|e| e.to_string())?;
+        ok(model::question_file::check_scene(&f, &theirs, &data))
+    };
+    total +=
+        report("questions of a scene", fuzz("questions of a scene", &theirs, "scene-questions.json", against_scene));
     // a 3DGS .ply, binary and ASCII
     for ascii in [false, true] {
         let p = dir.join(if ascii { "ascii.ply" } else { "binary.ply" });
@@ -298,7 +311,7 @@ fn model_and_question_parsers_survive_random_edits() {
         total += report(if ascii { "ply ascii" } else { "ply binary" }, fuzz("ply", &p, "ply", parse));
     }
     eprintln!("fuzz models and files: {total} cases");
-    assert!(total >= 6 * CASES);
+    assert!(total >= 7 * CASES);
 }
 
 /// Three Gaussians in the Inria layout.

@@ -866,6 +866,16 @@ fn counts_and_shapes(s: &mut Suite, dir: &Path, base: &Path, r: &Path) {
         expect: vec!["state.json".into(), "iteration 1000000000".into()],
     });
     std::fs::write(&state, kept).unwrap();
+    // an object the run does not hold, taken out or left out: refused, nothing written
+    for flag in ["--object", "--without"] {
+        let out = dir.join("no-object.ply");
+        s.fails(Case {
+            name: format!("export-ply {flag} of an object the run does not hold"),
+            out: run(&["export-ply", flag, "200", "--run"], &[r, Path::new("--out"), &out]),
+            expect: vec![format!("{flag} 200"), "holds no Gaussian of object 200".into()],
+        });
+        s.check(&format!("export-ply {flag}: nothing written"), !out.exists(), "the .ply was written");
+    }
     // question files: a view question with an object pixel, a top level that is not an object
     let q = dir.join("questions-mixed.json");
     std::fs::write(

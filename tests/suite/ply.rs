@@ -97,3 +97,39 @@ fn malformed_files_give_errors_naming_the_file_and_the_problem() {
         assert!(msg.starts_with("scene.ply: ") && msg.contains(want), "{msg}");
     }
 }
+
+/// One object's Gaussians taken out of a model, and the model without them: each Gaussian's
+/// identity class (the classifier on its own identity feature) picks it, and `retain` keeps every
+/// attribute row of the kept Gaussians, extra channels and higher SH bands included.
+#[test]
+fn an_objects_gaussians_are_taken_out_by_their_identity_class() {
+    let mut cloud = sample();
+    let n = cloud.len();
+    // identity one-hot in channel i % 3; the classifier reads class k from channel k (k = 0: background)
+    let identity: Vec<f32> = (0..n).flat_map(|i| (0..16).map(move |c| if c == i % 3 { 1.0 } else { 0.0 })).collect();
+    cloud.extra.insert("identity".into(), (16, identity));
+    cloud.extra.insert("lang".into(), (2, (0..n).flat_map(|i| [i as f32, -(i as f32)]).collect()));
+    let mut classifier = vec![0.0f32; 16 * 3 + 3];
+    for k in 0..3 {
+        classifier[k * 3 + k] = 10.0;
+    }
+    let device = burn::tensor::Device::ndarray();
+    let model = model::splats::SplatModel::from_cloud(&cloud, Some(&classifier), 3, &device);
+    let classes = model.gaussian_classes();
+    assert_eq!(classes, (0..n).map(|i| (i % 3) as u8).collect::<Vec<_>>());
+    for keep_object in [true, false] {
+        let keep: Vec<bool> = classes.iter().map(|&c| (c == 1) == keep_object).collect();
+        let picked: Vec<usize> = (0..n).filter(|&i| keep[i]).collect();
+        let mut part = cloud.clone();
+        part.retain(&keep);
+        assert_eq!(part.len(), picked.len());
+        assert_eq!(part.means, picked.iter().map(|&i| cloud.means[i]).collect::<Vec<_>>());
+        assert_eq!(part.opacity_logits, picked.iter().map(|&i| cloud.opacity_logits[i]).collect::<Vec<_>>());
+        let rest: Vec<f32> = picked.iter().flat_map(|&i| cloud.sh_rest[i * 9..(i + 1) * 9].to_vec()).collect();
+        assert_eq!(part.sh_rest, rest);
+        let lang: Vec<f32> = picked.iter().flat_map(|&i| [i as f32, -(i as f32)]).collect();
+        assert_eq!(part.extra["lang"].1, lang);
+        let of_part = model::splats::SplatModel::from_cloud(&part, Some(&classifier), 3, &device).gaussian_classes();
+        assert!(of_part.iter().all(|&c| (c == 1) == keep_object), "{of_part:?}");
+    }
+}

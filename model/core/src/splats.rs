@@ -370,6 +370,12 @@ impl SplatModel {
         Ok(host(splat(&g, cam, bg, &opts)?.features.clamp(0.0, 1.0)))
     }
 
+    /// The identity class of each Gaussian (`[N]`, 0 = background): the classifier applied to the
+    /// Gaussian's own identity feature, as it is applied to the rendered features of a pixel.
+    pub fn gaussian_classes(&self) -> Vec<u8> {
+        class_ids(self.identity.val().matmul(self.classifier_w.val()) + self.classifier_b.val())
+    }
+
     /// Renders RGB, the identity class of each pixel and alpha from `cam` at SH degree `degree`
     /// over the RGB `background`.
     pub fn render(&self, cam: &Camera, degree: usize, background_rgb: [f32; 3]) -> Result<ViewRender> {

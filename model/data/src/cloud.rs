@@ -32,6 +32,31 @@ impl GaussianCloud {
         self.means.is_empty()
     }
 
+    /// Keeps the Gaussians whose `keep` entry is true (`keep` has one entry per Gaussian), every
+    /// attribute and extra channel alike, in their order.
+    ///
+    /// # Panics
+    /// When `keep` is not one entry per Gaussian.
+    pub fn retain(&mut self, keep: &[bool]) {
+        assert_eq!(keep.len(), self.len(), "one keep flag per Gaussian");
+        fn rows<T: Clone>(v: &[T], width: usize, keep: &[bool]) -> Vec<T> {
+            v.chunks(width.max(1)).zip(keep).filter(|(_, k)| **k).flat_map(|(r, _)| r.to_vec()).collect()
+        }
+        self.means = rows(&self.means, 1, keep);
+        self.log_scales = rows(&self.log_scales, 1, keep);
+        self.quats = rows(&self.quats, 1, keep);
+        self.opacity_logits = rows(&self.opacity_logits, 1, keep);
+        self.sh_dc = rows(&self.sh_dc, 1, keep);
+        if self.rest_per_gaussian > 0 {
+            self.sh_rest = rows(&self.sh_rest, self.rest_per_gaussian, keep);
+        }
+        for (width, values) in self.extra.values_mut() {
+            if *width > 0 {
+                *values = rows(values, *width, keep);
+            }
+        }
+    }
+
     /// Base colour of each Gaussian (SH degree 0), not clamped.
     pub fn colors(&self) -> Vec<[f32; 3]> {
         self.sh_dc.iter().map(|d| d.map(|v| 0.5 + SH_C0 * v)).collect()

@@ -1,7 +1,7 @@
 //! `chatsplat chat`: an interactive session with a trained scene.
 
 use super::{SceneArgs, print_piece};
-use model::chat::{ChatSession, DEFAULT_SCENE_VIEWS, Target};
+use model::chat::{ChatSession, Conversation, DEFAULT_SCENE_VIEWS, Target};
 use std::io::BufRead;
 
 #[derive(clap::Args)]
@@ -13,7 +13,9 @@ pub struct Args {
 }
 
 const HELP: &str = "commands: :view N (view level) | :click X Y (object level, in the current view) | \
-    :scene [K] (scene level) | :show (write the current view PNG) | :help | :quit; anything else is a question";
+    :scene [K] (scene level) | :new (a new conversation, same target) | :show (write the current view PNG) | \
+    :help | :quit; anything else is a question, asked after the conversation's earlier ones (a new target \
+    starts a new conversation)";
 
 /// One line of input, parsed.
 enum Line {
@@ -23,6 +25,7 @@ enum Line {
     View(usize),
     Click(usize, usize),
     Scene(usize),
+    New,
     Show,
     Question(String),
 }
@@ -44,24 +47,34 @@ fn parse(line: &str) -> Result<Line, String> {
             k => Line::Scene(k),
         },
         Some(":show") => Line::Show,
+        Some(":new") => Line::New,
         Some(w) if w.starts_with(':') => return Err(format!("unknown command {w}; {HELP}")),
         Some(_) => Line::Question(line.to_string()),
     })
 }
 
-/// Where the conversation is: the current view and what questions are about.
+/// Where the conversation is: the current view and the conversation about its target.
 struct State {
     view: usize,
-    target: Target,
+    conversation: Conversation,
     /// How the prompt names the target.
     label: String,
+}
+
+impl State {
+    fn new(view: usize, target: Target, label: String) -> Self {
+        Self { view, conversation: Conversation::new(target), label }
+    }
 }
 
 pub fn run(a: Args) -> anyhow::Result<()> {
     let s = a.scene.open()?;
     eprintln!("{} views ({} training), {} Gaussians. {HELP}", s.cameras.len(), s.train_views, s.scene.field.len());
     let opts = model::vlm::GenerateOptions { max_new_tokens: a.max_new_tokens, ..Default::default() };
-    let mut state = State { view: 0, target: Target::View(*s.camera(0)?), label: "view 0".into() };
+    if !s.vlm.converses() {
+        eprintln!("note: {}", model::vlm::conversation::SINGLE_TURN_NOTE);
+    }
+    let mut state = State::new(0, Target::View(*s.camera(0)?), "view 0".into());
     eprint!("[{}] > ", state.label);
     let mut input = std::io::stdin().lock();
     let mut bytes = Vec::new();
@@ -97,7 +110,7 @@ fn apply(s: &ChatSession, cmd: Line, state: &mut State, opts: &model::vlm::Gener
         Line::Empty | Line::Quit => {}
         Line::Help => eprintln!("{HELP}"),
         Line::View(v) => {
-            *state = State { view: v, target: Target::View(*s.camera(v)?), label: format!("view {v}") };
+            *state = State::new(v, Target::View(*s.camera(v)?), format!("view {v}"));
         }
         // one identity render picks the object; its tokens are computed at the first question
         // and kept for the follow-ups
@@ -106,15 +119,18 @@ fn apply(s: &ChatSession, cmd: Line, state: &mut State, opts: &model::vlm::Gener
                 let path = s.language.picked(state.view, p.id);
                 s.show(&p.camera, Some(&p), &path)?;
                 eprintln!("object {} picked; highlighted -> {}", p.id, path.display());
-                state.label = format!("view {} object {}", state.view, p.id);
-                state.target = Target::Object(p);
+                let label = format!("view {} object {}", state.view, p.id);
+                *state = State::new(state.view, Target::Object(p), label);
             }
             None => eprintln!("pixel ({x}, {y}) shows no object"),
         },
         Line::Scene(k) => {
             let k = if k == 0 { DEFAULT_SCENE_VIEWS.min(s.train_views) } else { k };
-            state.target = s.scene_target(k)?;
-            state.label = format!("scene, {k} views");
+            *state = State::new(state.view, s.scene_target(k)?, format!("scene, {k} views"));
+        }
+        Line::New => {
+            state.conversation = Conversation::new(state.conversation.target.clone());
+            eprintln!("new conversation about {}", state.conversation.target);
         }
         Line::Show => {
             let path = s.language.view_png(state.view);
@@ -122,8 +138,20 @@ fn apply(s: &ChatSession, cmd: Line, state: &mut State, opts: &model::vlm::Gener
             eprintln!("-> {}", path.display());
         }
         Line::Question(q) => {
-            model::catch_backend("generation", || s.ask(&state.target, &q, opts, print_piece))??;
+            if !s.vlm.converses() {
+                // each question on its own: the model was trained on single questions
+                state.conversation = Conversation::new(state.conversation.target.clone());
+            }
+            let reply = model::catch_backend("generation", || {
+                s.converse_until(&mut state.conversation, &q, opts, |piece| {
+                    print_piece(piece);
+                    std::ops::ControlFlow::Continue(())
+                })
+            })??;
             println!();
+            if let Some(note) = reply.dropped_note() {
+                eprintln!("note: {note}");
+            }
         }
     }
     Ok(())

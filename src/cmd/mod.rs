@@ -8,6 +8,7 @@ mod demo;
 mod export_encoder;
 mod export_ply;
 mod extract;
+mod find;
 mod render;
 mod resume;
 mod serve;
@@ -72,6 +73,10 @@ enum Command {
     /// Interactive chat with a trained scene: view, object (click) and scene level.
     #[command(allow_negative_numbers = true)]
     Chat(chat::Args),
+    /// Find the objects of a trained scene that match a phrase ("red cone"), scored through the
+    /// scene's own object tokens, best first.
+    #[command(allow_negative_numbers = true)]
+    Find(find::Args),
     /// Chat with a trained scene in the browser: look around, click an object (highlighted in
     /// red), ask about the view, the object or the whole scene; answers stream as they come.
     #[command(allow_negative_numbers = true)]
@@ -119,6 +124,7 @@ impl Cli {
             Command::TrainVlm(_) => ("train-vlm", true),
             Command::Ask(_) => ("ask", false),
             Command::Chat(_) => ("chat", false),
+            Command::Find(_) => ("find", false),
             Command::Serve(_) => ("serve", false),
             Command::Vqa(_) => ("vqa", false),
             Command::Batch(_) => ("batch", false),
@@ -140,6 +146,7 @@ pub fn run(cli: Cli, ranks: &crate::ranks::Ranks) -> anyhow::Result<()> {
         Command::TrainVlm(a) => train_vlm::run(a, ranks),
         Command::Ask(a) => ask::run(a),
         Command::Chat(a) => chat::run(a),
+        Command::Find(a) => find::run(a),
         Command::Serve(a) => serve::run(a),
         Command::Vqa(a) => vqa::run(a),
         Command::Batch(a) => batch::run(a),

@@ -856,6 +856,20 @@ fn counts_and_shapes(s: &mut Suite, dir: &Path, base: &Path, r: &Path) {
         out: run(&["serve", "--allow-origin", "*", "--run"], &[r]),
         expect: vec!["wildcard".into()],
     });
+    // find: a phrase that is empty or too long, a threshold outside 0-1 (refused before loading)
+    let long = "red ".repeat(60);
+    for (name, args, expect) in [
+        ("find with an empty phrase", vec!["find", "  ", "--run"], vec!["phrase", "empty"]),
+        ("find with a 239-character phrase", vec!["find", long.as_str(), "--run"], vec!["phrase", "at most 200"]),
+        ("find --threshold 1.5", vec!["find", "cone", "--threshold", "1.5", "--run"], vec!["--threshold", "0-1"]),
+        ("find --threshold -0.2", vec!["find", "cone", "--threshold", "-0.2", "--run"], vec!["--threshold", "0-1"]),
+    ] {
+        s.fails(Case {
+            name: name.into(),
+            out: run(&args, &[r]),
+            expect: expect.into_iter().map(String::from).collect(),
+        });
+    }
     // a finished run's state.json edited to an absurd iteration: export-ply refuses it too
     let state = r.join("state.json");
     let kept = std::fs::read(&state).unwrap();

@@ -11,7 +11,7 @@ use chatsplat_tests::browser::{self, Browser};
 use chatsplat_tests::fixture::{self, Tabletop};
 use chatsplat_tests::http::{self, Reply, Server};
 use glam::Vec3;
-use model::chat::{ChatSession, Target};
+use model::chat::{ChatSession, Conversation, Target};
 use model::data::synth::questions::{Kind, ViewFacts, view_questions};
 use model::data::synth::scene::SynthScene;
 use model::run::GeometryRun;
@@ -35,7 +35,8 @@ fn scene_json(data: &Path) -> SynthScene {
 }
 
 fn ask(s: &Server, body: Value) -> Reply {
-    http::post(&s.addr, "/api/ask", &body)
+    let sent = http::send(&s.addr, "POST", "/api/ask", &[], Some(body.to_string().as_bytes()));
+    sent.unwrap_or_else(|e| panic!("/api/ask {body}: {e}; the server's log:\n{}", s.log()))
 }
 
 /// The answer text of an ask's event stream, after checking the stream's shape and that it timed
@@ -144,6 +145,94 @@ fn serve_answers_like_the_library_and_refuses_bad_requests_by_name() {
     let q = "How many objects are in the scene?";
     let served = answer_of(&ask(&server, json!({"scope": "scene", "views": 3, "question": q})));
     assert_eq!(served, lib(&session.scene_target(3).unwrap(), q));
+
+    // --- a conversation: the follow-up names the id the first answer's start event gave, is
+    // asked after the first turn (the library's conversation answers the same), and prefills
+    // only its own tokens
+    let (q1, q2) = ("What colors are there?", "What objects are there?");
+    let first = ask(&server, json!({"scope": "view", "camera": cam0, "question": q1}));
+    let start = |r: &Reply| r.events().into_iter().find(|(n, _)| n == "start").expect("a start event").1;
+    let (s1, id) = (start(&first), start(&first)["conversation"].clone());
+    assert_eq!((s1["turn"].as_u64(), s1["cached_tokens"].as_u64()), (Some(1), Some(0)), "{s1}");
+    let second = ask(&server, json!({"scope": "view", "camera": cam0, "question": q2, "conversation": id}));
+    let s2 = start(&second);
+    assert_eq!((s2["conversation"].clone(), s2["turn"].as_u64()), (id.clone(), Some(2)), "{s2}");
+    let (prompt1, cached2) = (s1["prompt_tokens"].as_u64().unwrap(), s2["cached_tokens"].as_u64().unwrap());
+    assert!(cached2 > prompt1 && cached2 < s2["prompt_tokens"].as_u64().unwrap(), "{s1} {s2}");
+    let mut conversation = Conversation::new(Target::View(c0));
+    let mut said = |q: &str| {
+        let r = session.converse_until(&mut conversation, q, &opts, |_| std::ops::ControlFlow::Continue(())).unwrap();
+        r.generation
+    };
+    assert_eq!(answer_of(&first), said(q1).text);
+    let g2 = said(q2);
+    assert_eq!((answer_of(&second), g2.cached_tokens as u64), (g2.text, cached2));
+    let fresh = ask(&server, json!({"scope": "view", "camera": cam0, "question": q2}));
+    assert_ne!(start(&fresh)["conversation"], id, "a question without an id starts a new conversation");
+    // a conversation that would pass the model's context drops its oldest exchanges, never the
+    // images, and says so: here the answer's room leaves space for the new question alone
+    let room = session.vlm.cfg.text.max_positions - session.check_question(q2, 1).unwrap() - 1;
+    let tight = model::vlm::GenerateOptions { max_new_tokens: room, ..opts.clone() };
+    let r = session.converse_until(&mut conversation, q2, &tight, |_| std::ops::ControlFlow::Continue(())).unwrap();
+    assert_eq!((r.dropped, conversation.dropped(), conversation.exchanges().len()), (2, 2, 1));
+    assert!(r.dropped_note().unwrap().contains("dropped"));
+    assert_eq!(r.generation.text, lib(&Target::View(c0), q2), "the images kept: the question alone's answer");
+
+    // --- find: an object's name finds the objects of that name, a colour those of that colour,
+    // a shape those of that shape, each with its mask where view 0 shows it; a name no object
+    // has finds nothing; the table (never named by the questions) is not searched; the command
+    // line finds the same
+    use model::data::synth::scene::{Color, Shape};
+    let find = |phrase: &str| {
+        let r = http::post(&a, "/api/find", &json!({"phrase": phrase, "camera": cam0}));
+        assert_eq!(r.status, 200, "{phrase}: {}", r.text());
+        r.json()
+    };
+    let ids_of = |v: &Value| -> Vec<u64> {
+        let mut ids: Vec<u64> = v.as_array().unwrap().iter().map(|m| m["id"].as_u64().unwrap()).collect();
+        ids.sort();
+        ids
+    };
+    let having = |keep: &dyn Fn(&model::data::synth::scene::Object) -> bool| -> Vec<u64> {
+        truth.objects.iter().filter(|o| keep(o)).map(|o| o.id as u64).collect()
+    };
+    for o in &truth.objects {
+        let r = find(&o.name());
+        assert_eq!(ids_of(&r["matches"]), having(&|x| x.name() == o.name()), "{}: {r}", o.name());
+        assert_eq!(r["ranked"].as_array().unwrap().len(), truth.objects.len(), "{r}");
+        assert_eq!(r["matches"][0]["name"], json!(o.name()), "{r}");
+        let shown = ids.contains(&o.id);
+        let m = r["matches"].as_array().unwrap().iter().find(|m| m["id"] == json!(o.id)).unwrap();
+        assert_eq!(m["mask"].is_object(), shown, "{}: {m}", o.name());
+        if shown {
+            let (got, want) = (rle_pixels(&m["mask"]).len(), ids.iter().filter(|&&i| i == o.id).count());
+            assert!(got.abs_diff(want) * 50 <= want, "{}: mask of {got} pixels, the library's {want}", o.name());
+        }
+        let (color, shape) = (o.color, o.shape);
+        assert_eq!(ids_of(&find(color.word())["matches"]), having(&|x| x.color == color), "{}", color.word());
+        assert_eq!(ids_of(&find(shape.word())["matches"]), having(&|x| x.shape == shape), "{}", shape.word());
+    }
+    let absent = Color::ALL
+        .iter()
+        .flat_map(|c| Shape::ALL.iter().map(move |s| (*c, *s)))
+        .find(|(c, s)| !truth.objects.iter().any(|o| o.color == *c || o.shape == *s))
+        .expect("a colour and a shape the scene does not have");
+    let none = find(&format!("{} {}", absent.0.word(), absent.1.word()));
+    assert_eq!(none["matches"], json!([]), "{none}");
+    let out = std::process::Command::new(env!("CARGO_BIN_EXE_chatsplat"))
+        .args(["find", "--json", "--run"])
+        .arg(&t.run)
+        .arg(truth.objects[0].name())
+        .output()
+        .unwrap();
+    assert!(out.status.success(), "{}", String::from_utf8_lossy(&out.stderr));
+    let cli: Value = serde_json::from_slice(&out.stdout).unwrap();
+    let api = find(&truth.objects[0].name());
+    assert_eq!((&cli["query"], &cli["threshold"]), (&json!(truth.objects[0].name()), &json!(0.5)), "{cli}");
+    assert_eq!(ids_of(&cli["matches"]), ids_of(&api["matches"]), "{cli} {api}");
+    assert!(
+        cli["matches"].as_array().unwrap().iter().all(|m| m["name"].is_string() && m["score"].as_f64() >= Some(0.5))
+    );
 
     // --- every malformed request: a 4xx JSON error naming the field, never a panic
     let cam_with = |k: &str, v: Value| {
@@ -260,6 +349,57 @@ fn serve_answers_like_the_library_and_refuses_bad_requests_by_name() {
             400,
             "max_new_tokens",
         ),
+        (
+            "unknown conversation",
+            "/api/ask",
+            json!({"scope": "view", "camera": cam0, "question": "What?", "conversation": 999_999}).to_string(),
+            404,
+            "conversation",
+        ),
+        (
+            "conversation of another target",
+            "/api/ask",
+            json!({"scope": "scene", "views": 3, "question": "What?", "conversation": id}).to_string(),
+            409,
+            "is about the view",
+        ),
+        (
+            "conversation at another camera",
+            "/api/ask",
+            json!({"scope": "view", "camera": views[1]["camera"], "question": "What?", "conversation": id}).to_string(),
+            409,
+            "another camera",
+        ),
+        (
+            "conversation id not a number",
+            "/api/ask",
+            json!({"scope": "view", "camera": cam0, "question": "What?", "conversation": "one"}).to_string(),
+            400,
+            "conversation",
+        ),
+        ("empty phrase", "/api/find", json!({"phrase": " ", "camera": cam0}).to_string(), 400, "phrase"),
+        (
+            "phrase over 200 characters",
+            "/api/find",
+            json!({"phrase": "red ".repeat(60), "camera": cam0}).to_string(),
+            400,
+            "phrase",
+        ),
+        (
+            "threshold over 1",
+            "/api/find",
+            json!({"phrase": "cone", "camera": cam0, "threshold": 1.5}).to_string(),
+            400,
+            "threshold",
+        ),
+        (
+            "negative threshold",
+            "/api/find",
+            json!({"phrase": "cone", "camera": cam0, "threshold": -0.1}).to_string(),
+            400,
+            "threshold",
+        ),
+        ("find without camera", "/api/find", json!({"phrase": "cone"}).to_string(), 400, "camera"),
         ("body over the limit", "/api/pick", format!("{{\"pad\": \"{}\"}}", "x".repeat(100_000)), 413, "bytes"),
     ];
     for (name, path, body, status, says) in &cases {
@@ -418,6 +558,9 @@ fn page_camera(b: &mut Browser) -> (Value, Camera) {
 
 /// Asks `question` through the chat box (typed, then Enter) and waits for the streamed answer.
 fn ask_in_page(b: &mut Browser, question: &str) -> Value {
+    // the last answer's stream has closed (its turn reads "done" as soon as its last event
+    // came; a question typed before the stream ends would be refused)
+    b.wait_for("!window.chatsplat.busy", Duration::from_secs(60)).unwrap();
     let before = b.eval("window.chatsplat.turns().length").unwrap().as_u64().unwrap();
     b.eval("document.getElementById('question').focus()").unwrap();
     b.type_text(question).unwrap();
@@ -470,7 +613,8 @@ fn the_page_draws_the_scene_picks_in_red_and_answers_at_every_level() {
     let mut b = Browser::launch(&exe, 1100, 700).unwrap();
     let t0 = Instant::now();
     b.goto(
-        &server.url("/"),
+        // the built-in model was trained on single questions: ?converse=1 holds conversations anyway
+        &server.url("/?converse=1"),
         "window.chatsplat && window.chatsplat.ready && window.chatsplat.frames > 2",
         Duration::from_secs(180),
     )
@@ -549,6 +693,21 @@ fn the_page_draws_the_scene_picks_in_red_and_answers_at_every_level() {
     assert_eq!(turn["state"], "done", "{turn}");
     assert_eq!(turn["answer"].as_str(), Some(o.name().as_str()), "{turn}");
     let object_timing = turn["timing"].as_str().unwrap_or("").to_string();
+    // a follow-up about the same object: the same conversation, its second turn, the first turn
+    // kept in the model's cache; "New conversation" starts over
+    let follow = ask_in_page(&mut b, "What color is it?");
+    assert_eq!(
+        (&follow["state"], &follow["conversation"], follow["turn"].as_u64()),
+        (&json!("done"), &turn["conversation"], Some(2))
+    );
+    assert!(follow["cached"].as_u64().unwrap() > 0 && follow["timing"].as_str().unwrap().contains("follow-up 2"));
+    b.eval("document.getElementById('new-conversation').click()").unwrap();
+    let again = ask_in_page(&mut b, "What is this?");
+    assert_eq!((again["turn"].as_u64(), again["cached"].as_u64()), (Some(1), Some(0)), "{again}");
+    assert_ne!(again["conversation"], turn["conversation"]);
+    assert_eq!(again["answer"], turn["answer"], "a new conversation answers as the first did");
+    let notes = b.eval("window.chatsplat.notes()").unwrap();
+    assert!(notes.as_array().unwrap().iter().any(|n| n == "new conversation"), "{notes}");
     // README's picture: the picked object and its answer (CHATSPLAT_SCREENSHOT=path)
     if let Some(p) = std::env::var_os("CHATSPLAT_SCREENSHOT") {
         std::fs::write(p, b.screenshot().unwrap().0).unwrap();
@@ -574,11 +733,49 @@ fn the_page_draws_the_scene_picks_in_red_and_answers_at_every_level() {
     };
     let mut view_timing = String::new();
     for q in [pick_q(Kind::Exists, Some("yes")), pick_q(Kind::Exists, Some("no")), pick_q(Kind::Colors, None)] {
+        // each on its own: the built-in model answers independent follow-ups worse
+        b.eval("document.getElementById('new-conversation').click()").unwrap();
         let turn = ask_in_page(&mut b, &q.question);
+        assert_eq!(turn["turn"].as_u64(), Some(1), "{turn}");
         eprintln!("view (novel camera): {} -> {} (truth {})", q.question, turn["answer"], q.answer);
         assert_eq!(turn["answer"].as_str(), Some(q.answer.as_str()), "{turn}");
         view_timing = turn["timing"].as_str().unwrap_or("").to_string();
     }
+
+    // --- a search at this moved camera: the objects of the picked one's shape tinted red
+    // (those the camera shows), listed with their scores; a click on one selects it for object
+    // chat
+    b.eval("document.activeElement.blur()").unwrap();
+    b.key("Escape").unwrap();
+    b.wait_for("!window.chatsplat.selection && window.chatsplat.idle", Duration::from_secs(60)).unwrap();
+    let plain = crop(&b.screenshot().unwrap().1, rect);
+    let word = o.shape.word();
+    let submit =
+        format!("document.getElementById('phrase').value = '{word}'; document.getElementById('find').requestSubmit()");
+    b.eval(&submit).unwrap();
+    let found =
+        format!("window.chatsplat.found && window.chatsplat.found.query === '{word}' && window.chatsplat.found");
+    let found = b.wait_for(&found, Duration::from_secs(60)).unwrap();
+    let matched: Vec<u64> = found["matches"].as_array().unwrap().iter().map(|m| m["id"].as_u64().unwrap()).collect();
+    let mut sorted = matched.clone();
+    sorted.sort();
+    let want: Vec<u64> = truth.objects.iter().filter(|x| x.shape == o.shape).map(|x| x.id as u64).collect();
+    assert_eq!(sorted, want, "{found}");
+    let (_, shot) = b.screenshot().unwrap();
+    let searched = crop(&shot, rect);
+    for m in found["matches"].as_array().unwrap() {
+        let id = m["id"].as_u64().unwrap() as u8;
+        let ps: Vec<usize> = (0..gt.ids.len()).filter(|&p| gt.ids[p] == id).collect();
+        if ps.len() > 30 {
+            assert_eq!(m["shown"], true, "match {id} shows {} pixels here: {m}", ps.len());
+            let gain = mean(&ps, &|p| red(&searched, p) - red(&plain, p));
+            assert!(gain > 5.0, "match {id} is not tinted red at the moved camera (red gain {gain:.1})");
+        }
+    }
+    b.eval("document.querySelector('#found button').click()").unwrap();
+    let sel = b.wait_for("window.chatsplat.selection", Duration::from_secs(30)).unwrap();
+    assert_eq!(sel["id"].as_u64(), Some(matched[0]), "{sel}");
+    assert_eq!(b.eval("window.chatsplat.scope").unwrap(), "object");
 
     // --- a scene question answers
     b.eval("document.querySelector('[data-scope=scene]').click()").unwrap();
@@ -612,6 +809,10 @@ fn the_page_draws_the_scene_picks_in_red_and_answers_at_every_level() {
         panic!("{e}; the page: {page}; the server's log:\n{}", server.log());
     }
     let server_s = t_server.elapsed().as_secs_f64();
+    // without ?converse=1 the page says the built-in model takes each question on its own
+    let notes = b.eval("window.chatsplat.notes()").unwrap();
+    assert!(notes.as_array().unwrap().iter().any(|n| n.as_str().unwrap().contains("single questions")), "{notes}");
+    assert_eq!(b.eval("document.getElementById('new-conversation').hidden").unwrap(), true);
     assert_eq!(b.eval("window.chatsplat.mode").unwrap(), "server");
     let rect = canvas_rect(&mut b);
     let (_, shot) = b.screenshot().unwrap();

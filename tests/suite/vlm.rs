@@ -688,3 +688,52 @@ fn decoding_through_the_kv_cache_matches_a_full_forward() {
         assert_close(&format!("decoded vs full logits on {dev:?}"), &stepped, &full, 1e-4);
     }
 }
+
+/// A conversation's follow-up (the earlier question and answer in the chat template, then the new
+/// question) prefills only what its cache does not hold, needs no image embeddings, and answers
+/// token for token as the whole prompt prefilled afresh; an earlier turn that changed is noticed
+/// (the cache serves only up to where the prompts part), on ndarray and flex.
+#[test]
+fn a_conversations_follow_up_reuses_its_cache_and_answers_as_a_fresh_prompt() {
+    use model::vlm::{Exchange, PromptCache};
+    use std::ops::ControlFlow;
+    for dev in [Device::ndarray(), Device::flex()] {
+        let m = LlavaOnevision::load(&fixture(), &dev).unwrap();
+        let (t, vd) = (9, m.cfg.vision.hidden_size);
+        let grid: Vec<f32> = (0..t * vd).map(|i| (i as f32 * 0.37).sin()).collect();
+        let images = vec![m.token_embeds(Tensor::from_data(TensorData::new(grid, [t, vd]), &dev))];
+        let counts = [t + 1];
+        let opts = GenerateOptions { max_new_tokens: 6, ignore_stop: true, ..Default::default() };
+        let go = |ids: &[u32], images: &[Tensor<2>], cache: &mut PromptCache| {
+            m.generate_cached(ids, images, cache, &opts, |_| ControlFlow::Continue(())).unwrap()
+        };
+        let q1 = "What is on the table?";
+        let ids1 = m.conversation_ids(&[], q1, &counts).unwrap();
+        assert_eq!(ids1.iter().filter(|&&i| i == m.cfg.image_token_id).count(), t + 1);
+        let mut cache = PromptCache::default();
+        assert!(m.needs_images(&cache, &ids1));
+        let a1 = go(&ids1, &images, &mut cache);
+        assert_eq!(a1.cached_tokens, 0);
+        // every answer token but the last went back through the model
+        assert_eq!(cache.len(), ids1.len() + a1.ids.len() - 1);
+        let earlier = [Exchange { question: q1.into(), answer: a1.text.clone() }];
+        let ids2 = m.conversation_ids(&earlier, "Which object is closest to the camera?", &counts).unwrap();
+        assert_eq!(ids2.iter().filter(|&&i| i == m.cfg.image_token_id).count(), t + 1, "the images once");
+        assert!(!m.needs_images(&cache, &ids2), "the images are in the cache");
+        let a2 = go(&ids2, &[], &mut cache);
+        assert!(
+            a2.cached_tokens + 2 >= ids1.len() && a2.cached_tokens < ids2.len(),
+            "{} of {}",
+            a2.cached_tokens,
+            ids2.len()
+        );
+        let fresh = go(&ids2, &images, &mut PromptCache::default());
+        assert_eq!((a2.ids.clone(), fresh.cached_tokens), (fresh.ids, 0), "follow-up vs fresh on {dev:?}");
+        // the first question edited after its images: the cache serves the images, not what follows
+        let edited = [Exchange { question: "What is under the table?".into(), answer: a1.text.clone() }];
+        let ids3 = m.conversation_ids(&edited, "Which object is closest to the camera?", &counts).unwrap();
+        let a3 = go(&ids3, &[], &mut cache);
+        assert!(a3.cached_tokens > t && a3.cached_tokens < ids1.len(), "{} cached", a3.cached_tokens);
+        assert_eq!(a3.ids, go(&ids3, &images, &mut PromptCache::default()).ids, "edited vs fresh on {dev:?}");
+    }
+}

@@ -1,6 +1,7 @@
 //! `viewer-bench`: the browser viewer's figures on a trained run (default: the demo's), as a
 //! user feels them: click -> highlight (the pick request), object question -> first token, view
-//! question at a new camera -> first token, server-rendered frames per second, page load and
+//! question at a new camera -> first token, a follow-up against the same question afresh,
+//! server-rendered frames per second, page load and
 //! browser frames per second (headless Chromium on SwiftShader, when installed).
 //!
 //! ```text
@@ -147,6 +148,19 @@ fn bench(a: &Args) -> Result<()> {
             json!([hc * q[0] + hs * q[2], hc * q[1] + hs * q[3], hc * q[2] - hs * q[0], hc * q[3] - hs * q[1]]);
         view_ms.push(first_token(json!({"scope": "view", "camera": c, "question": "What objects are there?"}))?);
     }
+    // a conversation's follow-up at view 0's camera (its first turn's tokens and keys and values
+    // kept) against the same question asked afresh there
+    let (mut follow_ms, mut fresh_ms) = (vec![], vec![]);
+    let (q1, q2) = ("What colors are there?", "What objects are there?");
+    for _ in 0..5 {
+        let r = post(&addr, "/api/ask", &json!({"scope": "view", "camera": cam, "question": q1}))?;
+        let ev = r.events();
+        let start =
+            ev.iter().find(|e| e.0 == "start").ok_or_else(|| Error::input(format!("/api/ask: {}", r.text())))?;
+        let id = start.1["conversation"].clone();
+        follow_ms.push(first_token(json!({"scope": "view", "camera": cam, "question": q2, "conversation": id}))?);
+        fresh_ms.push(first_token(json!({"scope": "view", "camera": cam, "question": q2}))?);
+    }
     let frames = |camera: &Value, seconds: f64| -> Result<f64> {
         let t = Instant::now();
         let mut n = 0;
@@ -213,6 +227,12 @@ fn bench(a: &Args) -> Result<()> {
         "| view question at a new camera -> first token (5) | p50 {:.0} ms, max {:.0} ms |",
         pct(&mut view_ms, 0.5),
         pct(&mut view_ms, 1.0)
+    );
+    let (follow, fresh) = (pct(&mut follow_ms, 0.5), pct(&mut fresh_ms, 0.5));
+    println!(
+        "| a follow-up in a view conversation -> first token (5), against the same question afresh | p50 {follow:.0} \
+            ms against {fresh:.0} ms ({:.2}x) |",
+        follow / fresh
     );
     println!("| server-rendered frames, {w}x{h} | {full_fps:.1} /s |");
     println!("| server-rendered preview frames, 160x120 | {preview_fps:.1} /s |");

@@ -1,5 +1,6 @@
 //! `vlm-bench`: speed of the LLaVA-OneVision port (vision tower images/s, LLM prefill and decode
-//! tokens/s) on a model directory (default: the tiny parity fixture), per backend, and the
+//! tokens/s) on a model directory (default: the tiny parity fixture), per backend, a
+//! conversation's follow-up against the same prompt prefilled afresh (first token), and the
 //! parameter counts and memory of the published 0.5B and 7B models.
 //!
 //! cargo run --release -p eval --bin vlm-bench -- [--vlm DIR] [--backend flex|ndarray|wgpu ...]
@@ -14,8 +15,9 @@ use burn::tensor::Tensor;
 use clap::Parser;
 use model::vlm::config::LlavaConfig;
 use model::vlm::generate::{last_row, pick};
-use model::vlm::{GenerateOptions, LlavaOnevision, RgbImage};
+use model::vlm::{Exchange, GenerateOptions, LlavaOnevision, PromptCache, RgbImage};
 use model::{Backend, catch_backend};
+use std::ops::ControlFlow;
 use std::path::PathBuf;
 use std::time::Instant;
 
@@ -68,6 +70,53 @@ struct Timing {
     prefill: f64,
     prompt_tokens: usize,
     decode_tokens_per_s: f64,
+    follow_up: FollowUp,
+}
+
+/// A conversation's second question: its prompt, the tokens its cache held, and the seconds to
+/// its first token with that cache and prefilled afresh.
+struct FollowUp {
+    prompt_tokens: usize,
+    cached_tokens: usize,
+    cached: f64,
+    fresh: f64,
+}
+
+/// Times the second question of a conversation about one base view (how ChatSplat feeds a token
+/// grid) against the same prompt prefilled afresh: seconds to the first token, `reps` times each,
+/// the conversation's first turn (16 tokens answered) rebuilt untimed before each.
+fn follow_up(m: &LlavaOnevision, image: Tensor<2>, reps: usize, warm_up: bool) -> model::Result<FollowUp> {
+    let counts = [image.dims()[0]];
+    let images = [image];
+    let first = GenerateOptions { max_new_tokens: 16, ignore_stop: true, ..Default::default() };
+    let one = GenerateOptions { max_new_tokens: 1, ..first.clone() };
+    let go = |ids: &[u32], images: &[Tensor<2>], cache: &mut PromptCache, opts: &GenerateOptions| {
+        m.generate_cached(ids, images, cache, opts, |_| ControlFlow::Continue(()))
+    };
+    let q1 = "What is on the table?";
+    let ids1 = m.conversation_ids(&[], q1, &counts)?;
+    let opened = || -> model::Result<(PromptCache, String)> {
+        let mut cache = PromptCache::default();
+        let answer = go(&ids1, &images, &mut cache, &first)?.text;
+        Ok((cache, answer))
+    };
+    let (_, answer) = opened()?;
+    let earlier = [Exchange { question: q1.into(), answer }];
+    let ids2 = m.conversation_ids(&earlier, "Is it left of the blue cube?", &counts)?;
+    if warm_up {
+        go(&ids2, &images, &mut PromptCache::default(), &one)?;
+    }
+    let (mut cached, mut fresh, mut cached_tokens) = (0.0, 0.0, 0);
+    for _ in 0..reps {
+        let (mut cache, _) = opened()?;
+        let t0 = Instant::now();
+        cached_tokens = go(&ids2, &[], &mut cache, &one)?.cached_tokens;
+        cached += t0.elapsed().as_secs_f64() / reps as f64;
+        let t0 = Instant::now();
+        go(&ids2, &images, &mut PromptCache::default(), &one)?;
+        fresh += t0.elapsed().as_secs_f64() / reps as f64;
+    }
+    Ok(FollowUp { prompt_tokens: ids2.len(), cached_tokens, cached, fresh })
 }
 
 /// What eval/bench/transformers_vlm.py writes (the fields read here).
@@ -281,7 +330,15 @@ fn bench(a: &Args) -> model::Result<()> {
                 }
                 decode = decode.min(t0.elapsed().as_secs_f64());
             }
-            Ok(Timing { vision: vis, anyres, prefill, prompt_tokens, decode_tokens_per_s: a.decode as f64 / decode })
+            let follow_up = follow_up(&m, m.image_embeds(&one), reps, !a.cold)?;
+            Ok(Timing {
+                vision: vis,
+                anyres,
+                prefill,
+                prompt_tokens,
+                decode_tokens_per_s: a.decode as f64 / decode,
+                follow_up,
+            })
         });
         match r {
             Ok(Ok(t)) => {
@@ -298,6 +355,27 @@ fn bench(a: &Args) -> model::Result<()> {
             }
             Ok(Err(e)) | Err(e) => println!("| {backend} | n/a: {e} | | | | | |"),
         }
+    }
+    println!();
+    println!(
+        "A conversation's second question about one base view, to its first token: its earlier turn's keys \
+            and values kept (the cache) against the same prompt prefilled afresh:"
+    );
+    println!();
+    println!(
+        "| backend | follow-up prompt tokens | of them cached | first token, cached | first token, afresh | ratio |"
+    );
+    println!("|---|---|---|---|---|---|");
+    for (backend, t) in &timings {
+        let f = &t.follow_up;
+        println!(
+            "| {backend} | {} | {} | {:.1} ms | {:.1} ms | {:.2} |",
+            f.prompt_tokens,
+            f.cached_tokens,
+            f.cached * 1e3,
+            f.fresh * 1e3,
+            f.cached / f.fresh
+        );
     }
     if let Some(r) = &reference {
         print_reference(r, &timings);

@@ -6,13 +6,15 @@
 //! One API serves the REPL (`chatsplat chat`), `chatsplat ask`, `chatsplat vqa` and the browser
 //! viewer (`chatsplat serve`): a click is resolved once, by [`ChatSession::click`], into a
 //! [`Picked`] that [`Target::Object`] carries; its tokens are computed at its first question and
-//! kept for the follow-ups.
+//! kept for the follow-ups. A [`Conversation`] about one target keeps its earlier questions and
+//! answers and their keys and values: a follow-up is a new user turn after them, and only its own
+//! tokens are prefilled.
 
 use crate::error::{Error, Result};
 use crate::language::FrozenEncoder;
 use crate::run::{GeometryRun, LanguageRun};
 use crate::scene::{LanguageScene, highlight, spread_views};
-use crate::vlm::{GenerateOptions, Generation, LlavaOnevision};
+use crate::vlm::{Exchange, GenerateOptions, Generation, LlavaOnevision, PromptCache};
 use burn::tensor::{Device, Tensor};
 use splat_kernels::Camera;
 use std::ops::ControlFlow;
@@ -325,7 +327,8 @@ impl ChatSession {
         })
     }
 
-    /// [`ask`](Self::ask), stoppable at every decoding step (see [`answer_until`]).
+    /// [`ask`](Self::ask), stoppable at every decoding step (see [`answer_until`]): the first
+    /// question of a new [`Conversation`].
     pub fn ask_until(
         &self,
         target: &Target,
@@ -333,11 +336,72 @@ impl ChatSession {
         opts: &GenerateOptions,
         on_step: impl FnMut(&str) -> ControlFlow<()>,
     ) -> Result<Generation> {
-        if question.trim().is_empty() {
-            return Err(Error::input("the question is empty"));
-        }
-        let images = self.tokens(target)?;
-        answer_until(&self.vlm, &images, question, opts, on_step)
+        let mut conversation = Conversation::new(target.clone());
+        Ok(self.converse_until(&mut conversation, question, opts, on_step)?.generation)
+    }
+
+    /// Asks `question` in `conversation` (after its earlier turns), streaming text to
+    /// `on_step` as [`answer_until`] does; the answer becomes one of its turns.
+    pub fn converse_until(
+        &self,
+        conversation: &mut Conversation,
+        question: &str,
+        opts: &GenerateOptions,
+        on_step: impl FnMut(&str) -> ControlFlow<()>,
+    ) -> Result<Reply> {
+        let next = self.next_turn(conversation, question, opts)?;
+        self.answer_turn(conversation, next, opts, on_step)
+    }
+
+    /// The first half of [`converse_until`](Self::converse_until): the prompt of `question` in
+    /// `conversation`, its oldest turns dropped where the prompt and `opts.max_new_tokens` would
+    /// pass the model's context (never the images), and the target's tokens where the prompt
+    /// needs them (its first question, or after a drop). An error for an empty question or one
+    /// that does not fit the context by itself.
+    pub fn next_turn(
+        &self,
+        conversation: &mut Conversation,
+        question: &str,
+        opts: &GenerateOptions,
+    ) -> Result<NextTurn> {
+        self.check_question(question, conversation.target.images())?;
+        let counts = vec![self.scene.cfg.tokens() + 1; conversation.target.images()];
+        let max = self.vlm.cfg.text.max_positions;
+        let mut drop = 0;
+        let ids = loop {
+            let ids = self.vlm.conversation_ids(&conversation.earlier[drop..], question, &counts)?;
+            if drop == conversation.earlier.len() || ids.len() + opts.max_new_tokens.max(1) <= max {
+                break ids;
+            }
+            drop += 1;
+        };
+        conversation.earlier.drain(..drop);
+        conversation.dropped += drop;
+        let images = match &conversation.images {
+            _ if !self.vlm.needs_images(&conversation.cache, &ids) => Vec::new(),
+            Some(images) => images.clone(),
+            None => {
+                let tokens = self.tokens(&conversation.target)?;
+                let images: Vec<Tensor<2>> = tokens.into_iter().map(|t| self.vlm.token_embeds(t)).collect();
+                conversation.images.insert(images).clone()
+            }
+        };
+        let cached_tokens = self.vlm.reusable(&conversation.cache, &ids);
+        Ok(NextTurn { question: question.to_string(), ids, images, dropped: drop, cached_tokens })
+    }
+
+    /// The second half of [`converse_until`](Self::converse_until): generates the answer to
+    /// `next` (from [`next_turn`](Self::next_turn) on the same conversation) and keeps the turn.
+    pub fn answer_turn(
+        &self,
+        conversation: &mut Conversation,
+        next: NextTurn,
+        opts: &GenerateOptions,
+        on_step: impl FnMut(&str) -> ControlFlow<()>,
+    ) -> Result<Reply> {
+        let g = self.vlm.generate_cached(&next.ids, &next.images, &mut conversation.cache, opts, on_step)?;
+        conversation.earlier.push(Exchange { question: next.question, answer: g.text.clone() });
+        Ok(Reply { generation: g, dropped: next.dropped })
     }
 
     /// The view from `camera` as RGB `[H * W * 3]` in [0, 1], with `picked` highlighted in red
@@ -358,5 +422,77 @@ impl ChatSession {
             crate::io::create_dir(dir)?;
         }
         crate::images::write_rgb(path, camera.width, camera.height, &rgb)
+    }
+}
+
+/// A conversation about one target: its earlier questions and answers (the oldest dropped where
+/// the context is full), the target's prompt embeddings once computed, and the keys and values
+/// of everything said so far. A new target is a new conversation.
+#[derive(Clone, Debug)]
+pub struct Conversation {
+    pub target: Target,
+    earlier: Vec<Exchange>,
+    dropped: usize,
+    images: Option<Vec<Tensor<2>>>,
+    cache: PromptCache,
+}
+
+impl Conversation {
+    pub fn new(target: Target) -> Self {
+        Self { target, earlier: Vec::new(), dropped: 0, images: None, cache: PromptCache::default() }
+    }
+
+    /// The questions and answers the next question follows (those dropped are not here).
+    pub fn exchanges(&self) -> &[Exchange] {
+        &self.earlier
+    }
+
+    /// Exchanges dropped so far to fit the model's context.
+    pub fn dropped(&self) -> usize {
+        self.dropped
+    }
+
+    /// Tokens whose keys and values are kept.
+    pub fn cached_tokens(&self) -> usize {
+        self.cache.len()
+    }
+}
+
+/// A question's prompt in its conversation, ready to answer ([`ChatSession::next_turn`]).
+pub struct NextTurn {
+    question: String,
+    ids: Vec<u32>,
+    images: Vec<Tensor<2>>,
+    /// Oldest exchanges dropped to make room for this one.
+    pub dropped: usize,
+    /// Leading prompt tokens the conversation's cache holds (not prefilled again).
+    pub cached_tokens: usize,
+}
+
+impl NextTurn {
+    /// The prompt's length in tokens.
+    pub fn prompt_tokens(&self) -> usize {
+        self.ids.len()
+    }
+}
+
+/// An answer in a conversation.
+#[derive(Clone, Debug)]
+pub struct Reply {
+    pub generation: Generation,
+    /// Oldest exchanges dropped to make room for this one (say so to the user).
+    pub dropped: usize,
+}
+
+impl Reply {
+    /// What to tell the user when earlier exchanges were dropped for this answer.
+    pub fn dropped_note(&self) -> Option<String> {
+        (self.dropped > 0).then(|| {
+            format!(
+                "the oldest {} exchange(s) of this conversation were dropped to fit the model's context (the \
+                 images are kept)",
+                self.dropped
+            )
+        })
     }
 }

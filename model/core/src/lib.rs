@@ -10,7 +10,7 @@
 //!    `llava-onevision` crate (model/llava-onevision), re-exported.
 //! 5. [`scene`] and [`chat`] — a trained scene answering questions at view, object and scene
 //!    level: frozen Gaussians + language field -> tokens -> prompt -> LLM; [`vqa`] runs a
-//!    question file through it.
+//!    question file through it; [`find`] scores the scene's objects against a phrase.
 //!
 //! Around them: [`run`] (the files of a run directory, typed), [`io`] (atomic writes, JSON,
 //! safetensors), [`error`] and [`images`] (PNG), all three from the `data` crate; [`backend`]
@@ -34,6 +34,7 @@ pub mod language;
 pub use llava_onevision as vlm;
 
 pub mod chat;
+pub mod find;
 pub mod run;
 pub mod scene;
 pub mod vqa;

@@ -38,6 +38,9 @@ pub struct Generation {
     pub cancelled: bool,
     /// Prompt length in tokens.
     pub prompt_tokens: usize,
+    /// Leading prompt tokens whose keys and values came from a conversation's cache (not
+    /// prefilled again: [`LlavaOnevision::generate_cached`]).
+    pub cached_tokens: usize,
 }
 
 /// Picks the next token from `logits`: argmax when greedy, else temperature + nucleus (top-p) sampling.
@@ -104,20 +107,43 @@ impl LlavaOnevision {
         &self,
         prompt: Tensor<2>,
         opts: &GenerateOptions,
-        mut on_step: impl FnMut(&str) -> ControlFlow<()>,
+        on_step: impl FnMut(&str) -> ControlFlow<()>,
     ) -> Result<Generation, VlmError> {
         let prompt_tokens = prompt.dims()[0];
-        let max = self.cfg.text.max_positions;
-        if prompt_tokens >= max {
-            return Err(VlmError::prompt(format!(
-                "the prompt is {prompt_tokens} tokens but the model takes at most {max}"
-            )));
-        }
-        // the answer stops at the model's context
-        let new_tokens = opts.max_new_tokens.min(max - prompt_tokens);
-        let mut cache = KvCache::with_capacity(prompt_tokens + new_tokens);
-        let mut rng = Rng::new(opts.seed);
+        self.check_prompt_len(prompt_tokens)?;
+        let mut cache = KvCache::with_capacity(prompt_tokens + self.answer_room(prompt_tokens, opts));
         let hidden = self.llm.forward(prompt, &mut cache);
+        self.decode(hidden, prompt_tokens, &mut cache, opts, on_step, |_| {})
+    }
+
+    /// An error when a prompt of `tokens` leaves no room in the model's context.
+    pub(crate) fn check_prompt_len(&self, tokens: usize) -> Result<(), VlmError> {
+        let max = self.cfg.text.max_positions;
+        if tokens >= max {
+            return Err(VlmError::prompt(format!("the prompt is {tokens} tokens but the model takes at most {max}")));
+        }
+        Ok(())
+    }
+
+    /// New tokens an answer after a prompt of `tokens` may have: the answer stops at the context.
+    pub(crate) fn answer_room(&self, tokens: usize, opts: &GenerateOptions) -> usize {
+        opts.max_new_tokens.min(self.cfg.text.max_positions.saturating_sub(tokens))
+    }
+
+    /// Decodes after a prefill of `prompt_tokens` tokens whose last hidden states are `hidden`
+    /// (`[T, D]`, `T` >= 1) and whose keys and values `cache` holds; `fed` sees every generated
+    /// token as the cache takes its keys (all but a stop token and the last one).
+    pub(crate) fn decode(
+        &self,
+        hidden: Tensor<2>,
+        prompt_tokens: usize,
+        cache: &mut KvCache,
+        opts: &GenerateOptions,
+        mut on_step: impl FnMut(&str) -> ControlFlow<()>,
+        mut fed: impl FnMut(u32),
+    ) -> Result<Generation, VlmError> {
+        let new_tokens = self.answer_room(prompt_tokens, opts);
+        let mut rng = Rng::new(opts.seed);
         let [t, d] = hidden.dims();
         let mut logits = last_row(self.llm.logits(hidden.narrow(0, t - 1, 1).reshape([1, d])));
         let mut ids = Vec::new();
@@ -147,13 +173,14 @@ impl LlavaOnevision {
                 break;
             }
             let x = self.llm.embed(&[next]);
-            let h = self.llm.forward(x, &mut cache);
+            let h = self.llm.forward(x, cache);
+            fed(next);
             logits = last_row(self.llm.logits(h));
         }
         let text = self.tokenizer.decode(&ids, true)?;
         if !cancelled && text.len() > printed.len() && text.starts_with(&printed) {
             let _ = on_step(&text[printed.len()..]);
         }
-        Ok(Generation { ids, text, stopped, cancelled, prompt_tokens })
+        Ok(Generation { ids, text, stopped, cancelled, prompt_tokens, cached_tokens: 0 })
     }
 }

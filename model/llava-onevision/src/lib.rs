@@ -15,6 +15,7 @@
 #![allow(deprecated)] // burn-ndarray is deprecated in burn 0.22 in favour of burn-flex.
 
 pub mod config;
+pub mod conversation;
 pub mod cpu;
 pub mod generate;
 pub mod host;
@@ -27,6 +28,7 @@ pub mod tokenizer;
 pub mod weights;
 
 pub use config::{LlavaConfig, ProcessorConfig};
+pub use conversation::{Exchange, PromptCache};
 pub use generate::{GenerateOptions, Generation};
 pub use llava::LlavaOnevision;
 pub use preprocess::RgbImage;

@@ -271,8 +271,7 @@ impl LlavaOnevision {
     }
 
     fn prompt_ids(&self, question: &str, counts: &[usize]) -> Result<Vec<u32>, VlmError> {
-        let prompt = self.tokenizer.prompt(&[Turn::user(counts.len(), question.to_string())], true);
-        let ids = self.expand_image_tokens(&self.tokenizer.encode(&prompt)?, counts)?;
+        let ids = self.turn_ids(&[Turn::user(counts.len(), question.to_string())], counts)?;
         let max = self.cfg.text.max_positions;
         if ids.len() >= max {
             return Err(VlmError::prompt(format!(
@@ -283,6 +282,13 @@ impl LlavaOnevision {
             )));
         }
         Ok(ids)
+    }
+
+    /// The ids of `turns` in the chat template, then the assistant's prompt, each `<image>`
+    /// expanded to its image's `counts` rows; not checked against the context.
+    pub(crate) fn turn_ids(&self, turns: &[Turn], counts: &[usize]) -> Result<Vec<u32>, VlmError> {
+        let prompt = self.tokenizer.prompt(turns, true);
+        self.expand_image_tokens(&self.tokenizer.encode(&prompt)?, counts)
     }
 
     /// Number of `<image>` placeholders one image expands to.

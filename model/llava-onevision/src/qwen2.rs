@@ -72,6 +72,12 @@ impl KvCache {
         self.len == 0
     }
 
+    /// Keeps the first `len` positions (a conversation whose prompt changed after them): the next
+    /// write goes after them, over what was there.
+    pub fn truncate(&mut self, len: usize) {
+        self.len = self.len.min(len);
+    }
+
     /// Writes `layer`'s keys and values `[kv_heads, t, head_dim]` of the `t` positions after the
     /// cached ones and returns all of that layer's so far, `[kv_heads, len + t, head_dim]` (views
     /// into the cache). The caller advances `len` once every layer has written.

@@ -6,9 +6,11 @@
 //! that goes away (its event channel closes) stops its generation at the next step, or before it
 //! starts.
 
+use crate::conversations::Conversations;
 use crate::error::ApiError;
 use crate::scene_info::ObjectNames;
-use model::chat::{ChatSession, Picked, Target};
+use model::chat::{ChatSession, Conversation, Picked, Target};
+use model::find::Finder;
 use model::vlm::GenerateOptions;
 use serde::Serialize;
 use splat_kernels::Camera;
@@ -78,9 +80,13 @@ pub enum Quick {
     Select { camera: Camera, id: u8 },
     /// The view from `camera` as RGB bytes `[H, W, 3]`.
     Render { camera: Camera },
-    /// Whether `question` can be asked about `scope`: resolves the scope (an object must be
-    /// visible) and measures the prompt against the model's context.
-    Check { scope: Scope, question: String },
+    /// Whether `question` can be asked about `scope` (in `conversation`, when given): resolves
+    /// the scope (an object must be visible), checks the conversation is kept and about the same
+    /// scope, and measures the question against the model's context.
+    Check { scope: Scope, question: String, conversation: Option<u64> },
+    /// The scene's objects scored against `phrase`, with the masks at `camera` of those scoring
+    /// at least `threshold`.
+    Find { phrase: String, threshold: f32, camera: Camera },
 }
 
 /// The answer to a [`Quick`] job.
@@ -89,6 +95,32 @@ pub enum QuickReply {
     Frame(Vec<u8>),
     /// The question can be asked.
     Checked,
+    Found(Found),
+}
+
+/// What a search answers: every object scored, best first, and the matches' masks.
+#[derive(Clone, Debug, Serialize)]
+pub struct Found {
+    pub query: String,
+    pub threshold: f32,
+    /// The objects at or above the threshold, best first, each with its mask at the camera
+    /// (`null` where it is hidden there).
+    pub matches: Vec<FoundObject>,
+    /// Every object searched, best first (no masks).
+    pub ranked: Vec<FoundObject>,
+    /// Seconds building the objects' tokens (the first search only) and scoring, in ms.
+    pub setup_ms: f64,
+    pub score_ms: f64,
+}
+
+/// An object scored against a phrase.
+#[derive(Clone, Debug, Serialize)]
+pub struct FoundObject {
+    pub id: u8,
+    pub name: String,
+    pub score: f32,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    pub mask: Option<Option<Mask>>,
 }
 
 /// An event of a streamed answer (one server-sent event each; the name is the variant's).
@@ -98,8 +130,20 @@ pub enum AskEvent {
     /// Waiting: `ahead` questions are before this one (the one being answered included); sent
     /// when the request is queued behind others and each time one of them finishes.
     Queued { ahead: u64 },
-    /// Answering started: the tokens of the target are ready.
-    Start { ticket: u64, queue_ms: f64, tokens_ms: f64, prompt_tokens: usize },
+    /// Answering started: the tokens of the target are ready. `conversation` is the id to send
+    /// with a follow-up; `turn` counts its questions (1 = the first); `cached_tokens` of the
+    /// `prompt_tokens` were kept from the earlier turns (not prefilled again); `dropped` oldest
+    /// exchanges were dropped to fit the model's context.
+    Start {
+        ticket: u64,
+        conversation: u64,
+        turn: usize,
+        queue_ms: f64,
+        tokens_ms: f64,
+        prompt_tokens: usize,
+        cached_tokens: usize,
+        dropped: usize,
+    },
     /// New answer text.
     Token { text: String },
     /// The answer is complete.
@@ -120,6 +164,8 @@ pub enum AskEvent {
 pub struct AskJob {
     pub scope: Scope,
     pub question: String,
+    /// The conversation it follows up (`None`: a new one).
+    pub conversation: Option<u64>,
     pub opts: GenerateOptions,
     pub events: mpsc::Sender<AskEvent>,
     /// When the request arrived.
@@ -250,11 +296,14 @@ pub struct Engine {
     quick: QuickState,
 }
 
-/// Object names and the objects picked lately (each holds its view's identity map and, once
-/// asked about, its tokens, kept for follow-up questions).
+/// Object names, the objects picked lately (each holds its view's identity map and, once asked
+/// about, its tokens, kept for follow-up questions), the conversations and the search's objects
+/// (made at the first search).
 struct QuickState {
     names: ObjectNames,
     picks: VecDeque<Picked>,
+    conversations: Conversations,
+    finder: Option<Finder>,
 }
 
 /// Picks kept.
@@ -262,7 +311,10 @@ const KEPT_PICKS: usize = 16;
 
 impl Engine {
     pub fn new(session: ChatSession, names: ObjectNames) -> Self {
-        Self { session, quick: QuickState { names, picks: VecDeque::new() } }
+        Self {
+            session,
+            quick: QuickState { names, picks: VecDeque::new(), conversations: Conversations::default(), finder: None },
+        }
     }
 
     /// Serves `queues` until they close.
@@ -291,30 +343,61 @@ impl Engine {
     fn answer(&mut self, ticket: u64, job: AskJob, queues: &Queues) -> Result<(), ApiError> {
         let Engine { session, quick } = self;
         let t0 = Instant::now();
-        let target = quick.target(session, &job.scope)?;
-        let prompt_tokens = session
-            .check_question(&job.question, target.images())
+        let (id, mut conversation) = match job.conversation {
+            Some(id) => (id, quick.conversations.take(id, &job.scope, &quick.names)?),
+            None => {
+                let target = quick.target(session, &job.scope)?;
+                (quick.conversations.start(&job.scope), Conversation::new(target))
+            }
+        };
+        let r = Self::converse(session, quick, &mut conversation, (ticket, id), &job, queues, t0);
+        quick.conversations.put_back(id, conversation);
+        r
+    }
+
+    /// Answers `job` in `conversation` (`ids`: the job's ticket and the conversation's id).
+    fn converse(
+        session: &ChatSession,
+        quick: &mut QuickState,
+        conversation: &mut Conversation,
+        (ticket, id): (u64, u64),
+        job: &AskJob,
+        queues: &Queues,
+        t0: Instant,
+    ) -> Result<(), ApiError> {
+        let next = session
+            .next_turn(conversation, &job.question, &job.opts)
             .map_err(|e| ApiError::from_model(e, Some("question")))?;
-        let images = session.tokens(&target).map_err(|e| ApiError::from_model(e, None))?;
         let t1 = Instant::now();
-        let start = AskEvent::Start { ticket, queue_ms: ms(job.arrived, t0), tokens_ms: ms(t0, t1), prompt_tokens };
+        let start = AskEvent::Start {
+            ticket,
+            conversation: id,
+            turn: conversation.exchanges().len() + conversation.dropped() + 1,
+            queue_ms: ms(job.arrived, t0),
+            tokens_ms: ms(t0, t1),
+            prompt_tokens: next.prompt_tokens(),
+            cached_tokens: next.cached_tokens,
+            dropped: next.dropped,
+        };
         if job.events.blocking_send(start).is_err() {
             return Ok(());
         }
         let mut first: Option<Instant> = None;
-        let g = model::chat::answer_until(&session.vlm, &images, &job.question, &job.opts, |piece| {
-            first.get_or_insert_with(Instant::now);
-            // clicks and renders of other clients are answered between two tokens
-            while let Some(q) = queues.pop_quick() {
-                quick.serve(session, q);
-            }
-            let gone = job.events.is_closed()
-                || queues.is_closed()
-                || (!piece.is_empty()
-                    && job.events.blocking_send(AskEvent::Token { text: piece.to_string() }).is_err());
-            if gone { ControlFlow::Break(()) } else { ControlFlow::Continue(()) }
-        })
-        .map_err(|e| ApiError::from_model(e, Some("question")))?;
+        let reply = session
+            .answer_turn(conversation, next, &job.opts, |piece| {
+                first.get_or_insert_with(Instant::now);
+                // clicks and renders of other clients are answered between two tokens
+                while let Some(q) = queues.pop_quick() {
+                    quick.serve(session, q);
+                }
+                let gone = job.events.is_closed()
+                    || queues.is_closed()
+                    || (!piece.is_empty()
+                        && job.events.blocking_send(AskEvent::Token { text: piece.to_string() }).is_err());
+                if gone { ControlFlow::Break(()) } else { ControlFlow::Continue(()) }
+            })
+            .map_err(|e| ApiError::from_model(e, Some("question")))?;
+        let g = reply.generation;
         let end = Instant::now();
         let first = first.unwrap_or(end);
         let decode_s = (end - first).as_secs_f64();
@@ -357,12 +440,59 @@ impl QuickState {
                 let rgb = session.view_image(&camera, None).map_err(err("camera"))?;
                 Ok(QuickReply::Frame(rgb.iter().map(|v| (v * 255.0 + 0.5) as u8).collect()))
             }
-            Quick::Check { scope, question } => {
+            Quick::Find { phrase, threshold, camera } => {
+                Ok(QuickReply::Found(self.find(session, phrase, threshold, &camera)?))
+            }
+            Quick::Check { scope, question, conversation } => {
+                if let Some(id) = conversation {
+                    self.conversations.check(id, &scope, &self.names)?;
+                }
                 let images = self.target(session, &scope)?.images();
                 session.check_question(&question, images).map_err(err("question"))?;
                 Ok(QuickReply::Checked)
             }
         }
+    }
+
+    fn find(
+        &mut self,
+        session: &ChatSession,
+        phrase: String,
+        threshold: f32,
+        camera: &Camera,
+    ) -> Result<Found, ApiError> {
+        let err = |field: &'static str| move |e| ApiError::from_model(e, Some(field));
+        let t0 = Instant::now();
+        if self.finder.is_none() {
+            self.finder = Some(Finder::new(session, &self.names).map_err(err("phrase"))?);
+        }
+        let finder = self.finder.as_mut().expect("made above");
+        let t1 = Instant::now();
+        let ranked = finder.rank(session, &phrase).map_err(err("phrase"))?;
+        let t2 = Instant::now();
+        let hits: Vec<_> = ranked.iter().filter(|r| r.score >= threshold).collect();
+        let ids = if hits.is_empty() {
+            Vec::new()
+        } else {
+            session.scene.splats.render_ids(camera).map_err(err("camera"))?
+        };
+        let object =
+            |id: u8, score: f32, mask: Option<Option<Mask>>| FoundObject { id, name: self.names.name(id), score, mask };
+        let matches = hits
+            .iter()
+            .map(|r| {
+                let shown = ids.contains(&r.id).then(|| Mask::of(&ids, r.id, camera.width, camera.height));
+                object(r.id, r.score, Some(shown))
+            })
+            .collect();
+        Ok(Found {
+            query: phrase,
+            threshold,
+            matches,
+            ranked: ranked.iter().map(|r| object(r.id, r.score, None)).collect(),
+            setup_ms: ms(t0, t1),
+            score_ms: ms(t1, t2),
+        })
     }
 
     /// Keeps a pick (for follow-up questions) and describes it.
@@ -427,6 +557,7 @@ mod tests {
         let job = AskJob {
             scope: Scope::View(camera),
             question: "q".into(),
+            conversation: None,
             opts: GenerateOptions::default(),
             events: tx,
             arrived: Instant::now(),

@@ -13,6 +13,7 @@
 
 pub mod assets;
 pub mod camera;
+pub mod conversations;
 pub mod engine;
 pub mod error;
 pub mod routes;

@@ -10,7 +10,12 @@
 //! | `POST /api/pick` | `{camera, x, y}` | `{object: {id, name, pixels, bbox, mask} or null, ms}` |
 //! | `POST /api/select` | `{camera, id}` | the same, for an object followed to a new camera |
 //! | `POST /api/render` | `{camera}` | PNG (chatsplat's own rasterizer) |
-//! | `POST /api/ask` | `{scope, camera?, id?, views?, question, ...}` | `text/event-stream` of [`AskEvent`] |
+//! | `POST /api/find` | `{phrase, camera, threshold?}` | [`Found`](crate::engine::Found): scores, the matches' masks |
+//! | `POST /api/ask` | `{scope, camera?, id?, views?, question, conversation?, ...}` | event stream of [`AskEvent`] |
+//!
+//! A question is the first of a new conversation unless it names one (`conversation`: the id
+//! its first answer's `start` event gave, about the same scope): then it is asked after that
+//! conversation's earlier questions and answers ([`conversations`](crate::conversations)).
 
 use crate::assets;
 use crate::camera::ViewCamera;
@@ -61,6 +66,7 @@ pub fn router(state: Arc<AppState>) -> Router {
         .route("/api/select", post(select))
         .route("/api/render", post(render))
         .route("/api/ask", post(ask))
+        .route("/api/find", post(find))
         .fallback(static_file)
         .method_not_allowed_fallback(|m: Method| async move {
             ApiError::status(StatusCode::METHOD_NOT_ALLOWED, format!("{m} is not allowed here")).into_response()
@@ -228,6 +234,26 @@ async fn select(State(s): State<Arc<AppState>>, JsonBody(b): JsonBody<SelectBody
 
 #[derive(Deserialize)]
 #[serde(deny_unknown_fields)]
+struct FindBody {
+    phrase: String,
+    camera: ViewCamera,
+    #[serde(default)]
+    threshold: Option<f32>,
+}
+
+async fn find(State(s): State<Arc<AppState>>, JsonBody(b): JsonBody<FindBody>) -> Result<Response, ApiError> {
+    let camera = b.camera.to_camera("camera")?;
+    let threshold = b.threshold.unwrap_or(model::find::DEFAULT_THRESHOLD);
+    model::find::check_threshold(threshold).map_err(|e| ApiError::field("threshold", e.to_string()))?;
+    let phrase = model::find::normalize(&b.phrase).map_err(|e| ApiError::field("phrase", e.to_string()))?;
+    let QuickReply::Found(found) = quick(&s, Quick::Find { phrase, threshold, camera }).await? else {
+        return Err(ApiError::internal("the search came back empty"));
+    };
+    Ok(axum::Json(found).into_response())
+}
+
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
 struct RenderBody {
     camera: ViewCamera,
 }
@@ -268,6 +294,10 @@ struct AskBody {
     #[serde(default)]
     views: Option<usize>,
     question: String,
+    /// The conversation this question follows up (the id its first answer's `start` event
+    /// gave); left out, the question starts a new conversation.
+    #[serde(default)]
+    conversation: Option<u64>,
     #[serde(default)]
     max_new_tokens: Option<usize>,
     /// Generate `max_new_tokens` tokens whatever the model says (timing runs).
@@ -325,10 +355,11 @@ async fn ask(State(s): State<Arc<AppState>>, JsonBody(b): JsonBody<AskBody>) -> 
     }
     // the target exists (an object is visible) and the prompt fits the context: 4xx now, not
     // an error event after a 200
-    quick(&s, Quick::Check { scope: scope.clone(), question: b.question.clone() }).await?;
+    let conversation = b.conversation;
+    quick(&s, Quick::Check { scope: scope.clone(), question: b.question.clone(), conversation }).await?;
     let (tx, rx) = tokio::sync::mpsc::channel(256);
     let opts = GenerateOptions { max_new_tokens, ignore_stop: b.ignore_stop, ..Default::default() };
-    let job = AskJob { scope, question: b.question, opts, events: tx, arrived };
+    let job = AskJob { scope, question: b.question, conversation, opts, events: tx, arrived };
     let Some((ticket, ahead)) = s.queues.push_ask(job) else {
         return Err(ApiError::status(
             StatusCode::SERVICE_UNAVAILABLE,

@@ -5,43 +5,9 @@
 use crate::camera::ViewCamera;
 use glam::Vec3;
 use model::chat::{ChatSession, DEFAULT_SCENE_VIEWS};
-use model::data::synth::scene::SynthScene;
+pub use model::find::ObjectNames;
 use model::run::GeometryRun;
 use serde::Serialize;
-use splat_kernels::Camera;
-use std::collections::BTreeMap;
-
-/// Object names by instance id: the synthetic scene's own (`scene.json` beside its dataset:
-/// "red cube", id 1 the table), else "object N".
-#[derive(Clone, Debug, Default)]
-pub struct ObjectNames(BTreeMap<u8, String>);
-
-impl ObjectNames {
-    /// The names the run's dataset knows (none when it has no `scene.json`); a `scene.json`
-    /// that cannot be read is reported in `warnings`.
-    pub fn of_run(run: &GeometryRun, warnings: &mut Vec<String>) -> Self {
-        let Ok(state) = run.read_state() else { return Self::default() };
-        let path = state.data.dir.resolve(&run.dir).join("scene.json");
-        if !path.exists() {
-            return Self::default();
-        }
-        match model::io::read_json::<SynthScene>(&path) {
-            Ok(scene) => {
-                let mut names: BTreeMap<u8, String> = scene.objects.iter().map(|o| (o.id, o.name())).collect();
-                names.insert(model::data::synth::TABLE_ID, "table".into());
-                Self(names)
-            }
-            Err(e) => {
-                warnings.push(format!("object names unavailable: {e}"));
-                Self::default()
-            }
-        }
-    }
-
-    pub fn name(&self, id: u8) -> String {
-        self.0.get(&id).cloned().unwrap_or_else(|| format!("object {id}"))
-    }
-}
 
 /// One view of the scene.
 #[derive(Clone, Debug, Serialize)]
@@ -71,6 +37,10 @@ pub struct SceneInfo {
     /// it, and the world's up direction as the training cameras hold it.
     pub center: [f32; 3],
     pub radius: f32,
+    /// Whether the model holds a conversation (else the page asks every question on its own and
+    /// says why: `converse_note`).
+    pub converses: bool,
+    pub converse_note: Option<String>,
     pub up: [f32; 3],
     pub gaussians: usize,
     pub background: [f32; 3],
@@ -86,11 +56,6 @@ pub struct SceneInfo {
     /// The largest image side the server renders or picks at.
     pub max_side: u32,
 }
-
-/// Identity renders for the object list are made this small (longest side).
-const LIST_SIDE: u32 = 128;
-/// An object is listed when it covers at least this fraction of some training view.
-const LIST_FRACTION: f32 = 0.002;
 
 impl SceneInfo {
     /// Reads the scene's cameras and lists the objects its training views show.
@@ -114,23 +79,9 @@ impl SceneInfo {
             })
             .collect();
         let train = &s.cameras[..s.train_views];
-        let mut best = [0f32; 256];
-        if s.scene.masks {
-            for c in train {
-                let small = scaled(c, LIST_SIDE);
-                let ids = s.scene.splats.render_ids(&small)?;
-                let mut count = [0usize; 256];
-                for &i in &ids {
-                    count[i as usize] += 1;
-                }
-                for (b, n) in best.iter_mut().zip(count) {
-                    *b = b.max(n as f32 / ids.len() as f32);
-                }
-            }
-        }
-        let objects = (1..=255u8)
-            .filter(|&i| best[i as usize] >= LIST_FRACTION)
-            .map(|id| ObjectInfo { id, name: names.name(id) })
+        let objects = model::find::scene_objects(s)?
+            .into_iter()
+            .map(|o| ObjectInfo { id: o.id, name: names.name(o.id) })
             .collect();
         let state = run.read_state()?;
         let center = Vec3::from_array(state.extent.focus);
@@ -145,6 +96,8 @@ impl SceneInfo {
             objects,
             center: center.to_array(),
             radius,
+            converses: s.vlm.converses(),
+            converse_note: (!s.vlm.converses()).then(|| model::vlm::conversation::SINGLE_TURN_NOTE.to_string()),
             up: up.to_array(),
             gaussians: s.scene.splats.len(),
             background: s.scene.background,
@@ -163,19 +116,6 @@ fn short_name(dir: &std::path::Path) -> String {
     let parts: Vec<String> =
         dir.components().rev().take(2).map(|c| c.as_os_str().to_string_lossy().into_owned()).collect();
     parts.into_iter().rev().collect::<Vec<_>>().join("/")
-}
-
-/// `cam` scaled so that its longest side is at most `side` pixels.
-fn scaled(cam: &Camera, side: u32) -> Camera {
-    let s = (side as f32 / cam.width.max(cam.height) as f32).min(1.0);
-    let mut c = *cam;
-    c.width = ((cam.width as f32 * s).round() as u32).max(1);
-    c.height = ((cam.height as f32 * s).round() as u32).max(1);
-    c.fx *= s;
-    c.fy *= s;
-    c.cx *= s;
-    c.cy *= s;
-    c
 }
 
 /// The scene's Gaussians as an Inria-layout `.ply` for the browser: position, scale, rotation,

@@ -9,11 +9,15 @@ const params = new URLSearchParams(location.search);
 // ---------------------------------------------------------------- the API
 async function failure(r) {
   let msg = `${r.status} ${r.statusText}`;
+  let field = null;
   try {
     const e = await r.json();
     msg = e.field ? `${e.field}: ${e.error}` : e.error;
+    field = e.field;
   } catch (_) { /* not JSON */ }
-  return new Error(msg);
+  const err = new Error(msg);
+  err.field = field;
+  return err;
 }
 
 async function post(path, body, signal) {
@@ -57,8 +61,12 @@ const state = {
   up: new THREE.Vector3(0, 1, 0),
   size: { width: 640, height: 480 }, // the canvas in pixels (what the server renders and picks at)
   selection: null, // {id, name, mask, bbox} from the last pick / select
+  found: null, // the last search's reply (/api/find) and the camera it was made at
+  converse: true, // questions follow their scope's conversation (the model holds one, or ?converse=1)
   scope: "view",
   histories: { view: [], object: [], scene: [] },
+  // per scope, the conversation its next question follows up: {id, key} (key: what it is about)
+  conversations: { view: null, object: null, scene: null },
   busy: null, // AbortController of the answer streaming in
   frames: 0,
   lastPickMs: null,
@@ -170,6 +178,7 @@ function cameraMoved(settled) {
 function settle() {
   requestFrame(false);
   if (state.selection) follow();
+  else if (state.found) find();
 }
 
 function installControls() {
@@ -204,7 +213,7 @@ function installControls() {
   window.addEventListener("keydown", (e) => {
     if (e.target.closest && e.target.closest("textarea, input, select")) return;
     const k = e.key.toLowerCase();
-    if (k === "escape") { clearSelection(); return; }
+    if (k === "escape") { clearSelection(); clearFound(); return; }
     if ("wasdqe".includes(k) && k.length === 1) { keys.add(k); e.preventDefault(); }
   });
   window.addEventListener("keyup", (e) => {
@@ -373,14 +382,27 @@ function clearSelection() {
 // (so that a red object stands out too), its name beside it.
 function drawSelection() {
   const s = state.selection;
+  const { width, height } = s.mask;
+  paintMasks([s.mask], width, height);
+  const label = $("label");
+  const r = $("overlay").getBoundingClientRect();
+  label.textContent = s.name;
+  label.style.left = `${(s.bbox[0] * r.width) / width}px`;
+  label.style.top = `${(s.bbox[1] * r.height) / height}px`;
+  label.hidden = false;
+}
+
+// Run-length masks of one width x height view, tinted red and outlined on the dimmed view.
+function paintMasks(masks, width, height) {
   const overlay = $("overlay");
-  const { width, height, runs } = s.mask;
   overlay.width = width;
   overlay.height = height;
   const ctx = overlay.getContext("2d");
   const img = ctx.createImageData(width, height);
   const inside = new Uint8Array(width * height);
-  for (let i = 0; i < runs.length; i += 2) inside.fill(1, runs[i], runs[i] + runs[i + 1]);
+  for (const { runs } of masks) {
+    for (let i = 0; i < runs.length; i += 2) inside.fill(1, runs[i], runs[i] + runs[i + 1]);
+  }
   const veil = [10, 12, 16, 150], tint = [255, 0, 0, 90], line = [255, 60, 60, 255];
   for (let p = 0; p < inside.length; p++) {
     let c = veil;
@@ -393,12 +415,81 @@ function drawSelection() {
     img.data.set(c, 4 * p);
   }
   ctx.putImageData(img, 0, 0);
-  const label = $("label");
-  const r = overlay.getBoundingClientRect();
-  label.textContent = s.name;
-  label.style.left = `${(s.bbox[0] * r.width) / width}px`;
-  label.style.top = `${(s.bbox[1] * r.height) / height}px`;
-  label.hidden = false;
+}
+
+// ---------------------------------------------------------------- find
+// A phrase ("red cone") scores every object of the scene through its own object tokens; the
+// matches are tinted red at the page's camera (and again after each camera move), listed with
+// their scores; a click on one selects it for object chat.
+async function find() {
+  const phrase = $("phrase").value.trim();
+  if (!phrase) { clearFound(); return; }
+  const threshold = Number($("threshold").value);
+  const camera = pickCamera();
+  const seq = (state.findSeq = (state.findSeq || 0) + 1);
+  try {
+    const r = await (await post("/api/find", { phrase, threshold, camera })).json();
+    if (seq !== state.findSeq) return; // a newer search is under way
+    if (state.selection) clearSelection();
+    state.found = { ...r, camera };
+    drawFound();
+    const n = r.matches.length;
+    status(n ? `${n} match(es) for "${r.query}" in ${r.score_ms.toFixed(0)} ms` : `nothing matches "${r.query}"`);
+  } catch (e) {
+    status(`find failed: ${e.message}`);
+  }
+}
+
+function drawFound() {
+  const f = state.found;
+  clearOverlay();
+  const shown = f.matches.filter((m) => m.mask);
+  if (shown.length) paintMasks(shown.map((m) => m.mask), f.camera.width, f.camera.height);
+  const list = $("found");
+  list.replaceChildren();
+  for (const m of f.matches) {
+    const li = document.createElement("li");
+    const b = document.createElement("button");
+    b.type = "button";
+    b.textContent = `${m.name} · ${m.score.toFixed(2)}${m.mask ? "" : " (hidden here)"}`;
+    b.title = `ask about the ${m.name}`;
+    b.dataset.id = m.id;
+    b.addEventListener("click", () => chooseFound(m.id));
+    li.append(b);
+    list.append(li);
+  }
+  if (!f.matches.length) {
+    const li = document.createElement("li");
+    li.className = "none";
+    li.textContent = `nothing matches "${f.query}" at ${f.threshold.toFixed(2)}`;
+    list.append(li);
+  }
+  list.hidden = false;
+}
+
+async function chooseFound(id) {
+  try {
+    const camera = pickCamera();
+    const r = await (await post("/api/select", { camera, id })).json();
+    if (!r.object) { status("that object is not visible from here"); return; }
+    state.found = null;
+    select({ ...r.object, camera });
+  } catch (e) {
+    status(`select failed: ${e.message}`);
+  }
+}
+
+function clearFound() {
+  state.found = null;
+  $("found").hidden = true;
+  $("found").replaceChildren();
+  if (!state.selection) clearOverlay();
+}
+
+function installFind() {
+  $("find").addEventListener("submit", (e) => { e.preventDefault(); find(); });
+  $("threshold").addEventListener("input", () => { $("threshold-value").textContent = Number($("threshold").value).toFixed(2); });
+  $("threshold").addEventListener("change", () => { if ($("phrase").value.trim()) find(); });
 }
 
 // ---------------------------------------------------------------- chat
@@ -451,6 +542,23 @@ function updateTurn(turn) {
   $("history").scrollTop = $("history").scrollHeight;
 }
 
+// What a question is about, as a string: a conversation is about one camera / object / view count.
+function conversationKey(body) {
+  return JSON.stringify([body.camera || null, body.id ?? null, body.views ?? null]);
+}
+
+const NEW_CONVERSATION = {
+  view: "new conversation: the camera moved",
+  object: "new conversation: another object, or the object seen from another camera",
+  scene: "new conversation: another number of views",
+};
+
+function newConversation() {
+  if (!state.conversations[state.scope]) return;
+  state.conversations[state.scope] = null;
+  note(state.scope, "new conversation");
+}
+
 async function ask(question) {
   const scope = state.scope;
   const body = { scope, question };
@@ -462,6 +570,15 @@ async function ask(question) {
     body.id = state.selection.id;
   }
   if (scope === "scene") body.views = state.scene.scene_views;
+  // a follow-up of the scope's conversation while it is about the same target
+  const key = conversationKey(body);
+  const conversation = state.conversations[scope];
+  // (a model trained on single questions gets every question on its own: no conversation kept)
+  if (conversation && conversation.key === key) body.conversation = conversation.id;
+  else if (conversation) {
+    state.conversations[scope] = null;
+    note(scope, NEW_CONVERSATION[scope]);
+  }
   const turn = { question, answer: "", waiting: "…", state: "asking", scope };
   state.histories[scope].push(turn);
   if (state.scope === scope) renderHistory();
@@ -473,11 +590,22 @@ async function ask(question) {
     const r = await post("/api/ask", body, abort.signal);
     await readEvents(r, (name, ev) => {
       if (name === "queued") turn.waiting = ev.ahead > 0 ? `waiting: ${ev.ahead} question(s) ahead` : "next…";
-      else if (name === "start") { turn.waiting = "thinking…"; turn.tokensMs = ev.tokens_ms; }
+      else if (name === "start") {
+        turn.waiting = "thinking…";
+        turn.tokensMs = ev.tokens_ms;
+        turn.start = ev;
+        if (state.converse) state.conversations[scope] = { id: ev.conversation, key };
+        if (ev.dropped > 0) {
+          note(scope, `the oldest ${ev.dropped} exchange(s) were dropped to fit the model's context`);
+        }
+      }
       else if (name === "token") turn.answer += ev.text;
       else if (name === "done") {
         const parts = [];
         if (scope === "object" && state.lastPickMs != null) parts.push(`pick ${state.lastPickMs.toFixed(0)} ms`);
+        if (turn.start && turn.start.turn > 1) {
+          parts.push(`follow-up ${turn.start.turn}: ${turn.start.cached_tokens} of ${turn.start.prompt_tokens} prompt tokens kept`);
+        }
         parts.push(`tokens ${turn.tokensMs.toFixed(0)} ms`, `first token ${ev.first_token_ms.toFixed(0)} ms`);
         if (ev.tokens > 1) parts.push(`${ev.tokens_per_s.toFixed(1)} tokens/s`);
         parts.push(`${ev.tokens} token${ev.tokens === 1 ? "" : "s"}`);
@@ -489,7 +617,12 @@ async function ask(question) {
     if (turn.state === "asking") { turn.state = "done"; }
   } catch (e) {
     if (e.name === "AbortError") { turn.timing = "stopped"; turn.state = "stopped"; }
-    else { turn.error = e.message; turn.state = "error"; }
+    else {
+      turn.error = e.message;
+      turn.state = "error";
+      // a conversation the server no longer keeps: the next question starts a new one
+      if (e.field === "conversation") state.conversations[scope] = null;
+    }
   } finally {
     updateTurn(turn);
     state.busy = null;
@@ -511,6 +644,7 @@ function installChat() {
     if (e.key === "Enter" && !e.shiftKey) { e.preventDefault(); $("ask").requestSubmit(); }
   });
   $("stop").addEventListener("click", () => state.busy && state.busy.abort());
+  $("new-conversation").addEventListener("click", newConversation);
 }
 
 // ---------------------------------------------------------------- layout
@@ -560,6 +694,13 @@ async function main() {
   window.addEventListener("resize", () => { layout(); cameraMoved(true); });
   installControls();
   installChat();
+  installFind();
+  // a model trained on single questions asks each on its own (?converse=1 holds conversations anyway)
+  state.converse = s.converses || params.get("converse") === "1";
+  $("new-conversation").hidden = !state.converse;
+  if (!state.converse && s.converse_note) {
+    for (const scope of ["view", "object", "scene"]) note(scope, s.converse_note);
+  }
   setScope("view");
   if (s.model_note) {
     const b = $("model-note");
@@ -591,6 +732,12 @@ window.chatsplat = {
   get frames() { return state.frames; },
   get selection() { return state.selection && { id: state.selection.id, name: state.selection.name, pixels: state.selection.pixels }; },
   get scope() { return state.scope; },
+  // an answer is streaming (the chat box takes the next question once it has ended)
+  get busy() { return Boolean(state.busy); },
+  get found() {
+    const f = state.found;
+    return f && { query: f.query, threshold: f.threshold, matches: f.matches.map((m) => ({ id: m.id, name: m.name, score: m.score, shown: Boolean(m.mask) })) };
+  },
   // nothing left to draw: the splat sort has settled, or the last server frame has come
   get idle() {
     return state.ready && performance.now() > draw.until && state.frames >= draw.minFrames && !draw.serverBusy && !draw.serverWanted;
@@ -600,7 +747,12 @@ window.chatsplat = {
   setCamera: (v) => setCamera(v),
   orbit: (dx, dy) => { orbit(dx, dy); cameraMoved(false); },
   jump: (i) => jump(i),
-  turns: () => state.histories[state.scope].filter((t) => !t.note).map((t) => ({ question: t.question, answer: t.answer, error: t.error || null, state: t.state, timing: t.timing || null })),
+  turns: () => state.histories[state.scope].filter((t) => !t.note).map((t) => ({
+    question: t.question, answer: t.answer, error: t.error || null, state: t.state, timing: t.timing || null,
+    conversation: t.start ? t.start.conversation : null, turn: t.start ? t.start.turn : null,
+    cached: t.start ? t.start.cached_tokens : null,
+  })),
+  notes: () => state.histories[state.scope].filter((t) => t.note).map((t) => t.note),
   serverFrameKind: () => $("server-frame").dataset.kind || null,
 };
 

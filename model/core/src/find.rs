@@ -1,0 +1,206 @@
+//! Text search over a scene's objects (`chatsplat find`, the viewer's search box): every object
+//! is scored against a phrase through ChatSplat's own object tokens, as how well the phrase
+//! answers the object-level questions "What is this?", "What color is this?", "What shape is
+//! this?" and "What size is this?" about it: the probability per token (geometric mean) of the
+//! phrase and then the end of the turn, best over the questions. So "red cone" scores as a name,
+//! "red" as a colour and "cone" as a shape, and a phrase the model would never say about an object
+//! scores near 0. Each object is seen through the training view where it shows most (its masked
+//! object map, encoded once); each question's prompt about it is prefilled once and kept, so a
+//! query prefills only its own few tokens per object and question.
+
+use crate::chat::{ChatSession, Picked};
+use crate::error::{Error, Result};
+use crate::run::GeometryRun;
+use crate::vlm::PromptCache;
+use burn::tensor::Tensor;
+use splat_kernels::Camera;
+use std::collections::BTreeMap;
+
+/// The questions a phrase is scored as the answer of.
+pub const FIND_QUESTIONS: [&str; 4] =
+    ["What is this?", "What color is this?", "What shape is this?", "What size is this?"];
+/// Score from which an object matches, by default.
+pub const DEFAULT_THRESHOLD: f32 = 0.5;
+/// Longest phrase, in characters.
+pub const MAX_PHRASE: usize = 200;
+/// Identity renders that list a scene's objects are made this small (longest side).
+pub const LIST_SIDE: u32 = 128;
+/// An object is listed when it covers at least this fraction of some training view.
+pub const LIST_FRACTION: f32 = 0.002;
+
+/// Object names by instance id: the synthetic scene's own (`scene.json` beside its dataset:
+/// "red cube", id 1 the table), else "object N".
+#[derive(Clone, Debug, Default)]
+pub struct ObjectNames {
+    names: BTreeMap<u8, String>,
+    /// A synthetic scene's objects (not its table); `None` where the dataset does not say.
+    objects: Option<Vec<u8>>,
+}
+
+impl ObjectNames {
+    /// The names the run's dataset knows (none when it has no `scene.json`); a `scene.json`
+    /// that cannot be read is reported in `warnings`.
+    pub fn of_run(run: &GeometryRun, warnings: &mut Vec<String>) -> Self {
+        use crate::data::synth::scene::SynthScene;
+        let Ok(state) = run.read_state() else { return Self::default() };
+        let path = state.data.dir.resolve(&run.dir).join("scene.json");
+        if !path.exists() {
+            return Self::default();
+        }
+        match crate::io::read_json::<SynthScene>(&path) {
+            Ok(scene) => {
+                let mut names: BTreeMap<u8, String> = scene.objects.iter().map(|o| (o.id, o.name())).collect();
+                names.insert(crate::data::synth::TABLE_ID, "table".into());
+                Self { names, objects: Some(scene.objects.iter().map(|o| o.id).collect()) }
+            }
+            Err(e) => {
+                warnings.push(format!("object names unavailable: {e}"));
+                Self::default()
+            }
+        }
+    }
+
+    pub fn name(&self, id: u8) -> String {
+        self.names.get(&id).cloned().unwrap_or_else(|| format!("object {id}"))
+    }
+
+    /// Whether a search looks at instance `id`: every instance, except a synthetic scene's table
+    /// (the ground its objects stand on, which its questions and the built-in model never name).
+    pub fn searched(&self, id: u8) -> bool {
+        self.objects.as_ref().is_none_or(|o| o.contains(&id))
+    }
+}
+
+/// An object of the scene and the training view where it shows most.
+#[derive(Clone, Debug, PartialEq)]
+pub struct SceneObject {
+    pub id: u8,
+    pub view: usize,
+    /// The fraction of that view it covers.
+    pub fraction: f32,
+}
+
+/// `cam` scaled so that its longest side is at most `side` pixels.
+pub fn scaled(cam: &Camera, side: u32) -> Camera {
+    let s = (side as f32 / cam.width.max(cam.height) as f32).min(1.0);
+    let mut c = *cam;
+    c.width = ((cam.width as f32 * s).round() as u32).max(1);
+    c.height = ((cam.height as f32 * s).round() as u32).max(1);
+    c.fx *= s;
+    c.fy *= s;
+    c.cx *= s;
+    c.cy *= s;
+    c
+}
+
+/// The objects the training views show (each covering at least [`LIST_FRACTION`] of one, in
+/// identity renders at [`LIST_SIDE`]), by id; none for a scene trained without masks.
+pub fn scene_objects(s: &ChatSession) -> Result<Vec<SceneObject>> {
+    let mut best: Vec<Option<SceneObject>> = vec![None; 256];
+    if !s.scene.masks {
+        return Ok(Vec::new());
+    }
+    for (view, c) in s.cameras[..s.train_views].iter().enumerate() {
+        let ids = s.scene.splats.render_ids(&scaled(c, LIST_SIDE))?;
+        let mut count = [0usize; 256];
+        for &i in &ids {
+            count[i as usize] += 1;
+        }
+        for (id, n) in count.into_iter().enumerate().skip(1) {
+            let fraction = n as f32 / ids.len() as f32;
+            if best[id].as_ref().is_none_or(|b| fraction > b.fraction) {
+                best[id] = Some(SceneObject { id: id as u8, view, fraction });
+            }
+        }
+    }
+    Ok(best.into_iter().flatten().filter(|o| o.fraction >= LIST_FRACTION).collect())
+}
+
+/// One object scored against a phrase.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Scored {
+    pub id: u8,
+    /// 0-1: the phrase's probability per token as the best-fitting question's answer.
+    pub score: f32,
+    /// That question.
+    pub question: &'static str,
+}
+
+/// An object ready to be searched: its pick at its best view (the tokens), their prompt
+/// embeddings, and each question's prompt and keys and values.
+struct Searchable {
+    object: SceneObject,
+    _picked: Picked,
+    images: Vec<Tensor<2>>,
+    prompts: Vec<(Vec<u32>, PromptCache)>,
+}
+
+/// What a search keeps between queries.
+pub struct Finder {
+    objects: Vec<Searchable>,
+}
+
+impl Finder {
+    /// The objects of the scene ([`scene_objects`]) that `names` says a search looks at, made
+    /// searchable: their object tokens at their best training view; each question's prompt is
+    /// prefilled at the first query.
+    pub fn new(s: &ChatSession, names: &ObjectNames) -> Result<Self> {
+        s.scene.check_masks()?;
+        let mut objects = Vec::new();
+        for object in scene_objects(s)?.into_iter().filter(|o| names.searched(o.id)) {
+            let Some(picked) = s.select(&s.cameras[object.view], object.id)? else { continue };
+            let images = vec![s.vlm.token_embeds(s.object_tokens(&picked)?)];
+            let counts = [images[0].dims()[0]];
+            let prompts = FIND_QUESTIONS
+                .iter()
+                .map(|q| Ok((s.vlm.conversation_ids(&[], q, &counts)?, PromptCache::default())))
+                .collect::<Result<_>>()?;
+            objects.push(Searchable { object, _picked: picked, images, prompts });
+        }
+        Ok(Self { objects })
+    }
+
+    /// The objects searched.
+    pub fn objects(&self) -> impl Iterator<Item = &SceneObject> {
+        self.objects.iter().map(|o| &o.object)
+    }
+
+    /// Every object scored against `phrase`, best first. An error for an empty phrase or one of
+    /// more than [`MAX_PHRASE`] characters.
+    pub fn rank(&mut self, s: &ChatSession, phrase: &str) -> Result<Vec<Scored>> {
+        let phrase = normalize(phrase)?;
+        let mut out = Vec::with_capacity(self.objects.len());
+        for o in &mut self.objects {
+            let mut best = Scored { id: o.object.id, score: 0.0, question: FIND_QUESTIONS[0] };
+            for ((ids, cache), question) in o.prompts.iter_mut().zip(FIND_QUESTIONS) {
+                let lp = s.vlm.answer_logprobs(ids, &o.images, cache, &phrase)?;
+                let score = (lp.iter().sum::<f32>() / lp.len() as f32).exp();
+                if score > best.score {
+                    best = Scored { id: o.object.id, score, question };
+                }
+            }
+            out.push(best);
+        }
+        out.sort_by(|a, b| b.score.total_cmp(&a.score).then(a.id.cmp(&b.id)));
+        Ok(out)
+    }
+}
+
+/// The phrase as scored: trimmed, lower case, without final punctuation; an error when empty
+/// or longer than [`MAX_PHRASE`] characters.
+pub fn normalize(phrase: &str) -> Result<String> {
+    let p = phrase.trim().trim_end_matches(['.', '?', '!']).trim().to_lowercase();
+    if p.is_empty() {
+        return Err(Error::input("the phrase to find is empty"));
+    }
+    let n = p.chars().count();
+    if n > MAX_PHRASE {
+        return Err(Error::input(format!("the phrase to find is {n} characters; at most {MAX_PHRASE}")));
+    }
+    Ok(p)
+}
+
+/// Checks a match threshold: a number in 0-1.
+pub fn check_threshold(t: f32) -> Result<f32> {
+    if (0.0..=1.0).contains(&t) { Ok(t) } else { Err(Error::input(format!("the threshold is {t}; it must be in 0-1"))) }
+}

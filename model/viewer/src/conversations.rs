@@ -3,12 +3,23 @@
 //! latest [`KEPT`] are kept; a question naming another is refused, and so is one whose scope is
 //! not its conversation's (a moved camera or another object is a new conversation).
 
-use crate::engine::Scope;
 use crate::error::ApiError;
 use crate::scene_info::ObjectNames;
 use axum::http::StatusCode;
 use model::chat::Conversation;
+use splat_kernels::Camera;
 use std::collections::HashMap;
+
+/// What a question is about, validated but not yet resolved against the scene.
+#[derive(Clone, Debug, PartialEq)]
+pub enum Scope {
+    /// The view from this camera.
+    View(Camera),
+    /// Object `id` as seen from this camera (where it was picked or followed to).
+    Object { camera: Camera, id: u8 },
+    /// The whole scene through this many views spread around it.
+    Scene { views: usize },
+}
 
 /// Conversations kept (the latest used); an older one is forgotten.
 pub const KEPT: usize = 16;

@@ -7,6 +7,7 @@
 //! starts.
 
 use crate::conversations::Conversations;
+pub use crate::conversations::Scope;
 use crate::error::ApiError;
 use crate::scene_info::ObjectNames;
 use model::chat::{ChatSession, Conversation, Picked, Target};
@@ -19,17 +20,6 @@ use std::ops::ControlFlow;
 use std::sync::{Arc, Condvar, Mutex};
 use std::time::Instant;
 use tokio::sync::{mpsc, oneshot, watch};
-
-/// What a question is about, validated but not yet resolved against the scene.
-#[derive(Clone, Debug, PartialEq)]
-pub enum Scope {
-    /// The view from this camera.
-    View(Camera),
-    /// Object `id` as seen from this camera (where it was picked or followed to).
-    Object { camera: Camera, id: u8 },
-    /// The whole scene through this many views spread around it.
-    Scene { views: usize },
-}
 
 /// An object in a view: what a pick or a select answers.
 #[derive(Clone, Debug, Serialize)]

@@ -71,7 +71,9 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     let s = a.scene.open()?;
     eprintln!("{} views ({} training), {} Gaussians. {HELP}", s.cameras.len(), s.train_views, s.scene.field.len());
     let opts = model::vlm::GenerateOptions { max_new_tokens: a.max_new_tokens, ..Default::default() };
-    if !s.vlm.converses() {
+    // a model trained on single questions gets each question on its own
+    let converses = s.vlm.converses();
+    if !converses {
         eprintln!("note: {}", model::vlm::conversation::SINGLE_TURN_NOTE);
     }
     let mut state = State::new(0, Target::View(*s.camera(0)?), "view 0".into());
@@ -93,7 +95,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         match parse(line) {
             Ok(Line::Quit) => break,
             Ok(cmd) => {
-                if let Err(e) = apply(&s, cmd, &mut state, &opts) {
+                if let Err(e) = apply(&s, cmd, &mut state, &opts, converses) {
                     eprintln!("error: {e}");
                 }
             }
@@ -105,7 +107,15 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     Ok(())
 }
 
-fn apply(s: &ChatSession, cmd: Line, state: &mut State, opts: &model::vlm::GenerateOptions) -> model::Result<()> {
+/// Runs one line; `converses`: whether questions follow the conversation (else each is asked on
+/// its own).
+fn apply(
+    s: &ChatSession,
+    cmd: Line,
+    state: &mut State,
+    opts: &model::vlm::GenerateOptions,
+    converses: bool,
+) -> model::Result<()> {
     match cmd {
         Line::Empty | Line::Quit => {}
         Line::Help => eprintln!("{HELP}"),
@@ -138,8 +148,7 @@ fn apply(s: &ChatSession, cmd: Line, state: &mut State, opts: &model::vlm::Gener
             eprintln!("-> {}", path.display());
         }
         Line::Question(q) => {
-            if !s.vlm.converses() {
-                // each question on its own: the model was trained on single questions
+            if !converses {
                 state.conversation = Conversation::new(state.conversation.target.clone());
             }
             let reply = model::catch_backend("generation", || {

@@ -13,7 +13,7 @@ use super::generate::{GenerateOptions, Generation};
 use super::llava::LlavaOnevision;
 use super::qwen2::KvCache;
 use super::tokenizer::Turn;
-use burn::tensor::Tensor;
+use burn::tensor::{Int, Tensor, TensorData, activation};
 use std::ops::ControlFlow;
 
 /// An earlier question of a conversation and the answer it got.
@@ -144,18 +144,10 @@ impl LlavaOnevision {
         let rows = hidden.dims()[0];
         let from = ids.len() - 1 - reuse;
         let logits = self.llm.logits(hidden.narrow(0, from, rows - from));
-        let vocab = logits.dims()[1];
-        let host = logits.into_data().convert::<f32>().into_vec::<f32>();
-        let host = host.map_err(|e| VlmError::prompt(format!("the logits on the host: {e:?}")))?;
-        Ok(host
-            .chunks(vocab)
-            .zip(&said)
-            .map(|(row, &t)| {
-                let max = row.iter().copied().fold(f32::NEG_INFINITY, f32::max);
-                let z: f32 = row.iter().map(|v| (v - max).exp()).sum();
-                row.get(t as usize).map_or(f32::NEG_INFINITY, |v| v - max - z.ln())
-            })
-            .collect())
+        let targets: Vec<i64> = said.iter().map(|&t| t as i64).collect();
+        let targets = Tensor::<2, Int>::from_data(TensorData::new(targets, [said.len(), 1]), &logits.device());
+        let lp = activation::log_softmax(logits, 1).gather(1, targets).reshape([said.len()]);
+        lp.into_data().convert::<f32>().into_vec::<f32>().map_err(|e| VlmError::prompt(format!("log-probs: {e:?}")))
     }
 
     /// Prefills what of `ids` `cache` does not hold, from position `from` at the latest; returns

@@ -83,6 +83,7 @@ impl SceneInfo {
             .into_iter()
             .map(|o| ObjectInfo { id: o.id, name: names.name(o.id) })
             .collect();
+        let converses = s.vlm.converses();
         let state = run.read_state()?;
         let center = Vec3::from_array(state.extent.focus);
         let eyes: Vec<Vec3> = train.iter().map(|c| c.world_to_cam.inverse().w_axis.truncate()).collect();
@@ -96,8 +97,8 @@ impl SceneInfo {
             objects,
             center: center.to_array(),
             radius,
-            converses: s.vlm.converses(),
-            converse_note: (!s.vlm.converses()).then(|| model::vlm::conversation::SINGLE_TURN_NOTE.to_string()),
+            converses,
+            converse_note: (!converses).then(|| model::vlm::conversation::SINGLE_TURN_NOTE.to_string()),
             up: up.to_array(),
             gaussians: s.scene.splats.len(),
             background: s.scene.background,

@@ -1,17 +1,40 @@
-//! `chatsplat export-ply`: a run's Gaussians as an Inria-layout .ply: all of them, one object's
-//! (`--object ID`) or all but one object's (`--without ID`), by each Gaussian's identity class.
+//! `chatsplat export-ply`: a run's Gaussians as an Inria-layout .ply or a compressed Niantic .spz
+//! (`--format`, by default from `--out`'s extension): all of them, one object's (`--object ID`) or
+//! all but one object's (`--without ID`), by each Gaussian's identity class.
 
 use anyhow::bail;
 use model::run::GeometryRun;
-use std::path::PathBuf;
+use std::path::{Path, PathBuf};
+
+/// The file format written.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, clap::ValueEnum)]
+enum Format {
+    /// Inria-layout 3DGS .ply: every channel as f32, the identity channel included.
+    Ply,
+    /// Niantic's .spz (Spark, SuperSplat): gzip-compressed and quantised, about a tenth of the
+    /// size; lossy, and without the identity channel.
+    Spz,
+}
+
+impl Format {
+    /// By the file name: `.spz` (any case) is spz, anything else ply.
+    fn of(path: &Path) -> Self {
+        if path.extension().is_some_and(|e| e.eq_ignore_ascii_case("spz")) { Format::Spz } else { Format::Ply }
+    }
+}
 
 #[derive(clap::Args)]
 pub struct Args {
     /// Run directory written by `chatsplat train`.
     #[arg(long)]
     run: PathBuf,
+    /// The file to write (.ply or .spz).
     #[arg(long)]
     out: PathBuf,
+    /// File format. Default: by --out's extension (.spz: spz, anything else: ply). Given, it wins
+    /// over the extension (`--format spz --out scene.bin` writes spz).
+    #[arg(long, value_enum)]
+    format: Option<Format>,
     /// Only the Gaussians of this object (its identity class, as `ask --object` and the viewer
     /// number objects).
     #[arg(long, conflicts_with = "without")]
@@ -49,7 +72,41 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         }
         _ => String::new(),
     };
-    model::ply::write(&a.out, &cloud)?;
-    println!("{what}{} of {total} Gaussians (iteration {}) -> {}", cloud.len(), state.iter, a.out.display());
+    let format = a.format.unwrap_or_else(|| Format::of(&a.out));
+    let dropped = match format {
+        Format::Ply => {
+            model::ply::write(&a.out, &cloud)?;
+            String::new()
+        }
+        Format::Spz => {
+            model::spz::write(&a.out, &cloud)?;
+            let names: Vec<&str> = cloud.extra.keys().map(String::as_str).collect();
+            if names.is_empty() {
+                String::new()
+            } else {
+                format!("; without {} (.spz cannot hold it)", names.join(", "))
+            }
+        }
+    };
+    let size = std::fs::metadata(&a.out).map(|m| m.len()).unwrap_or(0);
+    println!(
+        "{what}{} of {total} Gaussians (iteration {}) -> {} ({}, {}{dropped})",
+        cloud.len(),
+        state.iter,
+        a.out.display(),
+        if format == Format::Spz { "spz" } else { "ply" },
+        human_bytes(size)
+    );
     Ok(())
+}
+
+/// `bytes` for a person: "812 B", "37.4 KB", "5.12 MB" (powers of 1000).
+fn human_bytes(bytes: u64) -> String {
+    let b = bytes as f64;
+    match bytes {
+        0..1_000 => format!("{bytes} B"),
+        1_000..1_000_000 => format!("{:.1} KB", b / 1e3),
+        1_000_000..1_000_000_000 => format!("{:.2} MB", b / 1e6),
+        _ => format!("{:.2} GB", b / 1e9),
+    }
 }

@@ -43,13 +43,14 @@ enum Command {
     /// depth, transforms.json, scene.json and questions.json.
     #[command(allow_negative_numbers = true)]
     Synth(synth::Args),
-    /// Render a Gaussian scene (an Inria-layout .ply, or the built-in synthetic tabletop) to PNG.
+    /// Render a Gaussian scene (an Inria-layout .ply, a Niantic .spz, or the built-in synthetic tabletop) to PNG.
     #[command(allow_negative_numbers = true)]
     Render(render::Args),
     /// Geometry stage: fit 3D Gaussians with a 16-channel identity field to a posed dataset.
     #[command(allow_negative_numbers = true)]
     Train(train::Args),
-    /// Export a run's Gaussians as an Inria-layout .ply (with identity features as extra properties).
+    /// Export a run's Gaussians (or one object's) as an Inria-layout .ply (with identity features as extra
+    /// properties) or a compressed Niantic .spz.
     #[command(allow_negative_numbers = true)]
     ExportPly(export_ply::Args),
     /// Teacher tokens for the language field: SigLIP patch features of every training view and of

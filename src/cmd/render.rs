@@ -1,4 +1,5 @@
-//! `chatsplat render`: a Gaussian scene (Inria-layout .ply or the built-in tabletop) to PNG.
+//! `chatsplat render`: a Gaussian scene (Inria-layout .ply, Niantic .spz or the built-in tabletop)
+//! to PNG.
 
 use anyhow::{Context, bail};
 use burn::tensor::{Tensor, TensorData};
@@ -10,8 +11,9 @@ use std::path::PathBuf;
 
 #[derive(clap::Args)]
 pub struct Args {
-    /// Inria-layout 3DGS .ply to render (gsplat, Inria 3DGS and Brush write this layout).
-    /// Without it, the built-in synthetic tabletop is rendered.
+    /// Gaussians to render: an Inria-layout 3DGS .ply (gsplat, Inria 3DGS and Brush write this
+    /// layout) or a Niantic .spz (by its extension or its gzip magic). Without it, the built-in
+    /// synthetic tabletop is rendered.
     #[arg(long)]
     ply: Option<PathBuf>,
     /// Seed of the built-in tabletop.
@@ -87,7 +89,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         model::io::refuse_output_onto(option, out, &inputs)?;
     }
     let (cloud, source): (GaussianCloud, String) = match &a.ply {
-        Some(path) => (model::ply::read(path)?, path.display().to_string()),
+        Some(path) => (model::spz::read_any(path)?, path.display().to_string()),
         None => {
             let (cloud, scene) = model::data::synth::gaussians::tabletop(a.seed, a.density);
             let names: Vec<String> = scene.objects.iter().map(|o| o.name()).collect();

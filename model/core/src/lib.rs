@@ -3,7 +3,8 @@
 //! 1. [`data`] (the `data` crate, model/data, re-exported) — posed photos (nerfstudio/Blender,
 //!    COLMAP, LLFF, Replica), the built-in synthetic scenes ([`data::synth`]: objects, ray caster,
 //!    questions) and [`question_file`]s about a scene.
-//! 2. [`splats`] — the 3D Gaussians (`SplatModel`, a burn `Module`), [`cloud`] and [`ply`].
+//! 2. [`splats`] — the 3D Gaussians (`SplatModel`, a burn `Module`), [`cloud`], [`ply`] and
+//!    [`spz`] (Niantic's compressed splats).
 //! 3. [`language`] — per-Gaussian language features, the encoder that turns a rendered feature
 //!    map into tokens, and the token cameras (one crop rule for teacher and field).
 //! 4. [`vlm`] — LLaVA-OneVision (SigLIP, projector, Qwen2, tokenizer, generation): the
@@ -28,6 +29,7 @@ pub use ::data::{cloud, error, images, io, question_file};
 
 pub mod ply;
 pub mod splats;
+pub mod spz;
 
 pub mod language;
 

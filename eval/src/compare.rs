@@ -15,9 +15,10 @@ use crate::score::{normalize, offline_score};
 use model::chat::{ChatSession, DEFAULT_SCENE_VIEWS, answer};
 use model::data::Dataset;
 use model::error::{Error, Result};
+use model::find::FindTally;
 use model::language::ObjectCrop;
 use model::vlm::{GenerateOptions, LlavaOnevision, RgbImage};
-use model::vqa::{Level, Question, QuestionFile, target_of};
+use model::vqa::{FindOptions, Level, Question, QuestionFile, find_objects, target_of};
 use serde::{Deserialize, Serialize};
 use std::collections::BTreeMap;
 use std::path::Path;
@@ -194,6 +195,12 @@ pub fn answer_file(
     let opts = greedy();
     let mut out = Answered { answers: Vec::with_capacity(file.questions.len()), ..Default::default() };
     for q in &file.questions {
+        if q.level == Level::Find || q.follows.is_some() {
+            // a phrase is scored by the objects found ([`find_file`]); a follow-up needs its
+            // conversation (`chatsplat vqa` asks it): neither is a single-turn answer
+            out.answers.push(String::new());
+            continue;
+        }
         let t0 = std::time::Instant::now();
         let tokens = match source {
             Source::GroundTruth => image_tokens(vlm, file, q, ds, None, margin)?,
@@ -226,3 +233,20 @@ pub fn answer_file(
     }
     Ok(out)
 }
+
+/// The objects ChatSplat's scene `session` finds for each `find` phrase of `file` against those
+/// the phrase names, by the phrase's kind, and the seconds the searches took (the first one
+/// builds the finder).
+pub fn find_file(session: &ChatSession, file: &QuestionFile, opts: &FindOptions) -> Result<(FindKinds, f64)> {
+    let (mut kinds, mut finder) = (FindKinds::new(), None);
+    let t0 = std::time::Instant::now();
+    for q in file.questions.iter().filter(|q| q.level == Level::Find) {
+        let found = find_objects(session, &mut finder, opts, &q.question)?;
+        let kind = q.kind.clone().unwrap_or_else(|| "-".into());
+        kinds.entry(kind).or_default().add(q.objects.as_deref().unwrap_or_default(), &found);
+    }
+    Ok((kinds, t0.elapsed().as_secs_f64()))
+}
+
+/// Find tallies by phrase kind (`find_color`, `find_absent_name`, ...).
+pub type FindKinds = BTreeMap<String, FindTally>;

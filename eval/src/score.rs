@@ -370,6 +370,8 @@ impl Summary {
             Level::View => self.view,
             Level::Object => self.object,
             Level::Scene => self.scene,
+            // find phrases are scored by the objects found (model::find::FindTally), not here
+            Level::Find => LevelSummary::default(),
         }
     }
 }
@@ -384,7 +386,7 @@ pub fn summarize(scores: &[(Level, f32)]) -> Summary {
         view: group(&|l| l == Level::View),
         object: group(&|l| l == Level::Object),
         scene: group(&|l| l == Level::Scene),
-        overall: group(&|_| true),
+        overall: group(&|l| l != Level::Find),
     }
 }
 
@@ -419,6 +421,9 @@ mod tests {
             answer: answer.into(),
             keywords: kw(keywords),
             items: items.map(kw),
+            objects: None,
+            follows: None,
+            spelled: None,
         }
     }
 

@@ -173,12 +173,19 @@ fn run_scene(plan: &Plan, s: &Job, d: &JobDirs, shard: &str, job: &str) -> anyho
         Some(q) => {
             let scene =
                 SceneArgs { run: d.run.dir.clone(), language: None, vlm: plan.vlm.clone(), backend: plan.backend };
-            let scoring =
-                Scoring { views: model::chat::DEFAULT_SCENE_VIEWS, max_new_tokens: 16, show: false, keep_going: true };
+            let scoring = Scoring {
+                views: model::chat::DEFAULT_SCENE_VIEWS,
+                max_new_tokens: 16,
+                show: false,
+                keep_going: true,
+                find_threshold: model::find::DEFAULT_THRESHOLD,
+            };
             let grader = eval::score::Grader::from_env()?;
             let qf = model::vqa::load_questions(q)?;
             model::question_file::check_scene(&qf, q, &s.data)?;
-            let s = super::vqa::score(&scene.open()?, (q, &qf), &d.dir.join("vqa.json"), &scoring, grader.as_ref())?;
+            let names = model::find::ObjectNames::of_run(&d.run, &mut Vec::new());
+            let out = d.dir.join("vqa.json");
+            let s = super::vqa::score(&scene.open()?, (q, &qf), &out, &scoring, names, grader.as_ref())?;
             seconds.insert("vqa".into(), serde_json::json!((t0.elapsed().as_secs_f64() * 10.0).round() / 10.0));
             // exact match (%) and the keyword score (0-100) of each level
             let level = |e: LevelSummary, k: LevelSummary| {
@@ -188,6 +195,14 @@ fn run_scene(plan: &Plan, s: &Job, d: &JobDirs, shard: &str, job: &str) -> anyho
             serde_json::json!({
                 "view": level(s.exact.view, s.keyword.view), "object": level(s.exact.object, s.keyword.object),
                 "scene": level(s.exact.scene, s.keyword.scene), "overall": level(s.exact.overall, s.keyword.overall),
+                "find": (s.find.phrases > 0).then(|| serde_json::json!({
+                    "phrases": s.find.phrases, "precision": s.find.precision(), "recall": s.find.recall(),
+                    "f1": s.find.f1(), "absent": s.find.absent, "absent_empty": s.find.absent_empty,
+                })),
+                "follow_ups": (s.follow.asked > 0).then(|| serde_json::json!({
+                    "asked": s.follow.asked, "right": s.follow.right, "paired": s.follow.paired,
+                    "paired_right": s.follow.paired_right, "twins_right": s.follow.twins_right,
+                })),
             })
         }
         None => serde_json::Value::Null,

@@ -94,9 +94,16 @@ pub fn run(a: Args) -> anyhow::Result<()> {
 
     step(6, "VQA on the generated question file (offline scorer)");
     // a click the reconstruction misses is scored 0 and listed, not fatal
-    let scoring = Scoring { views: 3, max_new_tokens: 16, show: true, keep_going: true };
+    let scoring = Scoring {
+        views: 3,
+        max_new_tokens: 16,
+        show: true,
+        keep_going: true,
+        find_threshold: model::find::DEFAULT_THRESHOLD,
+    };
     let grader = eval::score::Grader::from_env()?;
-    super::vqa::score(&s, (&questions, &qf), &lang.vqa(), &scoring, grader.as_ref())?;
+    let names = model::find::ObjectNames::of_run(&run, &mut Vec::new());
+    super::vqa::score(&s, (&questions, &qf), &lang.vqa(), &scoring, names, grader.as_ref())?;
 
     step(7, "encoder export");
     super::export_encoder::export(&lang, &lang.dir.join("encoder.safetensors"))?;

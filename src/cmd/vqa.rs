@@ -4,7 +4,8 @@ use super::SceneArgs;
 use eval::progress::Progress;
 use eval::score::{Grader, Summary, offline_score, summarize};
 use model::chat::ChatSession;
-use model::vqa::{Level, QuestionFile, answer_all, load_questions};
+use model::find::{FindTally, ObjectNames, check_threshold};
+use model::vqa::{FindOptions, Level, QuestionFile, answer_all, load_questions};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 
@@ -37,6 +38,9 @@ pub struct Scoring {
     /// object) instead of failing.
     #[arg(long)]
     pub keep_going: bool,
+    /// Find-level questions: the score (0-1) from which an object is found, as `find --threshold`.
+    #[arg(long, default_value_t = model::find::DEFAULT_THRESHOLD)]
+    pub find_threshold: f32,
 }
 
 /// One row of `vqa.json`.
@@ -56,17 +60,72 @@ struct Row {
     /// A list's items: how many of the answer's are in the reference, said, expected.
     #[serde(skip_serializing_if = "Option::is_none")]
     items: Option<[usize; 3]>,
+    /// The question it follows (asked after it, in its conversation).
+    #[serde(skip_serializing_if = "Option::is_none")]
+    follows: Option<String>,
+    /// Find level: the ids the phrase names and the ids found.
+    #[serde(skip_serializing_if = "Option::is_none")]
+    objects: Option<Vec<u8>>,
+    #[serde(skip_serializing_if = "Option::is_none")]
+    found: Option<Vec<u8>>,
     grader: Option<f32>,
 }
 
 /// A question file's offline figures by level: exact match (%, the headline) and the keyword
-/// score (0-100).
+/// score (0-100) of the questions answered in words, and the objects its `find` phrases found.
 pub struct Scores {
     pub exact: Summary,
     pub keyword: Summary,
+    pub find: FindTally,
+    /// The questions that follow another, right against their twins spelled out.
+    pub follow: FollowUps,
+}
+
+/// Follow-ups (questions asked after another in its conversation) scored beside their twins
+/// (the same questions with the referent spelled out, asked on their own).
+#[derive(Clone, Copy, Debug, Default, PartialEq)]
+pub struct FollowUps {
+    pub asked: usize,
+    pub right: usize,
+    /// Of the follow-ups with a twin in the file: how many, and how many of each are right.
+    pub paired: usize,
+    pub paired_right: usize,
+    pub twins_right: usize,
+}
+
+impl FollowUps {
+    fn of(follow_ups: &[(&model::vqa::Question, bool)], rows: &[Row]) -> Self {
+        let mut f = FollowUps { asked: follow_ups.len(), ..Default::default() };
+        for (q, exact) in follow_ups {
+            f.right += *exact as usize;
+            if let Some(twin) = q.spelled.as_ref().and_then(|t| rows.iter().find(|r| r.id == *t)) {
+                f.paired += 1;
+                f.paired_right += *exact as usize;
+                f.twins_right += twin.exact as usize;
+            }
+        }
+        f
+    }
+
+    /// `follow-ups (N): exact match X %; the same P spelled out: Y % (as follow-ups: Z %)`.
+    pub fn summary(&self) -> Option<String> {
+        let pct = |a: usize, b: usize| 100.0 * a as f64 / b.max(1) as f64;
+        (self.asked > 0).then(|| {
+            format!(
+                "follow-ups ({} asked after the question they follow): exact match {:.1} %; the {} with a twin: {:.1} % \
+                 as follow-ups, {:.1} % spelled out on their own",
+                self.asked,
+                pct(self.right, self.asked),
+                self.paired,
+                pct(self.paired_right, self.paired),
+                pct(self.twins_right, self.paired)
+            )
+        })
+    }
 }
 
 pub fn run(a: Args) -> anyhow::Result<()> {
+    check_threshold(a.scoring.find_threshold).map_err(|e| anyhow::anyhow!("--find-threshold: {e}"))?;
     let qf = load_questions(&a.questions)?;
     // (a run that cannot be read is reported when the scene opens)
     let geometry = a.scene.geometry();
@@ -78,25 +137,33 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     let mut inputs = a.scene.own_files();
     inputs.push(("the --questions file", a.questions.clone()));
     model::io::refuse_output_onto("--out", &out, &inputs)?;
-    score(&a.scene.open()?, (&a.questions, &qf), &out, &a.scoring, grader.as_ref()).map(|_| ())
+    let names = ObjectNames::of_run(&geometry, &mut Vec::new());
+    score(&a.scene.open()?, (&a.questions, &qf), &out, &a.scoring, names, grader.as_ref()).map(|_| ())
 }
 
 /// Asks every question of the question file `qf` (read from `questions`) about the opened scene
-/// `s`, scores the answers (offline, and with `grader` when one is set), prints the table and
-/// writes the answers to `out`; returns the offline figures per level.
+/// `s`, scores the answers (offline, and with `grader` when one is set; find phrases by the
+/// objects found, `names` saying which objects are searched), prints the table and writes the
+/// answers to `out`; returns the offline figures per level.
 pub fn score(
     s: &ChatSession,
     (questions, qf): (&Path, &QuestionFile),
     out: &Path,
     a: &Scoring,
+    names: ObjectNames,
     grader: Option<&Grader>,
 ) -> anyhow::Result<Scores> {
+    let threshold = check_threshold(a.find_threshold).map_err(|e| anyhow::anyhow!("--find-threshold: {e}"))?;
     let opts = model::vlm::GenerateOptions { max_new_tokens: a.max_new_tokens, ..Default::default() };
+    let find = FindOptions { names, threshold };
     let bar = Progress::new("vqa", "questions");
     let total = qf.questions.len();
-    let answers =
-        model::catch_backend("answering", || answer_all(s, qf, &opts, a.views, |i, _, _| bar.update(i + 1, total)))??;
+    let answers = model::catch_backend("answering", || {
+        answer_all(s, qf, &opts, a.views, &find, |i, _, _| bar.update(i + 1, total))
+    })??;
     let (mut offline, mut right, mut graded) = (Vec::new(), Vec::new(), Vec::new());
+    let mut found = FindTally::default();
+    let mut follow_ups = Vec::new();
     let (mut rows, mut invalid) = (Vec::new(), Vec::new());
     for (q, ans) in qf.questions.iter().zip(&answers) {
         let (text, error) = match &ans.text {
@@ -106,10 +173,23 @@ pub fn score(
         if let Some(e) = &error {
             invalid.push(format!("{}: {e}", q.id));
         }
-        let off = offline_score(&text, q);
-        offline.push((q.level, off.score));
-        right.push((q.level, if off.exact { 100.0 } else { 0.0 }));
+        let mut off = offline_score(&text, q);
+        if q.level == Level::Find {
+            let named = q.objects.clone().unwrap_or_default();
+            let got = ans.found.clone().unwrap_or_default();
+            let mut one = FindTally::default();
+            one.add(&named, &got);
+            found.merge(&one);
+            off.exact = one.exact == 1;
+            off.score = 100.0 * one.f1();
+        } else if q.follows.is_some() {
+            follow_ups.push((q, off.exact));
+        } else {
+            offline.push((q.level, off.score));
+            right.push((q.level, if off.exact { 100.0 } else { 0.0 }));
+        }
         let grade = match (grader, &error) {
+            _ if q.level == Level::Find => None,
             (Some(g), None) => match g.grade(&q.question, &q.answer, &text) {
                 Ok(v) => {
                     graded.push((q.level, v));
@@ -136,13 +216,23 @@ pub fn score(
             exact: off.exact,
             offline: off.score,
             items: off.items.map(|m| [m.matched, m.answered, m.expected]),
+            follows: q.follows.clone(),
+            objects: q.objects.clone(),
+            found: ans.found.clone(),
             grader: grade,
         });
     }
-    let scores = Scores { exact: summarize(&right), keyword: summarize(&offline) };
+    let follow = FollowUps::of(&follow_ups, &rows);
+    let scores = Scores { exact: summarize(&right), keyword: summarize(&offline), find: found, follow };
     println!("| scorer | view | object | scene | overall | questions |\n|---|---|---|---|---|---|");
     println!("{}", table_row("exact match (%)", &scores.exact));
     println!("{}", table_row("keyword score (0-100)", &scores.keyword));
+    if found.phrases > 0 {
+        println!("{} (threshold {threshold})", found.summary());
+    }
+    if let Some(line) = scores.follow.summary() {
+        println!("{line}");
+    }
     if !graded.is_empty() {
         let name = grader.map(|g| g.model.as_str()).unwrap_or("");
         println!("{}", table_row(&format!("grader {name} (0-100)"), &summarize(&graded)));

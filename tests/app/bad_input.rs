@@ -186,6 +186,29 @@ fn broken_ply_files_are_refused_with_the_file_and_the_problem() {
     let mut odd = String::from_utf8_lossy(&good[..header_len]).replace("property float rot_3", "property quad rot_3");
     odd.push_str("\0\0\0\0");
     files.push(("unknown-type".into(), odd.into_bytes(), "quad"));
+    // .spz (Niantic's compressed splats, read by name or gzip magic): not gzip, a .ply named .spz,
+    // cut short, with bytes after its gzip stream
+    let spz = model::spz::encode(&model::ply::parse(&good, "good.ply").unwrap()).unwrap();
+    let mut spz_files: Vec<(String, Vec<u8>, &str)> = vec![
+        ("spz-not-gzip".into(), b"NGSP not compressed".to_vec(), "not gzip-compressed"),
+        ("spz-a-ply".into(), good.clone(), "it is a .ply file"),
+        ("spz-cut".into(), spz[..spz.len() / 2].to_vec(), "gzip"),
+    ];
+    let mut trailing = spz.clone();
+    trailing.extend(b"more");
+    spz_files.push(("spz-trailing".into(), trailing, "after"));
+    for (tag, bytes, want) in spz_files {
+        let p = dir.join(format!("{tag}.spz"));
+        std::fs::write(&p, &bytes).unwrap();
+        let out = run(&["render", "--width", "16", "--height", "16", "--ply"], &[&p]);
+        s.fails(Case { name: format!("spz {tag}"), out, expect: vec![name_of(&p), want.into()] });
+    }
+    let p = dir.join("good.spz");
+    std::fs::write(&p, &spz).unwrap();
+    s.succeeds(
+        "spz good",
+        run(&["render", "--width", "16", "--height", "16", "--out"], &[&dir.join("g.png"), Path::new("--ply"), &p]),
+    );
     for (tag, bytes, want) in files {
         let p = dir.join(format!("{tag}.ply"));
         std::fs::write(&p, &bytes).unwrap();
@@ -203,7 +226,7 @@ fn broken_ply_files_are_refused_with_the_file_and_the_problem() {
         "ply good",
         run(&["render", "--width", "16", "--height", "16", "--out"], &[&dir.join("g.png"), Path::new("--ply"), &p]),
     );
-    s.finish(39);
+    s.finish(44);
     std::fs::remove_dir_all(&dir).ok();
 }
 
@@ -863,6 +886,11 @@ fn counts_and_shapes(s: &mut Suite, dir: &Path, base: &Path, r: &Path) {
         ("find with a 239-character phrase", vec!["find", long.as_str(), "--run"], vec!["phrase", "at most 200"]),
         ("find --threshold 1.5", vec!["find", "cone", "--threshold", "1.5", "--run"], vec!["--threshold", "0-1"]),
         ("find --threshold -0.2", vec!["find", "cone", "--threshold", "-0.2", "--run"], vec!["--threshold", "0-1"]),
+        (
+            "vqa --find-threshold 1.5",
+            vec!["vqa", "--questions", "q.json", "--find-threshold", "1.5", "--run"],
+            vec!["--find-threshold", "0-1"],
+        ),
     ] {
         s.fails(Case {
             name: name.into(),

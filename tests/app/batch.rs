@@ -73,13 +73,18 @@ fn two_shards_cover_the_manifest_once_and_a_rerun_skips_what_is_done() {
         // the teacher leaves the default number of the tower's last layers to chat
         let index = json(&out.join(scene).join("teacher/teacher.json"));
         assert_eq!(index["tower_tail"], train::teacher::DEFAULT_TOWER_TAIL, "{scene}");
-        // VQA on every question of the scene's file, or none when a 48 px capture has none
+        // VQA on every question of the scene's file (the find phrases scored apart), or none
+        // when a 48 px capture has none
         let qf = json(&dir.join(format!("d{seed}/questions.json")));
-        let asked = qf["questions"].as_array().unwrap().len() as u64;
-        if asked == 0 {
+        let all = qf["questions"].as_array().unwrap();
+        let phrases = all.iter().filter(|q| q["level"] == "find").count() as u64;
+        let asked = all.len() as u64 - phrases;
+        if all.is_empty() {
             assert!(s["vqa"].is_null(), "{s}");
         } else {
             assert_eq!(s["vqa"]["overall"]["questions"].as_u64(), Some(asked), "{s}");
+            assert!(phrases > 0, "a synthetic scene's file has find phrases: {qf}");
+            assert_eq!(s["vqa"]["find"]["phrases"].as_u64(), Some(phrases), "{s}");
             answered += 1;
         }
     }

@@ -84,13 +84,55 @@ fn serve_answers_like_the_library_and_refuses_bad_requests_by_name() {
     let info = http::get(&a, "/api/scene").json();
     let views = info["views"].as_array().unwrap();
     assert_eq!(views.len(), session.cameras.len());
-    assert_eq!(info["gaussians"].as_u64().unwrap() as usize, session.scene.splats.len());
+    // every Gaussian is drawn (a compacted run keeps fewer for the language maps only)
+    let shown = session.scene.shown().len();
+    assert_eq!(info["gaussians"].as_u64().unwrap() as usize, shown);
     for o in &truth.objects {
         let listed = info["objects"].as_array().unwrap().iter().find(|x| x["id"] == o.id);
         assert_eq!(listed.map(|x| x["name"].as_str().unwrap()), Some(o.name().as_str()), "object {}", o.id);
     }
     let ply = http::get(&a, "/api/splats.ply");
-    assert_eq!(model::ply::parse(&ply.body, "splats.ply").unwrap().len(), session.scene.splats.len());
+    assert_eq!(model::ply::parse(&ply.body, "splats.ply").unwrap().len(), shown);
+    // one object's Gaussians to download (by each Gaussian's identity class, as export-ply
+    // --object), and the scene without them: the page's "download" and "hide"
+    let classes = session.scene.shown().gaussian_classes();
+    let o = &truth.objects[0];
+    let own = classes.iter().filter(|&&c| c == o.id).count();
+    assert!(own > 10, "{} owns {own} Gaussians", o.name());
+    let r = http::get(&a, &format!("/api/objects/{}.ply", o.id));
+    assert_eq!(r.status, 200, "{}", r.text());
+    let name = format!("{}-{}.ply", o.id, o.name().replace(' ', "-"));
+    assert_eq!(r.header("content-disposition"), Some(format!("attachment; filename=\"{name}\"").as_str()));
+    assert_eq!(model::ply::parse(&r.body, &name).unwrap().len(), own);
+    let r = http::get(&a, &format!("/api/objects/{}.spz", o.id));
+    assert_eq!(model::spz::parse(&r.body, "object.spz").unwrap().len(), own, "{}", r.text());
+    // the whole scene as .spz too, far smaller (the page loads the smaller)
+    let spz = http::get(&a, "/api/splats.spz");
+    assert_eq!(model::spz::parse(&spz.body, "splats.spz").unwrap().len(), shown);
+    let sizes = &info["splat_bytes"];
+    assert_eq!(
+        (sizes["ply"].as_u64(), sizes["spz"].as_u64()),
+        (Some(ply.body.len() as u64), Some(spz.body.len() as u64))
+    );
+    assert!(spz.body.len() * 5 < ply.body.len(), "{sizes}");
+    let other = truth.objects[1].id;
+    let r = http::get(&a, &format!("/api/splats.ply?without={},{other}", o.id));
+    let rest = classes.iter().filter(|&&c| c != o.id && c != other).count();
+    assert_eq!(model::ply::parse(&r.body, "without.ply").unwrap().len(), rest);
+    for (path, status, says) in [
+        ("/api/objects/99.ply", 404, "no object 99"),
+        ("/api/objects/0.ply", 404, "no object 0"),
+        ("/api/objects/red.ply", 404, "no such file"),
+        ("/api/objects/1.txt", 404, "no such file"),
+        ("/api/splats.ply?without=abc", 400, "not an object id"),
+        ("/api/splats.ply?without=99", 400, "no object 99"),
+        ("/api/splats.ply?hide=1", 400, "without=ID"),
+    ] {
+        let r = http::get(&a, path);
+        let e = r.json();
+        assert_eq!(r.status, status, "{path}: {e}");
+        assert!(e["error"].as_str().unwrap().contains(says), "{path}: {e}");
+    }
 
     // --- the camera contract: a training (and a held-out) camera sent back renders the same
     // pixels as the library renders from the stored camera, with exact intrinsics or the page's
@@ -119,6 +161,23 @@ fn serve_answers_like_the_library_and_refuses_bad_requests_by_name() {
     let c0 = session.cameras[0];
     let ids = session.scene.splats.render_ids(&c0).unwrap();
     let w0 = c0.width as usize;
+    // a server frame without a hidden object: its pixels change, the rest of the view hardly
+    let frame = |hidden: Value| {
+        let r = http::post(&a, "/api/render", &json!({"camera": cam0, "hidden": hidden}));
+        assert_eq!(r.status, 200, "{}", r.text());
+        http::decode_png(&r.body).2
+    };
+    let big = truth.objects.iter().max_by_key(|x| ids.iter().filter(|&&i| i == x.id).count()).unwrap();
+    let (all, without) = (frame(json!([])), frame(json!([big.id])));
+    let d = |p: usize| (0..3).map(|c| (all[3 * p + c] as f64 - without[3 * p + c] as f64).abs()).sum::<f64>() / 3.0;
+    let of_big: Vec<usize> = (0..ids.len()).filter(|&p| ids[p] == big.id).collect();
+    let changed = of_big.iter().map(|&p| d(p)).sum::<f64>() / of_big.len().max(1) as f64;
+    let elsewhere = (0..ids.len()).filter(|&p| ids[p] != big.id && d(p) > 8.0).count();
+    eprintln!("hidden {}: its {} px changed by {changed:.1} on average, {elsewhere} others", big.name(), of_big.len());
+    assert!(of_big.len() > 30 && changed > 10.0, "hidden {}: {} px changed by {changed:.1}", big.name(), of_big.len());
+    assert!(elsewhere * 20 < ids.len(), "hiding {} changed {elsewhere} other pixels", big.name());
+    let r = http::post(&a, "/api/render", &json!({"camera": cam0, "hidden": [99]}));
+    assert_eq!((r.status, r.json()["field"].as_str()), (400, Some("hidden")), "{}", r.text());
     let p = (0..ids.len()).find(|&p| ids[p] >= model::data::synth::FIRST_OBJECT_ID).expect("view 0 shows an object");
     let r = http::post(&a, "/api/pick", &json!({"camera": cam0, "x": p % w0, "y": p / w0}));
     assert_eq!(r.status, 200, "{}", r.text());
@@ -621,6 +680,8 @@ fn the_page_draws_the_scene_picks_in_red_and_answers_at_every_level() {
     .unwrap();
     let load_s = t0.elapsed().as_secs_f64();
     assert_eq!(b.eval("window.chatsplat.mode").unwrap(), "webgl", "WebGL2 on SwiftShader: {:?}", b.page_errors);
+    // the page draws the smaller file, Niantic's .spz (Spark reads what model::spz writes)
+    assert_eq!(b.eval("window.chatsplat.splatsUrl").unwrap(), "/api/splats.spz");
     b.wait_for("window.chatsplat.idle", Duration::from_secs(60)).unwrap();
 
     // --- the scene is drawn: not blank, and every object the server sees in this view shows its
@@ -785,6 +846,44 @@ fn the_page_draws_the_scene_picks_in_red_and_answers_at_every_level() {
     assert_eq!(turn["answer"].as_str(), Some(truth.objects.len().to_string().as_str()), "{turn}");
     assert!(b.page_errors.is_empty(), "{:?}", b.page_errors);
 
+    // --- the selected object offers its Gaussians to download, and hides: the scene is drawn
+    // again without it (its pixels change, as the server's frame without it says), and comes back
+    let id = matched[0];
+    let href = b.eval("document.getElementById('download').getAttribute('href')").unwrap();
+    assert_eq!(href.as_str(), Some(format!("/api/objects/{id}.ply").as_str()));
+    b.eval("document.getElementById('hide').click()").unwrap();
+    let url = format!("/api/splats.spz?without={id}");
+    b.wait_for(&format!("window.chatsplat.splatsUrl === '{url}' && window.chatsplat.idle"), Duration::from_secs(90))
+        .unwrap();
+    assert_eq!(b.eval("window.chatsplat.hidden()").unwrap(), json!([id]));
+    assert!(b.eval("window.chatsplat.selection").unwrap().is_null(), "hiding clears the selection");
+    let of_id: Vec<usize> = (0..gt.ids.len()).filter(|&p| gt.ids[p] as u64 == id).collect();
+    let moved = |rgb: &[u8]| {
+        mean(&of_id, &|p| (0..3).map(|c| (rgb[3 * p + c] as f64 - plain[3 * p + c] as f64).abs()).sum::<f64>() / 3.0)
+    };
+    // Spark sorts the new scene in a worker: look until it is drawn (at most 30 s)
+    let settle = |b: &mut Browser, done: &dyn Fn(f64) -> bool| {
+        let t = Instant::now();
+        loop {
+            let d = moved(&crop(&b.screenshot().unwrap().1, rect));
+            if done(d) || t.elapsed() > Duration::from_secs(30) {
+                return d;
+            }
+            std::thread::sleep(Duration::from_millis(500));
+        }
+    };
+    let gone = settle(&mut b, &|d| d > 10.0);
+    assert!(of_id.len() > 30 && gone > 10.0, "object {id} hidden: its {} px changed by {gone:.1}", of_id.len());
+    b.eval("document.getElementById('show-hidden').click()").unwrap();
+    b.wait_for("window.chatsplat.splatsUrl === '/api/splats.spz' && window.chatsplat.idle", Duration::from_secs(90))
+        .unwrap();
+    let back = settle(&mut b, &|d| d < gone / 3.0);
+    assert!(
+        back < gone / 3.0,
+        "object {id} shown again: its pixels differ by {back:.1} from before (hidden {gone:.1})"
+    );
+    assert!(b.page_errors.is_empty(), "{:?}", b.page_errors);
+
     // --- the server-rendered fallback picks the same object at the same pixel, in a fresh browser:
     // navigating away from the WebGL page leaves SwiftShader tearing it down for 30 s and more
     // before the next page's first request (measured: app.css asked for 27 s after the HTML came)
@@ -820,6 +919,19 @@ fn the_page_draws_the_scene_picks_in_red_and_answers_at_every_level() {
     b.click(rect[0] + x as f64 + 0.5, rect[1] + y as f64 + 0.5).unwrap();
     let sel = b.wait_for("window.chatsplat.selection", Duration::from_secs(30)).unwrap();
     assert_eq!(sel["id"].as_u64(), Some(o.id as u64), "server mode picked {sel}");
+    // hidden, the server draws the view without it, and a click there picks nothing
+    let frames = b.eval("window.chatsplat.frames").unwrap().as_u64().unwrap();
+    b.eval("document.getElementById('hide').click()").unwrap();
+    let done = format!("window.chatsplat.frames > {frames} && window.chatsplat.idle && !window.chatsplat.selection");
+    b.wait_for(&done, Duration::from_secs(60)).unwrap();
+    let without = crop(&b.screenshot().unwrap().1, rect);
+    let before = crop(&shot, rect);
+    let gone =
+        mean(ps, &|p| (0..3).map(|c| (without[3 * p + c] as f64 - before[3 * p + c] as f64).abs()).sum::<f64>() / 3.0);
+    assert!(gone > 10.0, "server frames: the hidden {} changed by {gone:.1}", o.name());
+    b.click(rect[0] + x as f64 + 0.5, rect[1] + y as f64 + 0.5).unwrap();
+    b.wait_for("document.getElementById('status').textContent.includes('is hidden')", Duration::from_secs(30)).unwrap();
+    assert!(b.eval("window.chatsplat.selection").unwrap().is_null());
     assert!(b.page_errors.is_empty(), "{:?}", b.page_errors);
     eprintln!(
         "page load {load_s:.1} s (server frames {server_s:.1} s); click -> highlight {click_ms:.0} ms; object answer \

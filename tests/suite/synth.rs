@@ -9,7 +9,9 @@
 use burn::tensor::{Device, Tensor};
 use chatsplat_tests::temp_dir;
 use glam::{Mat4, Quat, Vec3, Vec4};
-use model::data::synth::questions::{Kind, ViewFacts, object_questions, scene_questions, view_questions};
+use model::data::synth::questions::{
+    Kind, ViewFacts, object_follow_ups, object_questions, scene_questions, view_questions,
+};
 use model::data::synth::raycast::{render_view, render_view_supersampled};
 use model::data::synth::scene::{
     CUBE_HALF, CYLINDER_HALF_HEIGHT, CYLINDER_RADIUS, Color, Shape, Size, SynthScene, TORUS_MAJOR, TORUS_MINOR,
@@ -347,6 +349,7 @@ fn dataset_is_deterministic_complete_and_geometrically_consistent() {
     let frames = qf.views.clone().unwrap();
     assert_eq!(frames.len(), 16);
     let mut levels = BTreeSet::new();
+    let mut follow_kinds = BTreeSet::new();
     for q in &qf.questions {
         levels.insert(q.level);
         match q.level {
@@ -357,16 +360,52 @@ fn dataset_is_deterministic_complete_and_geometrically_consistent() {
                 let vs = q.views.as_ref().unwrap();
                 assert!(vs.iter().all(|&v| !synth::held_out(v)), "scene views are training views");
             }
+            Level::Find => {
+                // the objects named are exactly those whose name holds every word of the phrase
+                let named: Vec<u8> = scene
+                    .objects
+                    .iter()
+                    .filter(|o| q.question.split(' ').all(|w| o.name().split(' ').any(|n| n == w)))
+                    .map(|o| o.id)
+                    .collect();
+                assert_eq!(q.objects.as_ref(), Some(&named), "{}: {}", q.id, q.question);
+                let absent = q.kind.as_deref().unwrap().starts_with("find_absent_");
+                assert_eq!(absent, named.is_empty(), "{}", q.id);
+            }
         }
         if q.level == Level::Object {
             let [x, y] = q.object.unwrap();
             let (_, _, _, ids) = read_png8(&a.join(frames[q.view.unwrap()].replace("images/", "masks/"))).unwrap();
             let id = ids[y as usize * w + x as usize];
             let o = scene.object(id).expect("the click lands on an object");
-            assert!(object_questions(o).iter().any(|qa| qa.question == q.question && qa.answer == q.answer));
+            let qas = object_questions(o);
+            let mut asked: Vec<(String, String)> =
+                qas.iter().map(|qa| (qa.question.clone(), qa.answer.clone())).collect();
+            if q.follows.is_some() {
+                asked = object_follow_ups(&qas).into_iter().map(|f| (f.question, f.answer)).collect();
+            }
+            assert!(asked.contains(&(q.question.clone(), q.answer.clone())), "{}: {}", q.id, q.question);
+        }
+        // a follow-up goes on an earlier question's conversation and answers as its twin does
+        if let Some(first) = &q.follows {
+            let first = qf.questions.iter().find(|p| p.id == *first).expect("it follows a question of the file");
+            let twin = qf.questions.iter().find(|p| Some(&p.id) == q.spelled.as_ref()).expect("a twin");
+            assert_eq!((first.view, first.object), (q.view, q.object), "{}", q.id);
+            assert_eq!(twin.answer, q.answer, "{}", q.id);
+            let it = |t: &str| t.split([' ', '?']).any(|w| w == "it");
+            assert!(it(&q.question) && !it(&twin.question), "{} / {}", q.question, twin.question);
+            follow_kinds.insert(q.kind.clone().unwrap());
         }
     }
-    assert_eq!(levels.len(), 3, "view, object and scene questions: {levels:?}");
+    assert_eq!(levels.len(), 4, "view, object, scene and find questions: {levels:?}");
+    for kind in ["follow_color", "follow_shape", "follow_size"] {
+        assert!(follow_kinds.contains(kind), "no {kind} follow-up: {follow_kinds:?}");
+    }
+    let finds: Vec<&str> = qf.questions.iter().filter(|q| q.level == Level::Find).map(|q| q.id.as_str()).collect();
+    for sort in ["color", "shape", "name"] {
+        assert!(finds.iter().any(|id| id.ends_with(&format!("-find_{sort}"))), "no present {sort}: {finds:?}");
+        assert!(finds.iter().any(|id| id.ends_with(&format!("-find_absent_{sort}"))), "no absent {sort}: {finds:?}");
+    }
     std::fs::remove_dir_all(&a).ok();
     std::fs::remove_dir_all(&b).ok();
 }

@@ -204,3 +204,113 @@ pub fn normalize(phrase: &str) -> Result<String> {
 pub fn check_threshold(t: f32) -> Result<f32> {
     if (0.0..=1.0).contains(&t) { Ok(t) } else { Err(Error::input(format!("the threshold is {t}; it must be in 0-1"))) }
 }
+
+/// The ids of the objects of `ranked` scoring at least `threshold` (the matches), best first.
+pub fn matches(ranked: &[Scored], threshold: f32) -> Vec<u8> {
+    ranked.iter().filter(|r| r.score >= threshold).map(|r| r.id).collect()
+}
+
+/// Objects found against the objects phrases name, added up over phrases (a question file's
+/// `find` level): precision, recall and F1 of the objects found, and how often a phrase that
+/// names no object finds nothing.
+#[derive(Clone, Copy, Debug, Default, PartialEq, serde::Serialize, serde::Deserialize)]
+pub struct FindTally {
+    pub phrases: usize,
+    /// Phrases that found exactly the objects they name.
+    pub exact: usize,
+    pub true_pos: usize,
+    pub false_pos: usize,
+    pub false_neg: usize,
+    /// Phrases that name no object, and of them those that found nothing.
+    pub absent: usize,
+    pub absent_empty: usize,
+}
+
+impl FindTally {
+    /// Adds one phrase: the ids it names and the ids found (each set without repeats).
+    pub fn add(&mut self, named: &[u8], found: &[u8]) {
+        let hit = found.iter().filter(|f| named.contains(f)).count();
+        self.phrases += 1;
+        self.true_pos += hit;
+        self.false_pos += found.len() - hit;
+        self.false_neg += named.len() - hit;
+        self.exact += (hit == named.len() && hit == found.len()) as usize;
+        if named.is_empty() {
+            self.absent += 1;
+            self.absent_empty += found.is_empty() as usize;
+        }
+    }
+
+    pub fn merge(&mut self, o: &FindTally) {
+        self.phrases += o.phrases;
+        self.exact += o.exact;
+        self.true_pos += o.true_pos;
+        self.false_pos += o.false_pos;
+        self.false_neg += o.false_neg;
+        self.absent += o.absent;
+        self.absent_empty += o.absent_empty;
+    }
+
+    /// Of the objects found, the share that the phrases name (1 when nothing was found).
+    pub fn precision(&self) -> f32 {
+        ratio(self.true_pos, self.true_pos + self.false_pos)
+    }
+
+    /// Of the objects the phrases name, the share found (1 when they name none).
+    pub fn recall(&self) -> f32 {
+        ratio(self.true_pos, self.true_pos + self.false_neg)
+    }
+
+    pub fn f1(&self) -> f32 {
+        let (p, r) = (self.precision(), self.recall());
+        if p + r == 0.0 { 0.0 } else { 2.0 * p * r / (p + r) }
+    }
+
+    /// One line: `find (N phrases): precision .. recall .. F1 ..; exact ..; absent: k of n found nothing`.
+    pub fn summary(&self) -> String {
+        format!(
+            "find ({} phrases): precision {:.3} recall {:.3} F1 {:.3}; exactly the named objects {:.1} %; \
+             phrases naming nothing found nothing: {} of {} ({:.1} %)",
+            self.phrases,
+            self.precision(),
+            self.recall(),
+            self.f1(),
+            100.0 * ratio(self.exact, self.phrases),
+            self.absent_empty,
+            self.absent,
+            100.0 * ratio(self.absent_empty, self.absent)
+        )
+    }
+}
+
+fn ratio(a: usize, b: usize) -> f32 {
+    if b == 0 { 1.0 } else { a as f32 / b as f32 }
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    #[test]
+    fn find_tally_counts_objects_found_against_those_named() {
+        let mut t = FindTally::default();
+        t.add(&[3, 5], &[5, 3]); // exact
+        t.add(&[4], &[4, 6]); // one invented
+        t.add(&[2, 7], &[7]); // one missed
+        t.add(&[], &[]); // absent, nothing found
+        t.add(&[], &[2]); // absent, one found
+        assert_eq!((t.phrases, t.exact, t.true_pos, t.false_pos, t.false_neg), (5, 2, 4, 2, 1));
+        assert_eq!((t.absent, t.absent_empty), (2, 1));
+        assert!((t.precision() - 4.0 / 6.0).abs() < 1e-6 && (t.recall() - 0.8).abs() < 1e-6);
+        assert!((t.f1() - 2.0 * (4.0 / 6.0) * 0.8 / (4.0 / 6.0 + 0.8)).abs() < 1e-6);
+        let mut u = FindTally::default();
+        u.merge(&t);
+        u.merge(&t);
+        assert_eq!((u.phrases, u.true_pos, u.absent_empty), (10, 8, 2));
+        assert_eq!(u.f1(), t.f1());
+        let none = FindTally::default();
+        assert_eq!((none.precision(), none.recall(), none.f1()), (1.0, 1.0, 1.0));
+        let ranked = [(3, 0.9), (5, 0.5), (2, 0.49)].map(|(id, score)| Scored { id, score, question: "" });
+        assert_eq!(matches(&ranked, 0.5), vec![3, 5]);
+    }
+}

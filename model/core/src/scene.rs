@@ -157,15 +157,21 @@ impl LanguageScene {
         Ok(field.encoder.forward_level(self.object_map_kept(field, weights, mask)?, true))
     }
 
+    /// The Gaussians RGB renders show: every one ([`display`](Self::display) where the language
+    /// maps keep fewer).
+    pub fn shown(&self) -> &SplatModel {
+        self.display.as_ref().unwrap_or(&self.splats)
+    }
+
     /// RGB, identity and alpha of a view.
     pub fn render(&self, cam: &Camera) -> Result<ViewRender> {
-        self.display.as_ref().unwrap_or(&self.splats).render(cam, self.sh_degree, self.background)
+        self.shown().render(cam, self.sh_degree, self.background)
     }
 
     /// RGB alone of a view `[H * W * 3]`, clamped to 0..=1 (a frame to show; faster than
     /// [`render`](Self::render)).
     pub fn render_rgb(&self, cam: &Camera) -> Result<Vec<f32>> {
-        self.display.as_ref().unwrap_or(&self.splats).render_rgb(cam, self.sh_degree, self.background)
+        self.shown().render_rgb(cam, self.sh_degree, self.background)
     }
 
     /// The view-level map `[H, W, Cv]` of a view camera (rendered from its token camera), with
@@ -271,10 +277,6 @@ impl LanguageScene {
         let idx: Vec<i64> = keep.iter().map(|&i| i as i64).collect();
         let idx = Tensor::<1, Int>::from_data(TensorData::new(idx, [keep.len()]), &dev);
         let rows = |t: Tensor<2>| t.select(0, idx.clone());
-        let params = self
-            .splats
-            .tensors()
-            .map(|name, t| if crate::splats::SplatParams::<()>::is_row(name) { rows(t) } else { t });
         let mut named = self.field.named();
         for (n, t) in named.iter_mut() {
             if n == "view_features" || n == "object_features" {
@@ -283,7 +285,7 @@ impl LanguageScene {
         }
         LanguageScene {
             cfg: self.cfg.clone(),
-            splats: SplatModel::from_tensors(params),
+            splats: self.splats.rows(keep),
             sh_degree: self.sh_degree,
             background: self.background,
             field: LanguageField::from_named(named).expect("the same tensors"),

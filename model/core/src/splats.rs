@@ -208,6 +208,16 @@ impl SplatModel {
         }
     }
 
+    /// The model restricted to Gaussians `keep` (row indices, in that order); the classifier kept.
+    pub fn rows(&self, keep: &[usize]) -> SplatModel {
+        let dev = self.means.val().device();
+        let idx: Vec<i64> = keep.iter().map(|&i| i as i64).collect();
+        let idx = Tensor::<1, burn::tensor::Int>::from_data(TensorData::new(idx, [keep.len()]), &dev);
+        SplatModel::from_tensors(
+            self.tensors().map(|name, t| if SplatParams::<()>::is_row(name) { t.select(0, idx.clone()) } else { t }),
+        )
+    }
+
     pub fn len(&self) -> usize {
         self.means.val().dims()[0]
     }

@@ -14,16 +14,24 @@
 //!    "question": "What is this object?", "answer": "a wooden chair"},
 //!   {"id": "q3", "level": "scene", "question": "How many chairs are there?", "answer": "two"},
 //!   {"id": "q4", "level": "scene", "question": "What objects are there?",
-//!    "answer": "red chair red cup", "items": ["red chair", "red cup"]}
+//!    "answer": "red chair red cup", "items": ["red chair", "red cup"]},
+//!   {"id": "f1", "level": "find", "question": "red cone", "answer": "red cone", "objects": [3]},
+//!   {"id": "q5", "level": "object", "view": 0, "object": [120, 64], "follows": "q2",
+//!    "question": "What color is it?", "answer": "brown"}
 //! ]}
 //! ```
 //!
-//! `scene` is optional. `level` is `view`, `object` or `scene`; `view` (an image index) is
+//! `scene` is optional. `level` is `view`, `object`, `scene` or `find`; `view` (an image index) is
 //! required for view-level questions; `object` (an `[x, y]` pixel, in the image of `view` when
 //! given) is required for object-level ones; scene-level questions may list their `views`
 //! (default: views spread around the scene); `keywords` is optional. `items` marks a list answer
 //! and names its items (`[]` for an answer of "none"): a list is scored as a multiset of items, so
-//! an item missed or an item invented is never right. Ids must be unique and the question and
+//! an item missed or an item invented is never right. A `find` question is a phrase to search the
+//! scene's objects for (`chatsplat find`): `objects` lists the instance ids of the objects it
+//! names (`[]`: none), `answer` their names or "none"; it takes no view, click or views. A
+//! question that `follows` an earlier one (its id) is asked as the next turn of that question's
+//! conversation, after it and the model's answer to it: the same level, view, click and views;
+//! its `spelled` names the same question with its referent spelled out. Ids must be unique and the question and
 //! answer texts non-empty. Unknown keys are rejected (typos).
 
 use crate::error::{Error, Result};
@@ -43,6 +51,14 @@ pub enum Level {
     View,
     Object,
     Scene,
+    /// A phrase searched for among the scene's objects (`chatsplat find`), scored by the objects
+    /// found (precision, recall, F1), not by an answer's words.
+    Find,
+}
+
+impl Level {
+    /// The levels answered in words, scored by exact match: not [`Level::Find`].
+    pub const ANSWERED: [Level; 3] = [Level::View, Level::Object, Level::Scene];
 }
 
 impl std::fmt::Display for Level {
@@ -51,6 +67,7 @@ impl std::fmt::Display for Level {
             Level::View => "view",
             Level::Object => "object",
             Level::Scene => "scene",
+            Level::Find => "find",
         })
     }
 }
@@ -78,6 +95,17 @@ pub struct Question {
     /// A list answer's items (a multiset; empty for "none"); `None` when the answer is not a list.
     #[serde(default, skip_serializing_if = "Option::is_none")]
     pub items: Option<Vec<String>>,
+    /// Find level: the instance ids of the objects the phrase names (empty: none).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub objects: Option<Vec<u8>>,
+    /// The id of an earlier question about the same target whose conversation this one goes on
+    /// (asked after it and the model's answer).
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub follows: Option<String>,
+    /// A follow-up's twin: the id of the same question with its referent spelled out, asked on
+    /// its own (`vqa` reports the follow-ups' exact match beside their twins').
+    #[serde(default, skip_serializing_if = "Option::is_none")]
+    pub spelled: Option<String>,
 }
 
 /// A question file: see the [module documentation](self) for the format.
@@ -132,6 +160,37 @@ pub fn load_questions(path: &Path) -> Result<QuestionFile> {
             && !(x.is_finite() && y.is_finite() && x >= 0.0 && y >= 0.0)
         {
             return fail("\"object\" pixel must be two non-negative numbers");
+        }
+        if q.level == Level::Find && q.objects.is_none() {
+            return fail("find-level question without \"objects\" (the ids it names; [] for none)");
+        }
+        if q.level != Level::Find && q.objects.is_some() {
+            return fail(&format!("\"objects\" does not apply to {}-level questions", q.level));
+        }
+        if q.level == Level::Find && (q.view.is_some() || q.items.is_some()) {
+            return fail("\"view\" and \"items\" do not apply to find-level questions");
+        }
+        if let Some(first) = &q.follows {
+            let Some(f) = file.questions[..i].iter().find(|p| p.id == *first) else {
+                return fail(&format!("\"follows\" names {first:?}, which is not an earlier question"));
+            };
+            if q.level == Level::Find || (f.level, f.view, f.object, &f.views) != (q.level, q.view, q.object, &q.views)
+            {
+                return fail(&format!(
+                    "\"follows\" {first:?}, a question about another target: a follow-up asks \
+                    about the same level, view, click and views"
+                ));
+            }
+        }
+        if let Some(twin) = &q.spelled {
+            if q.follows.is_none() {
+                return fail("\"spelled\" applies only to a question that \"follows\" another");
+            }
+            if !file.questions.iter().any(|p| p.id == *twin && p.follows.is_none()) {
+                return fail(&format!(
+                    "\"spelled\" names {twin:?}, which is not a question of the file asked on its own"
+                ));
+            }
         }
         if q.views.as_ref().is_some_and(|v| v.is_empty()) {
             return fail("\"views\" is empty");
@@ -246,6 +305,48 @@ mod tests {
         let e =
             err("items", &q(r#"{"id": "h", "level": "scene", "question": "Q?", "answer": "x", "items": ["x", " "]}"#));
         assert!(e.contains("empty item"), "{e}");
+        let e = err("findobj", &q(r#"{"id": "j", "level": "find", "question": "red cone", "answer": "red cone"}"#));
+        assert!(e.contains("\"j\"") && e.contains("without \"objects\""), "{e}");
+        let e = err(
+            "viewids",
+            &q(r#"{"id": "k", "level": "view", "view": 0, "question": "Q?", "answer": "x", "objects": [1]}"#),
+        );
+        assert!(e.contains("\"objects\" does not apply to view-level"), "{e}");
+        let e = err(
+            "findview",
+            &q(r#"{"id": "l", "level": "find", "view": 0, "question": "cone", "answer": "none", "objects": []}"#),
+        );
+        assert!(e.contains("do not apply to find-level"), "{e}");
+        let find =
+            q(r#"{"id": "m", "level": "find", "question": "red cone", "answer": "red cone", "objects": [3, 5]}"#);
+        let p = tmp("find", &find);
+        let f = load_questions(&p).unwrap();
+        let _ = std::fs::remove_file(p);
+        assert_eq!((f.questions[0].level, f.questions[0].objects.clone()), (Level::Find, Some(vec![3, 5])));
+        let first = r#"{"id": "n", "level": "object", "view": 1, "object": [3, 4], "question": "What is this?", "answer": "red cube"}"#;
+        let twin = r#"{"id": "c", "level": "object", "view": 1, "object": [3, 4], "question": "What color is this?", "answer": "red"}"#;
+        let follow = |target: &str, follows: &str| {
+            format!(
+                r#"{{"id": "f", "level": "object", {target}, "question": "What color is it?", "answer": "red", {follows}}}"#
+            )
+        };
+        let at = r#""view": 1, "object": [3, 4]"#;
+        let good = q(&format!("{first}, {twin}, {}", follow(at, r#""follows": "n", "spelled": "c""#)));
+        let p = tmp("follows", &good);
+        let f = load_questions(&p).unwrap();
+        let _ = std::fs::remove_file(p);
+        assert_eq!((f.questions[2].follows.as_deref(), f.questions[2].spelled.as_deref()), (Some("n"), Some("c")));
+        let e = err("later", &q(&format!("{}, {first}", follow(at, r#""follows": "n""#))));
+        assert!(e.contains("not an earlier question"), "{e}");
+        let e = err(
+            "elsewhere",
+            &q(&format!("{first}, {}", follow(r#""view": 2, "object": [3, 4]"#, r#""follows": "n""#))),
+        );
+        assert!(e.contains("about another target"), "{e}");
+        let e = err("twin", &q(&format!("{first}, {}", follow(at, r#""follows": "n", "spelled": "zz""#))));
+        assert!(e.contains("\"spelled\" names \"zz\""), "{e}");
+        let e = err("alone", &q(&format!("{first}, {}", follow(at, r#""spelled": "n""#))));
+        assert!(e.contains("applies only to a question that"), "{e}");
         let list = q(r#"{"id": "i", "level": "scene", "question": "Q?", "answer": "none", "items": []}"#);
         let p = tmp("list", &list);
         let f = load_questions(&p).unwrap();

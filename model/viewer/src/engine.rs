@@ -10,8 +10,10 @@ use crate::conversations::Conversations;
 pub use crate::conversations::Scope;
 use crate::error::ApiError;
 use crate::scene_info::ObjectNames;
+use crate::splat_files::SplatFiles;
 use model::chat::{ChatSession, Conversation, Picked, Target};
 use model::find::Finder;
+use model::splats::SplatModel;
 use model::vlm::GenerateOptions;
 use serde::Serialize;
 use splat_kernels::Camera;
@@ -68,8 +70,9 @@ pub enum Quick {
     Pick { camera: Camera, x: usize, y: usize },
     /// Object `id` followed to the view from `camera`.
     Select { camera: Camera, id: u8 },
-    /// The view from `camera` as RGB bytes `[H, W, 3]`.
-    Render { camera: Camera },
+    /// The view from `camera` as RGB bytes `[H, W, 3]`, without the Gaussians of the objects in
+    /// `hidden` (checked: objects of the scene).
+    Render { camera: Camera, hidden: Vec<u8> },
     /// Whether `question` can be asked about `scope` (in `conversation`, when given): resolves
     /// the scope (an object must be visible), checks the conversation is kept and about the same
     /// scope, and measures the question against the model's context.
@@ -294,17 +297,19 @@ struct QuickState {
     picks: VecDeque<Picked>,
     conversations: Conversations,
     finder: Option<Finder>,
+    files: Arc<SplatFiles>,
+    /// The Gaussians shown without the objects last hidden, and those objects.
+    hidden: Option<(Vec<u8>, SplatModel)>,
 }
 
 /// Picks kept.
 const KEPT_PICKS: usize = 16;
 
 impl Engine {
-    pub fn new(session: ChatSession, names: ObjectNames) -> Self {
-        Self {
-            session,
-            quick: QuickState { names, picks: VecDeque::new(), conversations: Conversations::default(), finder: None },
-        }
+    /// The engine of `session`; `files` says which Gaussians are each object's (for hidden objects).
+    pub fn new(session: ChatSession, names: ObjectNames, files: Arc<SplatFiles>) -> Self {
+        let (picks, conversations) = (VecDeque::new(), Conversations::default());
+        Self { session, quick: QuickState { names, picks, conversations, finder: None, files, hidden: None } }
     }
 
     /// Serves `queues` until they close.
@@ -426,9 +431,19 @@ impl QuickState {
                 let picked = self.resolve(session, &camera, id).map_err(err("id"))?;
                 Ok(QuickReply::Object(picked.map(|p| self.reply(&p))))
             }
-            Quick::Render { camera } => {
-                let rgb = session.view_image(&camera, None).map_err(err("camera"))?;
-                Ok(QuickReply::Frame(rgb.iter().map(|v| (v * 255.0 + 0.5) as u8).collect()))
+            Quick::Render { camera, hidden } => {
+                let rgb = if hidden.is_empty() {
+                    session.view_image(&camera, None)
+                } else {
+                    let scene = &session.scene;
+                    if self.hidden.as_ref().is_none_or(|(ids, _)| *ids != hidden) {
+                        let keep = self.files.kept(&hidden, "hidden")?;
+                        self.hidden = Some((hidden, scene.shown().rows(&keep)));
+                    }
+                    let (_, shown) = self.hidden.as_ref().expect("set above");
+                    shown.render_rgb(&camera, scene.sh_degree, scene.background)
+                };
+                Ok(QuickReply::Frame(rgb.map_err(err("camera"))?.iter().map(|v| (v * 255.0 + 0.5) as u8).collect()))
             }
             Quick::Find { phrase, threshold, camera } => {
                 Ok(QuickReply::Found(self.find(session, phrase, threshold, &camera)?))

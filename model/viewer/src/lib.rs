@@ -18,13 +18,15 @@ pub mod engine;
 pub mod error;
 pub mod routes;
 pub mod scene_info;
+pub mod splat_files;
 
 use engine::{Engine, Queues};
 use model::chat::ChatSession;
 use model::run::GeometryRun;
 use model::{Backend, Error, Result};
 use routes::AppState;
-use scene_info::{ObjectNames, SceneInfo, splats_ply};
+use scene_info::{ObjectNames, SceneInfo};
+use splat_files::SplatFiles;
 use std::net::SocketAddr;
 use std::path::PathBuf;
 use std::sync::Arc;
@@ -113,7 +115,8 @@ pub fn serve(opts: ServeOptions, mut progress: impl FnMut(Progress)) -> Result<(
     let state = Arc::new(AppState {
         queues: queues.clone(),
         scene: served.scene.into(),
-        splats: served.splats.into(),
+        splats: served.splats,
+        names: served.names,
         max_new_tokens: opts.max_new_tokens,
         allow_origins: opts.allow_origins.clone(),
     });
@@ -135,9 +138,10 @@ pub fn serve(opts: ServeOptions, mut progress: impl FnMut(Progress)) -> Result<(
 
 /// What the HTTP side serves from the loaded scene.
 struct Served {
-    /// `GET /api/scene` and `GET /api/splats.ply`.
+    /// `GET /api/scene`; the splat files, and the object names they are saved under.
     scene: Vec<u8>,
-    splats: Vec<u8>,
+    splats: Arc<SplatFiles>,
+    names: ObjectNames,
     warnings: Vec<String>,
     gaussians: usize,
     views: usize,
@@ -155,15 +159,18 @@ fn load(opts: &ServeOptions) -> Result<(Engine, Served)> {
         warnings.push(note.clone());
     }
     let model_name = opts.vlm.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
-    let info = SceneInfo::new(&session, &run, &names, model_name, opts.backend.to_string(), opts.max_new_tokens)?;
+    let mut info = SceneInfo::new(&session, &run, &names, model_name, opts.backend.to_string(), opts.max_new_tokens)?;
+    let files = Arc::new(SplatFiles::of(&session));
+    info.splat_bytes = files.sizes();
     let served = Served {
         scene: serde_json::to_vec(&info).map_err(|e| Error::input(format!("scene info: {e}")))?,
-        splats: splats_ply(&session),
+        splats: files.clone(),
+        names: names.clone(),
         warnings,
         gaussians: info.gaussians,
         views: info.views.len(),
     };
-    Ok((Engine::new(session, names), served))
+    Ok((Engine::new(session, names, files), served))
 }
 
 async fn shutdown_signal() {

@@ -6,10 +6,11 @@
 //! |---|---|---|
 //! | `GET /` and its files | | the page (embedded) |
 //! | `GET /api/scene` | | [`SceneInfo`](crate::scene_info::SceneInfo) |
-//! | `GET /api/splats.ply` | | the Gaussians, Inria `.ply` |
+//! | `GET /api/splats.ply?without=3,5`, `.spz` | | the Gaussians, `.ply` or `.spz` (without those objects') |
+//! | `GET /api/objects/3.ply`, `3.spz` | | object 3's Gaussians as a download |
 //! | `POST /api/pick` | `{camera, x, y}` | `{object: {id, name, pixels, bbox, mask} or null, ms}` |
 //! | `POST /api/select` | `{camera, id}` | the same, for an object followed to a new camera |
-//! | `POST /api/render` | `{camera}` | PNG (chatsplat's own rasterizer) |
+//! | `POST /api/render` | `{camera, hidden?}` | PNG (chatsplat's own rasterizer; `hidden`: object ids left out) |
 //! | `POST /api/find` | `{phrase, camera, threshold?}` | [`Found`](crate::engine::Found): scores, the matches' masks |
 //! | `POST /api/ask` | `{scope, camera?, id?, views?, question, conversation?, ...}` | event stream of [`AskEvent`] |
 //!
@@ -21,9 +22,12 @@ use crate::assets;
 use crate::camera::ViewCamera;
 use crate::engine::{AskEvent, AskJob, ObjectReply, Queues, Quick, QuickReply, Scope};
 use crate::error::ApiError;
+use crate::scene_info::ObjectNames;
+use crate::splat_files::{Format, SplatFiles, parse_ids};
 use axum::Router;
 use axum::body::{Body, Bytes};
-use axum::extract::{FromRequest, Request, State};
+use axum::extract::rejection::QueryRejection;
+use axum::extract::{FromRequest, Path, Query, Request, State};
 use axum::http::{HeaderMap, HeaderValue, Method, StatusCode, header};
 use axum::middleware::{self, Next};
 use axum::response::sse::{Event, KeepAlive, Sse};
@@ -51,7 +55,9 @@ pub struct AppState {
     pub queues: Arc<Queues>,
     /// `GET /api/scene`, serialised once.
     pub scene: Bytes,
-    pub splats: Bytes,
+    pub splats: Arc<SplatFiles>,
+    /// The objects' names (download file names).
+    pub names: ObjectNames,
     pub max_new_tokens: usize,
     /// Origins (`http://host:port`) allowed to call the API from another page.
     pub allow_origins: Vec<String>,
@@ -61,7 +67,9 @@ pub struct AppState {
 pub fn router(state: Arc<AppState>) -> Router {
     Router::new()
         .route("/api/scene", get(scene))
-        .route("/api/splats.ply", get(splats))
+        .route("/api/splats.ply", get(|s, q| splats(s, q, Format::Ply)))
+        .route("/api/splats.spz", get(|s, q| splats(s, q, Format::Spz)))
+        .route("/api/objects/{file}", get(object_file))
         .route("/api/pick", post(pick))
         .route("/api/select", post(select))
         .route("/api/render", post(render))
@@ -170,8 +178,45 @@ async fn scene(State(s): State<Arc<AppState>>) -> Response {
     ([(header::CONTENT_TYPE, "application/json")], s.scene.clone()).into_response()
 }
 
-async fn splats(State(s): State<Arc<AppState>>) -> Response {
-    ([(header::CONTENT_TYPE, "application/octet-stream")], s.splats.clone()).into_response()
+#[derive(Deserialize)]
+#[serde(deny_unknown_fields)]
+struct SplatsQuery {
+    /// Object ids separated by commas.
+    #[serde(default)]
+    without: String,
+}
+
+async fn splats(
+    State(s): State<Arc<AppState>>,
+    query: Result<Query<SplatsQuery>, QueryRejection>,
+    format: Format,
+) -> Result<Response, ApiError> {
+    let Query(q) =
+        query.map_err(|e| ApiError::field("without", format!("{e}: the query takes only without=ID,ID,...")))?;
+    let hidden = parse_ids(&q.without, "without")?;
+    let file = s.splats.without(&hidden, format)?;
+    Ok(([(header::CONTENT_TYPE, "application/octet-stream")], file).into_response())
+}
+
+/// `GET /api/objects/3.ply` (or `.spz`): object 3's Gaussians, named for a download
+/// ("3-red-cone.ply").
+async fn object_file(State(s): State<Arc<AppState>>, Path(file): Path<String>) -> Result<Response, ApiError> {
+    let bad =
+        || ApiError::status(StatusCode::NOT_FOUND, format!("no such file: {file} (objects are ID.ply or ID.spz)"));
+    let (id, ext) = file.split_once('.').ok_or_else(bad)?;
+    let (id, format) = (id.parse::<u8>().map_err(|_| bad())?, Format::of(ext).ok_or_else(bad)?);
+    let ply = s.splats.object(id, format)?;
+    let name = SplatFiles::object_file_name(id, &s.names, format);
+    let disposition = HeaderValue::from_str(&format!("attachment; filename=\"{name}\""))
+        .map_err(|e| ApiError::internal(e.to_string()))?;
+    Ok((
+        [
+            (header::CONTENT_TYPE, HeaderValue::from_static("application/octet-stream")),
+            (header::CONTENT_DISPOSITION, disposition),
+        ],
+        ply,
+    )
+        .into_response())
 }
 
 async fn quick(s: &AppState, work: Quick) -> Result<QuickReply, ApiError> {
@@ -256,12 +301,15 @@ async fn find(State(s): State<Arc<AppState>>, JsonBody(b): JsonBody<FindBody>) -
 #[serde(deny_unknown_fields)]
 struct RenderBody {
     camera: ViewCamera,
+    /// Objects left out of the frame (the page's hidden objects).
+    #[serde(default)]
+    hidden: Vec<u8>,
 }
 
 async fn render(State(s): State<Arc<AppState>>, JsonBody(b): JsonBody<RenderBody>) -> Result<Response, ApiError> {
     let t0 = Instant::now();
     let camera = b.camera.to_camera("camera")?;
-    let QuickReply::Frame(rgb) = quick(&s, Quick::Render { camera }).await? else {
+    let QuickReply::Frame(rgb) = quick(&s, Quick::Render { camera, hidden: b.hidden }).await? else {
         return Err(ApiError::internal("the render came back empty"));
     };
     let render_ms = t0.elapsed().as_secs_f64() * 1e3;

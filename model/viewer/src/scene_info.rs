@@ -55,6 +55,9 @@ pub struct SceneInfo {
     pub max_new_tokens: usize,
     /// The largest image side the server renders or picks at.
     pub max_side: u32,
+    /// The whole scene's splat files in bytes: `{"ply": n, "spz": n or null}` (the page loads the
+    /// smaller).
+    pub splat_bytes: serde_json::Value,
 }
 
 impl SceneInfo {
@@ -100,7 +103,7 @@ impl SceneInfo {
             converses,
             converse_note: (!converses).then(|| model::vlm::conversation::SINGLE_TURN_NOTE.to_string()),
             up: up.to_array(),
-            gaussians: s.scene.splats.len(),
+            gaussians: s.scene.shown().len(),
             background: s.scene.background,
             masks: s.scene.masks,
             model,
@@ -109,6 +112,7 @@ impl SceneInfo {
             scene_views: DEFAULT_SCENE_VIEWS.min(s.train_views),
             max_new_tokens,
             max_side: crate::camera::MAX_SIDE,
+            splat_bytes: serde_json::Value::Null,
         })
     }
 }
@@ -117,16 +121,4 @@ fn short_name(dir: &std::path::Path) -> String {
     let parts: Vec<String> =
         dir.components().rev().take(2).map(|c| c.as_os_str().to_string_lossy().into_owned()).collect();
     parts.into_iter().rev().collect::<Vec<_>>().join("/")
-}
-
-/// The scene's Gaussians as an Inria-layout `.ply` for the browser: position, scale, rotation,
-/// opacity and colour (the SH bands only when the run uses them; no identity channels).
-pub fn splats_ply(s: &ChatSession) -> Vec<u8> {
-    let (mut cloud, _) = s.scene.splats.to_cloud();
-    cloud.extra.clear();
-    if s.scene.sh_degree == 0 {
-        cloud.sh_rest.clear();
-        cloud.rest_per_gaussian = 0;
-    }
-    model::ply::encode(&cloud)
 }

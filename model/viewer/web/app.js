@@ -62,6 +62,9 @@ const state = {
   size: { width: 640, height: 480 }, // the canvas in pixels (what the server renders and picks at)
   selection: null, // {id, name, mask, bbox} from the last pick / select
   found: null, // the last search's reply (/api/find) and the camera it was made at
+  hidden: [], // ids of the objects left out of the view (hide), in the order hidden
+  splatFormat: "ply", // or "spz" (Niantic's compressed splats), whichever the server makes smaller
+  splatsUrl: null, // what the WebGL renderer shows
   converse: true, // questions follow their scope's conversation (the model holds one, or ?converse=1)
   scope: "view",
   histories: { view: [], object: [], scene: [] },
@@ -251,17 +254,25 @@ async function startWebgl() {
   renderer.setPixelRatio(1);
   renderer.setSize(state.size.width, state.size.height, false);
   renderer.setClearColor(new THREE.Color().fromArray(state.scene.background), 1);
-  const scene = new THREE.Scene();
-  scene.add(new SparkRenderer({ renderer }));
-  const mesh = new SplatMesh({ url: "/api/splats.ply", fileName: "splats.ply" });
-  scene.add(mesh);
-  await mesh.initialized;
+  Object.assign(draw, { SparkRenderer, SplatMesh });
+  const scene = await splatScene(renderer, state.splatsUrl);
   Object.assign(draw, { renderer, scene });
   renderer.setAnimationLoop((now) => {
     if (now > draw.until && state.frames >= draw.minFrames) return;
-    renderer.render(scene, state.camera);
+    renderer.render(draw.scene, state.camera);
     countFrame(now);
   });
+}
+
+// A scene of its own for the splats at `url` (a new one each time the hidden objects change:
+// Spark then sorts and draws only what it was loaded with).
+async function splatScene(renderer, url) {
+  const scene = new THREE.Scene();
+  scene.add(new draw.SparkRenderer({ renderer }));
+  const mesh = new draw.SplatMesh({ url, fileName: `splats.${state.splatFormat}` });
+  scene.add(mesh);
+  await mesh.initialized;
+  return scene;
 }
 
 function countFrame(now) {
@@ -288,7 +299,7 @@ async function serverFrame() {
       cam.width = Math.max(8, Math.round(cam.width * s));
       cam.height = Math.max(8, Math.round(cam.height * s));
     }
-    const r = await post("/api/render", { camera: cam });
+    const r = await post("/api/render", { camera: cam, hidden: state.hidden });
     const url = URL.createObjectURL(await r.blob());
     const img = $("server-frame");
     await new Promise((ok) => { img.onload = ok; img.onerror = ok; img.src = url; });
@@ -328,6 +339,11 @@ async function pick(x, y) {
     const r = await (await post("/api/pick", { camera, x: x * sx, y: y * sy })).json();
     state.lastPickMs = r.ms;
     if (!r.object) { clearSelection(); status(`background (${r.ms.toFixed(0)} ms)`); return; }
+    if (state.hidden.includes(r.object.id)) {
+      clearSelection();
+      status(`the ${r.object.name} is hidden here ("show hidden" brings it back)`);
+      return;
+    }
     select({ ...r.object, camera });
     status(`picked ${r.object.name} in ${r.ms.toFixed(0)} ms`);
   } catch (e) {
@@ -357,6 +373,11 @@ function select(object) {
   b.disabled = false;
   b.textContent = `Object: ${object.name}`;
   b.title = `ask about the ${object.name}`;
+  $("download").href = `/api/objects/${object.id}.ply`;
+  $("download").textContent = `download ${object.name} (.ply)`;
+  $("download-spz").href = `/api/objects/${object.id}.spz`;
+  $("download-spz").hidden = !state.scene.splat_bytes.spz;
+  $("object-tools").hidden = false;
   if (changed) {
     note("object", `picked: ${object.name}`);
     setScope("object");
@@ -375,6 +396,7 @@ function clearSelection() {
   const b = document.querySelector('[data-scope="object"]');
   b.disabled = true;
   b.textContent = "Object";
+  $("object-tools").hidden = true;
   if (state.scope === "object") setScope("view");
 }
 
@@ -443,7 +465,7 @@ async function find() {
 function drawFound() {
   const f = state.found;
   clearOverlay();
-  const shown = f.matches.filter((m) => m.mask);
+  const shown = f.matches.filter((m) => m.mask && !state.hidden.includes(m.id));
   if (shown.length) paintMasks(shown.map((m) => m.mask), f.camera.width, f.camera.height);
   const list = $("found");
   list.replaceChildren();
@@ -451,7 +473,8 @@ function drawFound() {
     const li = document.createElement("li");
     const b = document.createElement("button");
     b.type = "button";
-    b.textContent = `${m.name} · ${m.score.toFixed(2)}${m.mask ? "" : " (hidden here)"}`;
+    const where = state.hidden.includes(m.id) ? " (hidden by you)" : m.mask ? "" : " (not in view here)";
+    b.textContent = `${m.name} · ${m.score.toFixed(2)}${where}`;
     b.title = `ask about the ${m.name}`;
     b.dataset.id = m.id;
     b.addEventListener("click", () => chooseFound(m.id));
@@ -484,6 +507,59 @@ function clearFound() {
   $("found").hidden = true;
   $("found").replaceChildren();
   if (!state.selection) clearOverlay();
+}
+
+// ---------------------------------------------------------------- hide
+// Hidden objects leave the view (their Gaussians, by identity class): the WebGL renderer loads
+// the scene without them, server frames are rendered without them; picks pass over them. The
+// model still answers about the whole scene.
+async function hideSelection() {
+  const s = state.selection;
+  if (!s || state.hidden.includes(s.id)) return;
+  state.hidden.push(s.id);
+  clearSelection();
+  status(`hid the ${s.name}`);
+  await showSplats();
+}
+
+async function showHidden() {
+  state.hidden = [];
+  status("every object shown");
+  await showSplats();
+}
+
+async function showSplats() {
+  const n = state.hidden.length;
+  $("show-hidden").hidden = n === 0;
+  $("show-hidden").textContent = `show hidden (${n})`;
+  if (state.found) drawFound();
+  const url = splatsUrl();
+  if (state.mode === "webgl" && draw.scene) {
+    let scene;
+    try {
+      scene = await splatScene(draw.renderer, url);
+    } catch (e) {
+      status(`could not load the splats: ${e.message}`);
+      return;
+    }
+    const old = draw.scene;
+    draw.scene = scene;
+    old.traverse((o) => { if (o !== old && typeof o.dispose === "function") o.dispose(); });
+  }
+  state.splatsUrl = url;
+  requestFrame(false);
+  // a new scene is sorted from scratch: keep drawing longer than after a camera move
+  if (state.mode === "webgl") draw.until = performance.now() + 4000;
+}
+
+function splatsUrl() {
+  const base = `/api/splats.${state.splatFormat}`;
+  return state.hidden.length ? `${base}?without=${state.hidden.join(",")}` : base;
+}
+
+function installHide() {
+  $("hide").addEventListener("click", hideSelection);
+  $("show-hidden").addEventListener("click", showHidden);
 }
 
 function installFind() {
@@ -695,6 +771,7 @@ async function main() {
   installControls();
   installChat();
   installFind();
+  installHide();
   // a model trained on single questions asks each on its own (?converse=1 holds conversations anyway)
   state.converse = s.converses || params.get("converse") === "1";
   $("new-conversation").hidden = !state.converse;
@@ -708,8 +785,12 @@ async function main() {
     b.hidden = false;
   }
   state.mode = params.get("render") === "server" || !webgl2() ? "server" : "webgl";
+  const bytes = s.splat_bytes;
+  state.splatFormat = bytes.spz && bytes.spz < bytes.ply ? "spz" : "ply";
+  state.splatsUrl = splatsUrl();
   if (state.mode === "webgl") {
-    status(`loading ${s.gaussians.toLocaleString()} Gaussians…`);
+    const mb = (bytes[state.splatFormat] / 1e6).toFixed(1);
+    status(`loading ${s.gaussians.toLocaleString()} Gaussians (${mb} MB .${state.splatFormat})…`);
     try {
       await startWebgl();
     } catch (e) {
@@ -754,6 +835,9 @@ window.chatsplat = {
   })),
   notes: () => state.histories[state.scope].filter((t) => t.note).map((t) => t.note),
   serverFrameKind: () => $("server-frame").dataset.kind || null,
+  // the objects hidden, and the splats the WebGL renderer shows (the URL, once loaded)
+  hidden: () => [...state.hidden],
+  get splatsUrl() { return state.splatsUrl; },
 };
 
 main().catch((e) => { status(`cannot load the scene: ${e.message}`); });

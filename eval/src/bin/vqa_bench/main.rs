@@ -17,7 +17,7 @@ mod totals;
 
 use burn::tensor::Device;
 use clap::Parser;
-use eval::compare::{Answered, Source, answer_file};
+use eval::compare::{Answered, Source, answer_file, find_file};
 use eval::harness::{HeldOutSeeds, ModelArgs};
 use eval::progress::Progress;
 use model::Result;
@@ -28,11 +28,11 @@ use model::language::CROP_MARGIN;
 use model::run::{GeometryRun, LanguageRun};
 use model::splats::host;
 use model::vlm::{LlavaOnevision, RgbImage};
-use model::vqa::{Level, load_questions, scene_view, target_of};
+use model::vqa::{FindOptions, Level, load_questions, scene_view, target_of};
 use std::path::PathBuf;
 use std::time::Instant;
 use sweep::{GEOMETRY_SWEEP, Point, SWEEP, Variant, add_point};
-use totals::{BenchJson, Totals, report};
+use totals::{BenchJson, Totals, add_find, report};
 use train::geometry::GeometryConfig;
 use train::language::LanguageTrainConfig;
 use train::pipeline::{Observer, Recipe, SceneDirs, Stage, TeacherModel, train_scene};
@@ -100,6 +100,10 @@ struct Args {
     /// views/s, the Pareto front marked) beside bench.json.
     #[arg(long)]
     sweep: bool,
+    /// Only ChatSplat's find phrases (the scene's `find` questions): no answers of the three
+    /// paths, no token speed or fidelity.
+    #[arg(long, conflicts_with = "sweep")]
+    find_only: bool,
     /// Instead of running, add up the bench.json of earlier runs (tallies, token seconds and sweep
     /// points of their scenes) and print, plot and write them as one run into `--out`.
     #[arg(long, num_args = 1.., value_name = "BENCH_JSON")]
@@ -133,7 +137,7 @@ fn bench(a: &Args) -> Result<()> {
     language_config.checkpoint_every = 0;
     model::io::create_dir(&a.out)?;
     let mut totals = Totals { seeds: vec![[a.held_out.first_seed, a.held_out.range().end]], ..Default::default() };
-    let Totals { tallies, seconds, fid_rgb, fid_cs, points, .. } = &mut totals;
+    let Totals { tallies, seconds, fid_rgb, fid_cs, points, find, find_seconds, .. } = &mut totals;
     let d = vlm.cfg.vision.hidden_size;
     for seed in a.held_out.range() {
         let dir = a.out.join(format!("seed{seed}"));
@@ -164,6 +168,12 @@ fn bench(a: &Args) -> Result<()> {
         );
         let session = ChatSession::open(&run, None, &vlm_dir, &device)?;
         let qf = load_questions(&data.join("questions.json"))?;
+        let find_opts = FindOptions::of_run(&run, &mut Vec::new());
+        let (kinds, secs) = find_file(&session, &qf, &find_opts)?;
+        add_find(find, find_seconds, &kinds, secs);
+        if a.find_only {
+            continue;
+        }
         let mut configured = None;
         for source in Source::ALL {
             let answered = answer_file(&vlm, &qf, &ds, Some(&session), source, CROP_MARGIN)?;
@@ -174,7 +184,8 @@ fn bench(a: &Args) -> Result<()> {
         }
         // speed of each path's tokens and their fidelity to teacher(ground truth), per question target
         for q in &qf.questions {
-            if q.level == Level::Scene {
+            // one figure per target: not scene level, not a phrase to find, not a follow-up
+            if matches!(q.level, Level::Scene | Level::Find) || q.follows.is_some() {
                 continue;
             }
             let target = target_of(&qf, q, &session, DEFAULT_SCENE_VIEWS)?;
@@ -308,7 +319,7 @@ fn bench(a: &Args) -> Result<()> {
     let settings = serde_json::json!({
         "seeds": [a.held_out.first_seed, a.held_out.range().end], "views": a.views, "resolution": side,
         "geometry_iters": a.geometry_iters, "language_iters": a.language_iters, "novel_views": a.novel_views,
-        "tower_tail": a.tower_tail,
+        "tower_tail": a.tower_tail, "find_only": a.find_only,
         "language_config": language_config, "backend": a.model.backend.to_string(),
     });
     report(&totals, &format!("{} views of {side}px", a.views), settings, &a.out)

@@ -1,9 +1,10 @@
 //! What a run adds up over its scenes, its bench.json, and the printed comparison.
 
 use crate::sweep::{Point, add_point, sweep_report};
-use eval::compare::{Source, Tally};
+use eval::compare::{FindKinds, Source, Tally};
 use eval::harness::TokenFidelity;
 use model::Result;
+use model::find::FindTally;
 use model::vqa::Level;
 use std::collections::BTreeMap;
 
@@ -18,6 +19,9 @@ pub(crate) struct Totals {
     pub(crate) points: Vec<Point>,
     /// Held-out seeds, ranges `[first, end)`.
     pub(crate) seeds: Vec<[u64; 2]>,
+    /// ChatSplat's find phrases by kind, and the seconds they took.
+    pub(crate) find: FindKinds,
+    pub(crate) find_seconds: f64,
 }
 
 /// The parts of a bench.json that `--merge` adds (older files lack `token_seconds`).
@@ -27,14 +31,23 @@ pub(crate) struct BenchJson {
     pub(crate) seeds: Option<[u64; 2]>,
     #[serde(default)]
     pub(crate) seed_ranges: Vec<[u64; 2]>,
+    #[serde(default)]
     pub(crate) tallies: BTreeMap<Source, Tally>,
     /// `None` in files written before the runs stored it.
     #[serde(default)]
     pub(crate) token_seconds: Option<Vec<(Source, Level, f64, usize)>>,
+    /// Absent in `--find-only` runs.
+    #[serde(default)]
     pub(crate) fidelity_rendered_rgb: TokenFidelity,
+    #[serde(default)]
     pub(crate) fidelity_chatsplat: TokenFidelity,
     #[serde(default)]
     pub(crate) sweep: Vec<Point>,
+    /// Absent in files written before find phrases were scored.
+    #[serde(default)]
+    pub(crate) find: FindKinds,
+    #[serde(default)]
+    pub(crate) find_seconds: f64,
 }
 
 impl Totals {
@@ -53,6 +66,7 @@ impl Totals {
             add_point(&mut self.points, p);
         }
         self.seeds.extend(b.seeds.iter().chain(&b.seed_ranges));
+        add_find(&mut self.find, &mut self.find_seconds, &b.find, b.find_seconds);
     }
 
     pub(crate) fn scenes(&self) -> u64 {
@@ -76,6 +90,11 @@ pub(crate) fn report(t: &Totals, what: &str, settings: serde_json::Value, out: &
     let empty = Tally::default();
     let tally = |s: Source| t.tallies.get(&s).unwrap_or(&empty);
     println!("\n## ChatSplat vs the VLM on images ({}, {what})\n", t.label());
+    if t.tallies.is_empty() {
+        // --find-only: no answers, no token figures
+        find_report(t);
+        return write_bench(t, settings, serde_json::json!({}), out);
+    }
     println!("| path | view | object | scene | overall | questions |\n|---|---|---|---|---|---|");
     for source in Source::ALL {
         let t = tally(source);
@@ -90,6 +109,7 @@ pub(crate) fn report(t: &Totals, what: &str, settings: serde_json::Value, out: &
             t.overall()
         );
     }
+    find_report(t);
     let kinds: Vec<String> = tally(Source::GroundTruth).by_kind.keys().cloned().collect();
     println!(
         "\n| question type | (a) ground truth | (b) rendered RGB | (c) ChatSplat | asked |\n|---|---|---|---|---|"
@@ -130,7 +150,6 @@ pub(crate) fn report(t: &Totals, what: &str, settings: serde_json::Value, out: &
     if !t.points.is_empty() {
         sweep_report(&t.points, baseline, t, out)?;
     }
-    let mut json = settings;
     let figures = serde_json::json!({
         "tallies": t.tallies
             .iter()
@@ -139,10 +158,51 @@ pub(crate) fn report(t: &Totals, what: &str, settings: serde_json::Value, out: &
         "token_seconds": t.seconds.iter().map(|(&(s, l), &(secs, n))| (s, l, secs, n)).collect::<Vec<_>>(),
         "fidelity_rendered_rgb": fr, "fidelity_chatsplat": fc, "sweep": t.points,
     });
+    write_bench(t, settings, figures, out)
+}
+
+/// Writes bench.json: `settings`, then `figures` and the find tallies.
+fn write_bench(
+    t: &Totals,
+    settings: serde_json::Value,
+    figures: serde_json::Value,
+    out: &std::path::Path,
+) -> Result<()> {
+    let mut json = settings;
     if let (Some(j), serde_json::Value::Object(f)) = (json.as_object_mut(), figures) {
         j.extend(f);
+        j.insert("tallies".into(), j.get("tallies").cloned().unwrap_or_else(|| serde_json::json!({})));
+        j.insert("find".into(), serde_json::to_value(&t.find).expect("plain numbers"));
+        j.insert("find_seconds".into(), t.find_seconds.into());
     }
     model::io::write_json(&out.join("bench.json"), &json)?;
     println!("\nfigures -> {}", out.join("bench.json").display());
     Ok(())
+}
+
+/// Adds one scene's (or run's) find tallies by kind and seconds to `find` and `seconds`.
+pub(crate) fn add_find(find: &mut FindKinds, seconds: &mut f64, kinds: &FindKinds, secs: f64) {
+    for (k, t) in kinds {
+        find.entry(k.clone()).or_default().merge(t);
+    }
+    *seconds += secs;
+}
+
+/// ChatSplat's find phrases: the summary over all, and a table by kind.
+fn find_report(t: &Totals) {
+    let mut all = FindTally::default();
+    t.find.values().for_each(|k| all.merge(k));
+    if all.phrases == 0 {
+        return;
+    }
+    println!(
+        "\n(c) ChatSplat {}; {:.1} ms a phrase (the first of each scene builds its finder)",
+        all.summary(),
+        1e3 * t.find_seconds / all.phrases as f64
+    );
+    println!("\n| find phrases | asked | precision | recall | F1 | exact (%) |\n|---|---|---|---|---|---|");
+    for (k, f) in &t.find {
+        let exact = 100.0 * f.exact as f32 / f.phrases.max(1) as f32;
+        println!("| {k} | {} | {:.3} | {:.3} | {:.3} | {exact:.1} |", f.phrases, f.precision(), f.recall(), f.f1());
+    }
 }

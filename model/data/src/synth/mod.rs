@@ -13,7 +13,8 @@
 //!                            colour, size, position, scale and yaw
 //! DIR/questions.json         questions with reference answers for `chatsplat vqa`: view and
 //!                            object level on the held-out views (novel views), scene level on
-//!                            training views that together see every object
+//!                            training views that together see every object, and phrases to
+//!                            find (each colour, shape and name, present and absent)
 //! ```
 //!
 //! Deterministic from the seed. One module owns the synthetic scene: [`scene`] (what a seed
@@ -29,10 +30,13 @@ pub mod scene;
 use crate::error::{Error, Result};
 use crate::images;
 use crate::io;
-use crate::question_file::{Question, QuestionFile};
+use crate::question_file::{Level, Question, QuestionFile};
 use base::rng::Rng;
 use glam::{Mat4, Vec3};
-use questions::{CLICK_FRACTION, ViewFacts, covering_views, object_questions, scene_questions, view_questions};
+use questions::{
+    CLICK_FRACTION, FollowUp, ViewFacts, covering_views, find_queries, object_follow_ups, object_questions,
+    scene_questions, view_follow_ups, view_questions,
+};
 use raycast::render_view;
 use scene::SynthScene;
 use serde::Serialize;
@@ -268,20 +272,43 @@ fn question_file(
                 answer: qa.answer.clone(),
                 keywords: vec![],
                 items: qa.items(),
+                objects: None,
+                follows: None,
+                spelled: None,
             }
         };
+    // a follow-up goes on the conversation of the question it follows (its id `first`)
+    let follow_up = |f: &FollowUp, first: &Question, twin: &str| Question {
+        id: format!("{twin}-{}", f.kind),
+        kind: Some(f.kind.to_string()),
+        question: f.question.clone(),
+        answer: f.answer.clone(),
+        follows: Some(first.id.clone()),
+        spelled: Some(twin.to_string()),
+        ..first.clone()
+    };
+    let mut follow_ups = Vec::new();
     for (i, f) in facts.iter().enumerate().filter(|(i, _)| held_out(*i)) {
-        for (n, qa) in view_questions(scene, f, &mut rng).iter().enumerate() {
+        let at = qs.len();
+        let view_qas = view_questions(scene, f, &mut rng);
+        for (n, qa) in view_qas.iter().enumerate() {
             qs.push(q(format!("v{i}-{n}-{}", qa.kind.as_str()), qa, Some(i), None, None));
+        }
+        for fu in view_follow_ups(&view_qas) {
+            follow_ups.push(follow_up(&fu, &qs[at + fu.first], &qs[at + fu.twin].id));
         }
         if f.ambiguous {
             continue;
         }
         for &(id, [x, y]) in &clicks[i] {
             let o = scene.object(id).expect("clicked objects exist");
-            for qa in object_questions(o) {
+            let (at, object_qas) = (qs.len(), object_questions(o));
+            for qa in &object_qas {
                 let click = Some([x as f32, y as f32]);
-                qs.push(q(format!("o{i}-{id}-{}", qa.kind.as_str()), &qa, Some(i), click, None));
+                qs.push(q(format!("o{i}-{id}-{}", qa.kind.as_str()), qa, Some(i), click, None));
+            }
+            for fu in object_follow_ups(&object_qas) {
+                follow_ups.push(follow_up(&fu, &qs[at + fu.first], &qs[at + fu.twin].id));
             }
         }
     }
@@ -292,6 +319,28 @@ fn question_file(
         for (n, qa) in scene_questions(scene).iter().enumerate() {
             qs.push(q(format!("s-{n}-{}", qa.kind.as_str()), qa, None, None, Some(views.clone())));
         }
+    }
+    // follow-ups after the questions asked on their own (which stay those of earlier datasets)
+    qs.extend(follow_ups);
+    // find: its own draws, so the questions above stay those of earlier datasets
+    let mut rng = Rng::new(scene.seed ^ 0x0f1d_0f1d);
+    for (n, f) in find_queries(scene, &mut rng).into_iter().enumerate() {
+        let names: Vec<String> = f.objects.iter().filter_map(|&id| scene.object(id)).map(|o| o.name()).collect();
+        qs.push(Question {
+            id: format!("f-{n}-{}", f.kind),
+            level: Level::Find,
+            kind: Some(f.kind),
+            view: None,
+            object: None,
+            views: None,
+            question: f.phrase,
+            answer: if names.is_empty() { "none".into() } else { names.join(" ") },
+            keywords: vec![],
+            items: None,
+            objects: Some(f.objects),
+            follows: None,
+            spelled: None,
+        });
     }
     QuestionFile {
         scene: Some(format!("synthetic tabletop, seed {}", scene.seed)),

@@ -21,6 +21,9 @@
 //! | scene | list | What objects are in the scene? | `red cube blue cone` (colour, then shape order) |
 //! | scene | count_color | How many red objects are in the scene? | `2` |
 //! | scene | count_shape | How many cubes are in the scene? | `1` |
+//! | view | follow_left_of | (after shape_of) Is it left of the blue cone? | `yes` / `no` |
+//! | object | follow_color / follow_shape / follow_size | (after name) What color is it? / ... | `red` / ... |
+//! | find | find_color / find_shape / find_name (`find_absent_*`) | `red` / `cone` / `red cone` | ids named |
 
 use super::scene::{Color, Object, Shape, Size, SynthScene};
 use crate::question_file::Level;
@@ -314,6 +317,122 @@ pub fn scene_questions(scene: &SynthScene) -> Vec<Qa> {
     for s in Shape::ALL {
         let n = all.iter().filter(|o| o.shape == s).count();
         out.push(Qa::new(Kind::CountShape, format!("How many {} are in the scene?", s.plural()), n.to_string()));
+    }
+    out
+}
+
+/// A follow-up: a question that refers to an earlier answer by "it", asked after that question
+/// in its conversation; `first` and `twin` index the list it was made from (the question it
+/// follows, and the same question with its referent spelled out).
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct FollowUp {
+    /// `follow_left_of`, `follow_color`, `follow_shape`, `follow_size`.
+    pub kind: &'static str,
+    pub question: String,
+    pub answer: String,
+    pub first: usize,
+    pub twin: usize,
+}
+
+/// The follow-ups of a view's questions ([`view_questions`]): after "What shape is the red
+/// object?" ("cube"), "Is it left of the blue cone?" for each `left_of` question about the red
+/// cube (its twin).
+pub fn view_follow_ups(qas: &[Qa]) -> Vec<FollowUp> {
+    let mut out = Vec::new();
+    for (first, qa) in qas.iter().enumerate().filter(|(_, q)| q.kind == Kind::ShapeOf) {
+        let Some(c) = Color::ALL.into_iter().find(|c| qa.question == format!("What shape is the {} object?", c.word()))
+        else {
+            continue;
+        };
+        let prefix = format!("Is the {} {} left of the ", c.word(), qa.answer);
+        for (twin, lq) in qas.iter().enumerate().filter(|(_, q)| q.kind == Kind::LeftOf) {
+            if let Some(other) = lq.question.strip_prefix(&prefix) {
+                let question = format!("Is it left of the {other}");
+                out.push(FollowUp { kind: "follow_left_of", question, answer: lq.answer.clone(), first, twin });
+            }
+        }
+    }
+    out
+}
+
+/// The follow-ups of a clicked object's questions ([`object_questions`]): after "What is this?",
+/// "What color is it?", "What shape is it?" and "What size is it?" (twins: "... is this?").
+pub fn object_follow_ups(qas: &[Qa]) -> Vec<FollowUp> {
+    let Some(first) = qas.iter().position(|q| q.kind == Kind::Name) else { return vec![] };
+    let mut out = Vec::new();
+    for (twin, qa) in qas.iter().enumerate() {
+        let (kind, what) = match qa.kind {
+            Kind::Color => ("follow_color", "color"),
+            Kind::Shape => ("follow_shape", "shape"),
+            Kind::Size => ("follow_size", "size"),
+            _ => continue,
+        };
+        out.push(FollowUp { kind, question: format!("What {what} is it?"), answer: qa.answer.clone(), first, twin });
+    }
+    out
+}
+
+/// A phrase to find among a scene's objects (a question file's `find` level) and the objects it
+/// names.
+#[derive(Clone, Debug, PartialEq, Eq)]
+pub struct FindQuery {
+    /// `find_color`, `find_shape`, `find_name`; `find_absent_color`, ... for a phrase that names
+    /// no object of the scene.
+    pub kind: String,
+    pub phrase: String,
+    /// The instance ids it names, in id order (empty for an absent phrase).
+    pub objects: Vec<u8>,
+}
+
+/// The find queries of a scene: each colour, shape and name (colour and shape) it holds, and as
+/// many absent ones of each sort as present ones, where there are (the absent names pair a colour
+/// and a shape the scene holds apart before any other pair). `rng` picks the absent ones.
+pub fn find_queries(scene: &SynthScene, rng: &mut Rng) -> Vec<FindQuery> {
+    let objs = &scene.objects;
+    let ids = |f: &dyn Fn(&Object) -> bool| -> Vec<u8> { objs.iter().filter(|o| f(o)).map(|o| o.id).collect() };
+    let query = |kind: &str, phrase: String, objects: Vec<u8>| {
+        let kind = if objects.is_empty() { kind.replace("find_", "find_absent_") } else { kind.to_string() };
+        FindQuery { kind, phrase, objects }
+    };
+    let mut out = Vec::new();
+    let (mut colors, mut absent_colors): (Vec<Color>, Vec<Color>) =
+        Color::ALL.into_iter().partition(|&c| objs.iter().any(|o| o.color == c));
+    let (mut shapes, mut absent_shapes): (Vec<Shape>, Vec<Shape>) =
+        Shape::ALL.into_iter().partition(|&s| objs.iter().any(|o| o.shape == s));
+    let mut names: Vec<(Color, Shape)> = objs.iter().map(|o| (o.color, o.shape)).collect();
+    names.sort();
+    for &c in &colors {
+        out.push(query("find_color", c.word().into(), ids(&|o| o.color == c)));
+    }
+    for &s in &shapes {
+        out.push(query("find_shape", s.word().into(), ids(&|o| o.shape == s)));
+    }
+    for &(c, s) in &names {
+        out.push(query("find_name", format!("{} {}", c.word(), s.word()), ids(&|o| o.color == c && o.shape == s)));
+    }
+    let k = colors.len();
+    rng.partial_shuffle(&mut absent_colors, k);
+    for &c in absent_colors.iter().take(k) {
+        out.push(query("find_color", c.word().into(), vec![]));
+    }
+    let k = shapes.len();
+    rng.partial_shuffle(&mut absent_shapes, k);
+    for &s in absent_shapes.iter().take(k) {
+        out.push(query("find_shape", s.word().into(), vec![]));
+    }
+    // absent names: a held colour with a held shape first (the hard ones), then any other pair
+    rng.shuffle(&mut colors);
+    rng.shuffle(&mut shapes);
+    let held: Vec<(Color, Shape)> =
+        colors.iter().flat_map(|&c| shapes.iter().map(move |&s| (c, s))).filter(|p| !names.contains(p)).collect();
+    let mut others: Vec<(Color, Shape)> = Color::ALL
+        .into_iter()
+        .flat_map(|c| Shape::ALL.into_iter().map(move |s| (c, s)))
+        .filter(|p| !names.contains(p) && !held.contains(p))
+        .collect();
+    rng.shuffle(&mut others);
+    for (c, s) in held.into_iter().chain(others).take(names.len()) {
+        out.push(query("find_name", format!("{} {}", c.word(), s.word()), vec![]));
     }
     out
 }

@@ -112,8 +112,8 @@ impl FollowUps {
         let pct = |a: usize, b: usize| 100.0 * a as f64 / b.max(1) as f64;
         (self.asked > 0).then(|| {
             format!(
-                "follow-ups ({} asked after the question they follow): exact match {:.1} %; the {} with a twin: {:.1} % \
-                 as follow-ups, {:.1} % spelled out on their own",
+                "follow-ups ({} asked after the question they follow): exact match {:.1} %; \
+                 the {} with a twin: {:.1} % as follow-ups, {:.1} % spelled out on their own",
                 self.asked,
                 pct(self.right, self.asked),
                 self.paired,

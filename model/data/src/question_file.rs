@@ -323,12 +323,17 @@ mod tests {
         let f = load_questions(&p).unwrap();
         let _ = std::fs::remove_file(p);
         assert_eq!((f.questions[0].level, f.questions[0].objects.clone()), (Level::Find, Some(vec![3, 5])));
-        let first = r#"{"id": "n", "level": "object", "view": 1, "object": [3, 4], "question": "What is this?", "answer": "red cube"}"#;
-        let twin = r#"{"id": "c", "level": "object", "view": 1, "object": [3, 4], "question": "What color is this?", "answer": "red"}"#;
+        let first = concat!(
+            r#"{"id": "n", "level": "object", "view": 1, "object": [3, 4], "#,
+            r#""question": "What is this?", "answer": "red cube"}"#
+        );
+        let twin = concat!(
+            r#"{"id": "c", "level": "object", "view": 1, "object": [3, 4], "#,
+            r#""question": "What color is this?", "answer": "red"}"#
+        );
         let follow = |target: &str, follows: &str| {
-            format!(
-                r#"{{"id": "f", "level": "object", {target}, "question": "What color is it?", "answer": "red", {follows}}}"#
-            )
+            let head = r#"{"id": "f", "level": "object", "#;
+            format!(r#"{head}{target}, "question": "What color is it?", "answer": "red", {follows}}}"#)
         };
         let at = r#""view": 1, "object": [3, 4]"#;
         let good = q(&format!("{first}, {twin}, {}", follow(at, r#""follows": "n", "spelled": "c""#)));

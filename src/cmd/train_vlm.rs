@@ -77,6 +77,9 @@ fn evaluate(dir: &std::path::Path, a: &Args) -> anyhow::Result<()> {
     );
     println!("exact match {}", acc.summary());
     println!("by type: {}", acc.by_kind_line());
+    if let Some(line) = acc.follow_up_line() {
+        println!("follow-ups (second turns): {line}");
+    }
     for line in acc.smallest_lines() {
         println!("{line}");
     }
@@ -140,6 +143,9 @@ pub fn run(a: Args, ranks: &crate::ranks::Ranks) -> anyhow::Result<()> {
                 let labels = p.eval_labels.as_ref().map(|l| format!(" (reading label tokens: {})", l.summary()));
                 eprintln!("\nstep {}: held-out exact match {}{}", p.step, e.summary(), labels.unwrap_or_default());
                 eprintln!("  {}", e.by_kind_line());
+                if let Some(line) = e.follow_up_line() {
+                    eprintln!("  follow-ups: {line}");
+                }
             }
             let [d, w, f] = p.hop_loss;
             let [c, s, z] = p.tower_accuracy.map(|a| (100.0 * a).round());

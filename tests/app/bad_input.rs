@@ -196,7 +196,7 @@ fn broken_ply_files_are_refused_with_the_file_and_the_problem() {
     ];
     let mut trailing = spz.clone();
     trailing.extend(b"more");
-    spz_files.push(("spz-trailing".into(), trailing, "after"));
+    spz_files.push(("spz-trailing".into(), trailing, "follow the gzip stream"));
     for (tag, bytes, want) in spz_files {
         let p = dir.join(format!("{tag}.spz"));
         std::fs::write(&p, &bytes).unwrap();

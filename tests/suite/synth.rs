@@ -411,6 +411,31 @@ fn dataset_is_deterministic_complete_and_geometrically_consistent() {
 }
 
 #[test]
+fn second_turns_use_only_the_conversation_vocabulary_and_follow_their_first_question() {
+    use model::data::synth::questions::{conversation_vocabulary, vocabulary};
+    let (words, single) = (conversation_vocabulary(), vocabulary());
+    assert_eq!((&words[..single.len()], &words[single.len()..]), (&single[..], &["it".to_string()][..]));
+    let known = |text: &str| text.split([' ', '?']).filter(|w| !w.is_empty()).all(|w| words.iter().any(|v| v == w));
+    let mut follow_ups = 0;
+    for seed in 0..20 {
+        let scene = SynthScene::from_seed(seed);
+        for o in &scene.objects {
+            let qas = object_questions(o);
+            for f in object_follow_ups(&qas) {
+                let qa = f.qa(&qas);
+                let first = qa.follows.as_deref().expect("asked after its first question");
+                assert_eq!((qa.kind, first), (qas[f.twin].kind, &qas[f.first]), "{}", qa.question);
+                assert_eq!(qa.answer, qas[f.twin].answer, "it answers as its twin");
+                assert!(known(&qa.question) && known(&first.question) && known(&first.answer), "{}", qa.question);
+                assert!(!qa.question.split([' ', '?']).all(|w| single.iter().any(|v| v == w) || w.is_empty()));
+                follow_ups += 1;
+            }
+        }
+    }
+    assert!(follow_ups >= 60, "{follow_ups} follow-ups");
+}
+
+#[test]
 fn gaussian_tabletop_covers_the_same_pixels_as_the_analytic_scene() {
     let o = SynthOptions { seed: 7, views: 4, width: 80, height: 80, ..Default::default() };
     let (cloud, scene) = model::data::synth::gaussians::tabletop(o.seed, 60);

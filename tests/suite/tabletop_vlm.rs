@@ -351,6 +351,90 @@ fn packed_batches_score_answers_as_single_turn_inference_does() {
 }
 
 #[test]
+fn a_two_turn_stage_grows_the_vocabulary_and_scores_second_turns_as_a_conversation_does() {
+    use model::data::synth::questions::{object_follow_ups, view_follow_ups};
+    use model::vlm::Exchange;
+    let dev = Device::ndarray();
+    let base = VlmTrainConfig { steps: 2, eval_every: 0, eval_seeds: 1, ..tiny_config() };
+    let out = temp_dir("vlm-two-turn");
+    train_from(&base, &out.join("base"), None, &dev, &Solo, false, |_| {}).unwrap();
+    let single = LlavaOnevision::load(&out.join("base"), &dev).unwrap();
+    assert!(single.tokenizer.id("it").is_none() && !single.converses(), "a single-turn model");
+    // "it" is added after every word the model had, its row a copy of "this"
+    let grown = train::vlm::conversing(single.clone()).unwrap();
+    let (old, it) = (single.cfg.text.vocab_size, grown.tokenizer.id("it").unwrap() as usize);
+    assert_eq!((grown.cfg.text.vocab_size, it), (old + 1, old));
+    let (w0, w1) = (host(single.llm.embed.weight.val()), host(grown.llm.embed.weight.val()));
+    let d = w0.len() / old;
+    assert_eq!(&w1[..old * d], &w0[..], "every earlier row is kept");
+    let this = single.tokenizer.id("this").unwrap() as usize;
+    assert_eq!(&w1[old * d..], &w0[this * d..(this + 1) * d], "\"it\" starts as \"this\"");
+    // a two-turn stage trains on from the base and holds conversations
+    let stage = VlmTrainConfig { seed: 4, two_turn: 1.0, base: Some(Box::new(base.clone())), ..base.clone() };
+    let mut evals = Vec::new();
+    let stage_cfg = VlmTrainConfig { eval_every: 2, ..stage.clone() };
+    train_from(&stage_cfg, &out, None, &dev, &Solo, false, |l| evals.extend(l.eval.clone())).unwrap();
+    let two = LlavaOnevision::load(&out, &dev).unwrap();
+    assert!(two.converses() && two.tokenizer.id("it") == Some(old as u32), "the stage's model converses");
+    let acc = evals.last().expect("evaluated");
+    let follow = acc.follow_up_line().expect("held-out follow-ups are scored");
+    assert!(follow.contains("follow_color") && follow.contains("follow_size"), "{follow}");
+    let bad = VlmTrainConfig { two_turn: 1.5, ..stage }.validate().unwrap_err().to_string();
+    assert!(bad.contains("two_turn"), "{bad}");
+    // a packed second turn scores its answer exactly as the conversation's prompt does
+    let t = Trainer::starting_from(&base, grown, &dev).unwrap();
+    let m = t.model.valid();
+    let samples = eval_samples(t.spec(), 77..80, 2, 1);
+    let (s, g2, dv) = (base.model.image_size, m.vlm.cfg.vision.tokens(), base.model.vision_width);
+    let mut asked = 0;
+    for kind in [SampleKind::View, SampleKind::Object] {
+        let batch: Vec<_> = samples
+            .iter()
+            .filter(|x| x.kind == kind)
+            .map(|x| {
+                let f = if kind == SampleKind::View { view_follow_ups(&x.qas) } else { object_follow_ups(&x.qas) };
+                let mut qas: Vec<_> = f.iter().take(2).map(|f| f.qa(&x.qas)).collect();
+                qas.push(x.qas[0].clone()); // a single question beside them
+                (x.clone(), qas)
+            })
+            .collect();
+        let p = pack(&m.vlm, &batch).unwrap();
+        let packed = host(forward(&m, &p, None, None, false, None, &dev).unwrap().log_probs);
+        let vocab = m.vlm.cfg.text.vocab_size;
+        let mut q = 0;
+        for (sample, qas) in &batch {
+            let embeds: Vec<Tensor<2>> = sample
+                .images
+                .iter()
+                .map(|img| {
+                    let px = Tensor::<4>::from_data(TensorData::new(img.pixels.clone(), [1, 3, s, s]), &dev);
+                    m.vlm.token_embeds(m.vlm.vision.forward(px).reshape([g2, dv]))
+                })
+                .collect();
+            for qa in qas {
+                let earlier: Vec<Exchange> = qa
+                    .follows
+                    .iter()
+                    .map(|e| Exchange { question: e.question.clone(), answer: e.answer.clone() })
+                    .collect();
+                asked += earlier.len();
+                let counts: Vec<usize> = embeds.iter().map(|e| e.dims()[0]).collect();
+                let ids = m.vlm.conversation_ids(&earlier, &qa.question, &counts).unwrap();
+                let e = m.vlm.embed_prompt(&ids, &embeds).unwrap();
+                let n = e.dims()[0];
+                let want = host(activation::log_softmax(m.vlm.logits(e).narrow(0, n - 1, 1), 1));
+                let row = p.questions[q].1.start;
+                let err = max_abs_diff(&packed[row * vocab..(row + 1) * vocab], &want);
+                assert!(err < 1e-4, "{kind:?} {:?} (after {earlier:?}): log-probs differ by {err}", qa.question);
+                q += 1;
+            }
+        }
+    }
+    assert!(asked >= 4, "second turns of both levels were checked ({asked})");
+    std::fs::remove_dir_all(&out).ok();
+}
+
+#[test]
 fn the_places_of_left_of_questions_agree_with_their_answers() {
     use model::data::synth::questions::Kind;
     let dev = Device::ndarray();

@@ -12,7 +12,8 @@ use super::VlmError;
 use super::generate::{GenerateOptions, Generation};
 use super::llava::LlavaOnevision;
 use super::qwen2::KvCache;
-use super::tokenizer::Turn;
+use super::tokenizer::{ChatTokenizer, Turn};
+use burn::module::Param;
 use burn::tensor::{Int, Tensor, TensorData, activation};
 use std::ops::ControlFlow;
 
@@ -51,18 +52,61 @@ pub const SINGLE_TURN_NOTE: &str = "this model was trained on single questions (
 
 impl LlavaOnevision {
     /// Whether the model holds a conversation: a model `chatsplat train-vlm` trained (its
-    /// `train_config.json` beside the weights) was taught single questions, unless that config
-    /// says `"two_turn": true`; any other LLaVA-OneVision (llava-hf's were trained on multi-turn
-    /// chats) does. A single-turn model answers independent questions worse as follow-ups: on the
-    /// built-in one, "Is there an orange torus?" after "Is there a blue cone?" was answered "yes".
+    /// `train_config.json` beside the weights) was taught single questions, unless its last stage
+    /// asked some of them after an earlier exchange (`"two_turn"` above 0, or `true`); any other
+    /// LLaVA-OneVision (llava-hf's were trained on multi-turn chats) does. A single-turn model
+    /// answers independent questions worse as follow-ups: on the built-in one before its two-turn
+    /// stage, "Is there an orange torus?" after "Is there a blue cone?" was answered "yes".
     pub fn converses(&self) -> bool {
         match std::fs::read_to_string(self.dir.join("train_config.json")) {
             Err(_) => true,
             Ok(text) => serde_json::from_str::<serde_json::Value>(&text)
                 .ok()
-                .and_then(|v| v.get("two_turn")?.as_bool())
+                .and_then(|v| {
+                    let t = v.get("two_turn")?;
+                    t.as_bool().or_else(|| t.as_f64().map(|x| x > 0.0))
+                })
                 .unwrap_or(false),
         }
+    }
+
+    /// The same model reading `tokenizer`, whose vocabulary extends the model's own: every token
+    /// the model has keeps its id, and the embedding rows of the new ones (tied to the output
+    /// layer) start as copies of the rows of the tokens `like` names for them (a new "it" read as
+    /// "this"), else as the mean row. An error names the first token whose id differs.
+    pub fn with_vocabulary(
+        mut self,
+        tokenizer: ChatTokenizer,
+        like: impl Fn(&str) -> Option<&'static str>,
+    ) -> Result<Self, VlmError> {
+        let (old, new) = (self.cfg.text.vocab_size, tokenizer.vocab_size());
+        let path = std::path::Path::new("tokenizer.json");
+        if new < old || self.llm.lm_head.is_some() {
+            let why = if new < old { "a vocabulary smaller than the model's" } else { "untied output embeddings" };
+            return Err(VlmError::config(path, format!("cannot grow the vocabulary: {why}")));
+        }
+        for id in 0..old as u32 {
+            let (was, is) = (self.tokenizer.token(id), tokenizer.token(id));
+            if was != is {
+                return Err(VlmError::config(path, format!("token {id} is {is:?} there but {was:?} in the model")));
+            }
+        }
+        let w = self.llm.embed.weight.val();
+        let d = w.dims()[1];
+        let mut rows = vec![w.clone()];
+        for id in old..new {
+            let token = tokenizer.token(id as u32).unwrap_or_default();
+            rows.push(match like(&token).and_then(|t| self.tokenizer.id(t)) {
+                Some(i) => w.clone().narrow(0, i as usize, 1),
+                None => w.clone().mean_dim(0),
+            });
+        }
+        self.llm.embed.weight = Param::from_tensor(Tensor::cat(rows, 0).detach());
+        debug_assert_eq!(self.llm.embed.weight.dims(), [new, d]);
+        self.cfg.text.vocab_size = new;
+        self.llm.cfg.vocab_size = new;
+        self.tokenizer = tokenizer.with_layout(self.tokenizer.layout);
+        Ok(self)
     }
 
     /// The prompt ids of `question` asked after the `earlier` exchanges about images of `counts`

@@ -199,6 +199,16 @@ impl ChatTokenizer {
     pub fn vocab_size(&self) -> usize {
         self.inner.get_vocab_size(true)
     }
+
+    /// The token of `id` (`None` past the vocabulary).
+    pub fn token(&self, id: u32) -> Option<String> {
+        self.inner.id_to_token(id)
+    }
+
+    /// The id of `token` (`None` when it is not in the vocabulary).
+    pub fn id(&self, token: &str) -> Option<u32> {
+        self.inner.token_to_id(token)
+    }
 }
 
 /// The chat template of llava-hf LLaVA-OneVision models as Jinja (`chat_template.jinja`); the

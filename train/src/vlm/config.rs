@@ -155,6 +155,13 @@ pub struct VlmTrainConfig {
     /// the last bits of a float, and a training run amplifies them, so a committed model's
     /// configuration names the backend each of its stages was trained on.
     pub backend: Option<model::Backend>,
+    /// Share of the picked questions asked after an earlier exchange of the same sample, as the
+    /// second turn of a conversation: the question's follow-up where it has one ("What color is
+    /// it?" after "What is this?" and its answer; "Is it left of the blue cone?" after "What shape
+    /// is the red object?"), else after another of the sample's questions. Above 0 the model's
+    /// vocabulary is the conversations' (a base stage's model grows it: "it") and the model holds
+    /// conversations ([`model::vlm::LlavaOnevision::converses`]); 0: single questions, as before.
+    pub two_turn: f32,
     /// Start from the base stage's auxiliary, slot and place heads (its [`super::HEADS_FILE`], which
     /// every stage writes beside its model) instead of fresh ones: the tower's first steps then
     /// follow a head that already reads it, not the gradients of a random one.
@@ -204,6 +211,7 @@ impl Default for VlmTrainConfig {
             eval_seeds: 8,
             checkpoint_every: 250,
             backend: None,
+            two_turn: 0.0,
             carry_heads: false,
             base: None,
         }
@@ -319,6 +327,9 @@ impl VlmTrainConfig {
         }
         if self.tower_steps > 0 && (self.tower_steps >= self.steps || self.tower_images == 0) {
             return bad("tower_steps", "must be below steps (and tower_images at least 1)");
+        }
+        if !(0.0..=1.0).contains(&self.two_turn) {
+            return bad("two_turn", "must be a share in 0..=1");
         }
         if self.images_per_step < SCENE_IMAGES || self.questions_per_sample == 0 {
             return bad("images_per_step", "must be at least 4 and questions_per_sample at least 1");

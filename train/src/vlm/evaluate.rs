@@ -5,7 +5,7 @@ use super::forward::{Trainable, exact, forward};
 use super::pack::{LabelTokens, pack};
 use super::{TRAIN_SEEDS, VlmTrainConfig};
 use burn::tensor::Device;
-use model::data::synth::questions::Kind;
+use model::data::synth::questions::{Kind, Qa, object_follow_ups, view_follow_ups};
 use model::error::{Error, Result};
 use model::rng::Rng;
 use model::vlm::LlavaOnevision;
@@ -32,6 +32,31 @@ impl Accuracy {
         let e = self.by_kind.entry(kind.as_str().to_string()).or_default();
         e.0 += right as usize;
         e.1 += 1;
+    }
+
+    /// Files a result under `name`, which is not a [`Kind`] (a follow-up's `follow_color`, ...):
+    /// the levels and [`Accuracy::by_kind_line`] leave it out.
+    pub fn add_named(&mut self, name: &str, right: bool) {
+        let e = self.by_kind.entry(name.to_string()).or_default();
+        e.0 += right as usize;
+        e.1 += 1;
+    }
+
+    /// "follow_color 98.0 (twin 100.0) ... all 91.2 (twins 95.1) of 412": percent right of the
+    /// follow-ups and of their twins (`KIND_twin`: the referent spelled out, asked on its own), or
+    /// `None` where none were asked.
+    pub fn follow_up_line(&self) -> Option<String> {
+        let pct = |(r, n): (usize, usize)| 100.0 * r as f64 / n.max(1) as f64;
+        let (mut all, mut twins) = ((0, 0), (0, 0));
+        let mut parts = Vec::new();
+        for (k, &v) in self.by_kind.iter().filter(|(k, _)| k.starts_with("follow_") && !k.ends_with("_twin")) {
+            let t = self.by_kind.get(&format!("{k}_twin")).copied().unwrap_or_default();
+            parts.push(format!("{k} {:.1} (twin {:.1})", pct(v), pct(t)));
+            all = (all.0 + v.0, all.1 + v.1);
+            twins = (twins.0 + t.0, twins.1 + t.1);
+        }
+        parts.push(format!("all {:.1} (twins {:.1}) of {}", pct(all), pct(twins), all.1));
+        (all.1 > 0).then(|| parts.join(" "))
     }
 
     /// As [`Accuracy::add`], also filing a view question under the size of the smallest object
@@ -145,7 +170,7 @@ pub fn evaluate_with(
 ) -> Result<Accuracy> {
     let mut acc = Accuracy::default();
     for kind in SampleKind::ALL {
-        let of: Vec<(Sample, Vec<model::data::synth::questions::Qa>)> =
+        let of: Vec<(Sample, Vec<Qa>)> =
             samples.iter().filter(|s| s.kind == kind).map(|s| (s.clone(), s.qas.clone())).collect();
         for chunk in of.chunks(8) {
             let mut p = pack(&m.vlm, chunk)?;
@@ -158,7 +183,45 @@ pub fn evaluate_with(
             }
         }
     }
+    if m.vlm.tokenizer.id("it").is_some() {
+        follow_ups(m, samples, labels, &mut acc, device)?;
+    }
     Ok(acc)
+}
+
+/// Every follow-up of the view and object `samples` asked as a second turn, filed under its kind
+/// (`follow_left_of`, `follow_color`, ...), and its twin asked on its own (`KIND_twin`): for a
+/// model whose vocabulary has "it".
+fn follow_ups(
+    m: &Trainable,
+    samples: &[Sample],
+    labels: Option<&LabelTokens>,
+    acc: &mut Accuracy,
+    device: &Device,
+) -> Result<()> {
+    for kind in [SampleKind::View, SampleKind::Object] {
+        let mut of = Vec::new();
+        let mut names = Vec::new();
+        for s in samples.iter().filter(|s| s.kind == kind) {
+            let f = if kind == SampleKind::View { view_follow_ups(&s.qas) } else { object_follow_ups(&s.qas) };
+            if !f.is_empty() {
+                // each follow-up, then its twin (the referent spelled out) asked on its own
+                names.extend(f.iter().map(|f| (f.kind, false)).chain(f.iter().map(|f| (f.kind, true))));
+                let twins = f.iter().map(|f| s.qas[f.twin].clone());
+                of.push((s.clone(), f.iter().map(|f| f.qa(&s.qas)).chain(twins).collect::<Vec<Qa>>()));
+            }
+        }
+        let mut names = names.into_iter();
+        for chunk in of.chunks(8) {
+            let mut p = pack(&m.vlm, chunk)?;
+            p.label_tokens.iter_mut().for_each(|f| *f = labels.is_some());
+            let f = forward(m, &p, labels, None, false, None, device)?;
+            for ((_, right), (name, twin)) in exact(&p, f.log_probs).into_iter().zip(names.by_ref()) {
+                acc.add_named(&if twin { format!("{name}_twin") } else { name.to_string() }, right);
+            }
+        }
+    }
+    Ok(())
 }
 
 /// Exact match of a trained (or loaded) model on ground-truth images of the held-out `seeds`:

@@ -143,7 +143,10 @@ fn train_stages(
                 }
             };
             let ad = device.clone().autodiff();
-            let vlm = LlavaOnevision::load(&dir, &ad)?;
+            let mut vlm = LlavaOnevision::load(&dir, &ad)?;
+            if cfg.two_turn > 0.0 {
+                vlm = conversing(vlm)?;
+            }
             let mut t = Trainer::starting_from(cfg, vlm, &ad)?;
             if cfg.carry_heads {
                 t.load_heads(&dir)?;

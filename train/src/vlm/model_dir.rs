@@ -2,16 +2,17 @@
 
 use super::VlmTrainConfig;
 use burn::tensor::Device;
-use model::data::synth::questions::vocabulary;
+use model::data::synth::questions::{conversation_vocabulary, vocabulary};
 use model::error::Result;
 use model::io;
 use model::vlm::tokenizer::{ChatTokenizer, word_level_tokenizer_json};
 use model::vlm::{LlavaConfig, LlavaOnevision, ProcessorConfig};
 use std::path::Path;
 
-/// A fresh tabletop VLM of `cfg`'s shape, with its word-level tokenizer.
+/// A fresh tabletop VLM of `cfg`'s shape, with its word-level tokenizer (the conversations'
+/// vocabulary where `cfg` asks two-turn questions).
 pub fn init_model(cfg: &VlmTrainConfig, device: &Device) -> Result<LlavaOnevision> {
-    let tokenizer = synthetic_tokenizer()?;
+    let tokenizer = if cfg.two_turn > 0.0 { conversation_tokenizer()? } else { synthetic_tokenizer()? };
     let llava = cfg.llava_config(tokenizer.vocab_size());
     Ok(LlavaOnevision::init(llava, cfg.processor(), tokenizer, cfg.seed, device))
 }
@@ -35,6 +36,22 @@ pub fn random_published(mut cfg: LlavaConfig, seed: u64, device: &Device, half: 
 /// The word-level tokenizer of the synthetic questions' vocabulary.
 fn synthetic_tokenizer() -> Result<ChatTokenizer> {
     Ok(ChatTokenizer::from_json(&word_level_tokenizer_json(&vocabulary())?, 3)?)
+}
+
+/// The word-level tokenizer of conversations about the synthetic scenes (the questions' words and
+/// "it").
+fn conversation_tokenizer() -> Result<ChatTokenizer> {
+    Ok(ChatTokenizer::from_json(&word_level_tokenizer_json(&conversation_vocabulary())?, 3)?)
+}
+
+/// `vlm` reading the conversations' vocabulary (a base stage's model, trained on single questions,
+/// before a two-turn stage): "it" starts as "this" reads, which object follow-ups ask in its place.
+pub fn conversing(vlm: LlavaOnevision) -> Result<LlavaOnevision> {
+    let tokenizer = conversation_tokenizer()?;
+    if tokenizer.vocab_size() == vlm.tokenizer.vocab_size() {
+        return Ok(vlm);
+    }
+    Ok(vlm.with_vocabulary(tokenizer, |t| (t == "it").then_some("this"))?)
 }
 
 /// Writes a model directory a llava-hf loader reads: `config.json`, `processor_config.json`,

@@ -1,7 +1,8 @@
 //! Packing samples into one forward pass, in llava-hf's images-first layout: every sample is its
 //! prompt prefix (`<|im_start|> user` and its image tokens) followed by its questions as separate
 //! segments; each segment sees the prefix and itself only, at the positions it would have alone,
-//! so one pass answers many questions exactly as single-turn inference would. Also the symbolic
+//! so one pass answers many questions exactly as single-turn inference would (a second turn's
+//! segment holds the earlier question and its answer too, as a conversation's prompt would). Also the symbolic
 //! label tokens the LLM first learns on ([`LabelTokens`]).
 
 use super::data::{Sample, SampleKind};
@@ -118,7 +119,13 @@ pub fn pack(vlm: &LlavaOnevision, samples: &[(Sample, Vec<Qa>)]) -> Result<Packe
     for (_, qas) in samples {
         let mut segs = Vec::new();
         for qa in qas {
-            let prompt = tok.prompt(&[Turn::user(images, qa.question.clone())], true);
+            // a second turn: the earlier question (with the images) and its answer come first
+            let mut turns = Vec::with_capacity(3);
+            if let Some(e) = &qa.follows {
+                turns.extend([Turn::user(images, e.question.clone()), Turn::assistant(e.answer.clone())]);
+            }
+            turns.push(Turn::user(if turns.is_empty() { images } else { 0 }, qa.question.clone()));
+            let prompt = tok.prompt(&turns, true);
             let p: Vec<i64> = tok.encode(&prompt)?.into_iter().map(|i| i as i64).collect();
             let a: Vec<i64> = tok.encode(&format!("{}<|im_end|>", qa.answer))?.into_iter().map(|i| i as i64).collect();
             let first_img =
@@ -134,7 +141,7 @@ pub fn pack(vlm: &LlavaOnevision, samples: &[(Sample, Vec<Qa>)]) -> Result<Packe
             let prompt_len = ids.len();
             ids.extend(a);
             let words = ids.iter().map(|&i| word(i)).collect::<Result<Vec<_>>>()?;
-            segs.push(Segment { ids, words, prompt_len, kind: qa.kind });
+            segs.push(Segment { ids, words, prompt_len, kind: qa.kind, second: qa.follows.is_some() });
         }
         segments.push(segs);
     }
@@ -163,6 +170,9 @@ pub fn pack(vlm: &LlavaOnevision, samples: &[(Sample, Vec<Qa>)]) -> Result<Packe
                 targets.push((bi * t + start + j, seg.ids[j + 1]));
             }
             questions.push((seg.kind, first..targets.len()));
+            if seg.second {
+                continue; // the hops and slots read a single question's words
+            }
             let (q, a) = seg.words.split_at(seg.prompt_len);
             let answer_at = start + seg.prompt_len - 1;
             let (h, classes) = question_hops(seg.kind, q, start, a, answer_at, &tokens);
@@ -208,12 +218,15 @@ pub fn pack(vlm: &LlavaOnevision, samples: &[(Sample, Vec<Qa>)]) -> Result<Packe
     })
 }
 
-/// One question's part of a packed row: its prompt after the images, then the answer.
+/// One question's part of a packed row: its prompt after the images (a second turn's: the earlier
+/// question, its answer and the question), then the answer.
 struct Segment {
     ids: Vec<i64>,
     words: Vec<Word>,
     prompt_len: usize,
     kind: Kind,
+    /// A second turn: no hops or slots (they read a single question's words).
+    second: bool,
 }
 
 /// The image column of every prefix position (`images` rows of `g2` tokens and a newline after

@@ -10,7 +10,7 @@ use super::{Accuracy, RunningAccuracy, SCENE_IMAGES, VlmTrainConfig, init_model,
 use crate::dist::{self, Collective};
 use burn::optim::{AdamWConfig, GradientsParams};
 use burn::tensor::Device;
-use model::data::synth::questions::{Kind, Qa};
+use model::data::synth::questions::{Kind, Qa, object_follow_ups, view_follow_ups};
 use model::error::{Error, Result};
 use model::io;
 use model::rng::Rng;
@@ -84,12 +84,50 @@ pub fn step_samples(
         if let Some(s) = spec.sample(kind, seed, rng).filter(|s| !drawn_again(cfg, s, rng)) {
             let asked: Vec<Qa> = s.qas.iter().filter(|q| allowed(q.kind)).cloned().collect();
             if !asked.is_empty() {
-                let qs = pick_questions(&asked, cfg.questions_per_sample, |k| cfg.question_weight(k, running), rng);
+                let mut qs = pick_questions(&asked, cfg.questions_per_sample, |k| cfg.question_weight(k, running), rng);
+                if cfg.two_turn > 0.0 {
+                    qs = second_turns(&s, qs, cfg.two_turn, allowed, rng);
+                }
                 out.push((s, qs));
             }
         }
     }
     out
+}
+
+/// The picked questions `qs` of `s`, each asked as a second turn with probability `share`: three
+/// times in four, where the sample has follow-ups (a question with its referent replaced by "it",
+/// after the question that named it), one of them drawn alike in place of the question (not by
+/// the question's kind: adaptive picking seldom draws a kind its single questions get right, and
+/// the follow-ups of such a kind would go untaught), else the question after another of the
+/// sample's. Follow-ups of kinds the configuration leaves out (`allowed`) are not drawn. The
+/// generator is asked only when `share` is above 0, so single-turn configurations
+/// draw as before.
+fn second_turns(s: &Sample, qs: Vec<Qa>, share: f32, allowed: impl Fn(Kind) -> bool, rng: &mut Rng) -> Vec<Qa> {
+    let mut follow_ups = match s.kind {
+        SampleKind::View => view_follow_ups(&s.qas),
+        SampleKind::Object => object_follow_ups(&s.qas),
+        SampleKind::Scene => Vec::new(),
+    };
+    follow_ups.retain(|f| allowed(s.qas[f.twin].kind));
+    qs.into_iter()
+        .map(|q| {
+            if rng.f() >= share {
+                return q;
+            }
+            if !follow_ups.is_empty() && rng.f() < 0.75 {
+                return follow_ups[(rng.next_u64() % follow_ups.len() as u64) as usize].qa(&s.qas);
+            }
+            let others: Vec<&Qa> = s.qas.iter().filter(|o| **o != q).collect();
+            match others.len() {
+                0 => q,
+                n => {
+                    let earlier = others[(rng.next_u64() % n as u64) as usize];
+                    q.after(earlier)
+                }
+            }
+        })
+        .collect()
 }
 
 /// Whether a view sample without a small object is drawn again (`cfg.small_views`; the generator

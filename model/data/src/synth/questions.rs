@@ -121,11 +121,18 @@ pub struct Qa {
     pub kind: Kind,
     pub question: String,
     pub answer: String,
+    /// The exchange this question is asked after in its conversation (`None`: asked first).
+    pub follows: Option<Box<Qa>>,
 }
 
 impl Qa {
     fn new(kind: Kind, question: String, answer: impl Into<String>) -> Self {
-        Self { kind, question, answer: answer.into() }
+        Self { kind, question, answer: answer.into(), follows: None }
+    }
+
+    /// This question asked after `earlier` (and its answer) in one conversation.
+    pub fn after(self, earlier: &Qa) -> Self {
+        Self { follows: Some(Box::new(Qa { follows: None, ..earlier.clone() })), ..self }
     }
 
     /// A list answer's items (colours, shapes, or "colour shape" names; none for "none"), `None`
@@ -334,6 +341,14 @@ pub struct FollowUp {
     pub twin: usize,
 }
 
+impl FollowUp {
+    /// The follow-up as a question asked after its first question (both from `qas`, the list it
+    /// was made from), of its twin's kind.
+    pub fn qa(&self, qas: &[Qa]) -> Qa {
+        Qa::new(qas[self.twin].kind, self.question.clone(), self.answer.clone()).after(&qas[self.first])
+    }
+}
+
 /// The follow-ups of a view's questions ([`view_questions`]): after "What shape is the red
 /// object?" ("cube"), "Is it left of the blue cone?" for each `left_of` question about the red
 /// cube (its twin).
@@ -499,5 +514,13 @@ pub fn vocabulary() -> Vec<String> {
     add("?");
     words.push("?".into());
     words.dedup();
+    words
+}
+
+/// The words of conversations: [`vocabulary`] and then "it", which follow-ups refer to an earlier
+/// answer by; every word of [`vocabulary`] keeps its place (its token id).
+pub fn conversation_vocabulary() -> Vec<String> {
+    let mut words = vocabulary();
+    words.push("it".into());
     words
 }

@@ -277,6 +277,44 @@ fn small_views_fills_a_step_with_views_of_a_small_object() {
     assert!(bad.validate().unwrap_err().to_string().contains("small_views"));
 }
 
+/// With `two_turn`, second turns are tracked apart from single questions: a kind its single
+/// questions get right but its follow-ups do not still needs drawing, and of a sample's follow-ups
+/// the ones of such a kind are drawn most (a step of object samples: "What size is it?").
+#[test]
+fn second_turns_are_drawn_by_what_their_own_accuracy_still_needs() {
+    use model::data::synth::questions::Kind;
+    let mut running = RunningAccuracy::default();
+    for _ in 0..200 {
+        for k in [Kind::Name, Kind::Color, Kind::Shape, Kind::Size] {
+            running.add(k, true);
+        }
+        running.add_second(Kind::Color, true);
+        running.add_second(Kind::Shape, true);
+    }
+    let cfg = VlmTrainConfig { two_turn: 1.0, mix: [0.0, 1.0, 0.0], images_per_step: 48, ..Default::default() };
+    cfg.validate().unwrap();
+    let alone = VlmTrainConfig { two_turn: 0.0, ..cfg.clone() };
+    assert!((alone.need(Kind::Size, &running) - alone.need(Kind::Color, &running)).abs() < 1e-6);
+    assert!(cfg.need(Kind::Size, &running) > 10.0 * cfg.need(Kind::Color, &running));
+    let spec = train::vlm::data::DataSpec::of(&cfg, &cfg.llava_config(64), &cfg.processor());
+    let size_share = |running: &RunningAccuracy| {
+        let samples = train::vlm::step_samples(&cfg, &spec, running, &mut model::rng::Rng::new(9));
+        let follow_ups: Vec<_> = samples
+            .iter()
+            .flat_map(|(_, qs)| qs)
+            .filter(|q| q.follows.is_some() && q.question.ends_with("it?"))
+            .collect();
+        let size = follow_ups.iter().filter(|q| q.kind == Kind::Size).count();
+        assert!(follow_ups.len() > 20, "{} follow-ups drawn", follow_ups.len());
+        size as f64 / follow_ups.len() as f64
+    };
+    let (fresh, needed) = (size_share(&RunningAccuracy::default()), size_share(&running));
+    eprintln!(
+        "size follow-ups: {fresh:.2} of the follow-ups drawn afresh, {needed:.2} once colour and shape are right"
+    );
+    assert!((0.15..0.5).contains(&fresh) && needed > 0.7, "{fresh:.2} afresh, {needed:.2} when needed");
+}
+
 #[test]
 fn a_trained_model_directory_round_trips_through_the_loader() {
     let dev = Device::ndarray();

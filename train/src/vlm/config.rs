@@ -402,7 +402,18 @@ impl VlmTrainConfig {
     /// `kind_weights` entry times, when adaptive, how much it still needs (`running`).
     pub fn question_weight(&self, kind: Kind, running: &RunningAccuracy) -> f32 {
         let w = self.kind_weights.get(&kind).copied().unwrap_or(1.0);
-        w * if self.adaptive { running.need(kind, self.adaptive_floor) } else { 1.0 }
+        w * if self.adaptive { self.need(kind, running) } else { 1.0 }
+    }
+
+    /// How much `kind` still needs (`running`): its single questions' error plus the floor, and
+    /// where questions are asked as second turns too (`two_turn`), that blended by the share with
+    /// its second turns' (a kind answered alone need not be answered in a conversation).
+    pub fn need(&self, kind: Kind, running: &RunningAccuracy) -> f32 {
+        let alone = running.need(kind, self.adaptive_floor);
+        match self.two_turn {
+            s if s > 0.0 => (1.0 - s) * alone + s * running.need_second(kind, self.adaptive_floor),
+            _ => alone,
+        }
     }
 
     /// The weights of the supervised hops, then of the slot and place heads.
@@ -440,18 +451,35 @@ pub(super) const SCENE_IMAGES: usize = model::data::synth::SCENE_VIEWS;
 #[derive(Clone, Debug, Default, Serialize, Deserialize)]
 pub struct RunningAccuracy {
     acc: BTreeMap<Kind, f32>,
+    /// The same, of questions asked as second turns (by their kind).
+    #[serde(default, skip_serializing_if = "BTreeMap::is_empty")]
+    second: BTreeMap<Kind, f32>,
 }
 
 impl RunningAccuracy {
     const DECAY: f32 = 0.95;
 
     pub fn add(&mut self, kind: Kind, right: bool) {
-        let a = self.acc.entry(kind).or_insert(0.0);
+        Self::blend(&mut self.acc, kind, right);
+    }
+
+    /// A question of `kind` asked as a second turn.
+    pub fn add_second(&mut self, kind: Kind, right: bool) {
+        Self::blend(&mut self.second, kind, right);
+    }
+
+    fn blend(acc: &mut BTreeMap<Kind, f32>, kind: Kind, right: bool) {
+        let a = acc.entry(kind).or_insert(0.0);
         *a = Self::DECAY * *a + (1.0 - Self::DECAY) * right as u8 as f32;
     }
 
     /// How much a kind is still worth drawing: its error plus `floor`.
     pub fn need(&self, kind: Kind, floor: f32) -> f32 {
         1.0 - self.acc.get(&kind).copied().unwrap_or(0.0) + floor
+    }
+
+    /// The same as a second turn.
+    pub fn need_second(&self, kind: Kind, floor: f32) -> f32 {
+        1.0 - self.second.get(&kind).copied().unwrap_or(0.0) + floor
     }
 }

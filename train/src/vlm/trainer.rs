@@ -71,7 +71,7 @@ pub fn step_samples(
             }
             let kinds: Vec<Kind> =
                 Kind::ALL.into_iter().filter(|k| sample.level() == k.level() && allowed(*k)).collect();
-            let need: f32 = kinds.iter().map(|k| running.need(*k, cfg.adaptive_floor)).sum::<f32>();
+            let need: f32 = kinds.iter().map(|k| cfg.need(*k, running)).sum::<f32>();
             p * need / kinds.len().max(1) as f32
         })
         .collect();
@@ -86,7 +86,8 @@ pub fn step_samples(
             if !asked.is_empty() {
                 let mut qs = pick_questions(&asked, cfg.questions_per_sample, |k| cfg.question_weight(k, running), rng);
                 if cfg.two_turn > 0.0 {
-                    qs = second_turns(&s, qs, cfg.two_turn, allowed, rng);
+                    let weight = |k: Kind| if cfg.adaptive { running.need_second(k, cfg.adaptive_floor) } else { 1.0 };
+                    qs = second_turns(&s, qs, cfg.two_turn, |k| if allowed(k) { weight(k) } else { 0.0 }, rng);
                 }
                 out.push((s, qs));
             }
@@ -97,26 +98,28 @@ pub fn step_samples(
 
 /// The picked questions `qs` of `s`, each asked as a second turn with probability `share`: three
 /// times in four, where the sample has follow-ups (a question with its referent replaced by "it",
-/// after the question that named it), one of them drawn alike in place of the question (not by
-/// the question's kind: adaptive picking seldom draws a kind its single questions get right, and
-/// the follow-ups of such a kind would go untaught), else the question after another of the
-/// sample's. Follow-ups of kinds the configuration leaves out (`allowed`) are not drawn. The
-/// generator is asked only when `share` is above 0, so single-turn configurations
-/// draw as before.
-fn second_turns(s: &Sample, qs: Vec<Qa>, share: f32, allowed: impl Fn(Kind) -> bool, rng: &mut Rng) -> Vec<Qa> {
+/// after the question that named it), one of them in place of the question, drawn by `weight` of
+/// its twin's kind (when adaptive, how much that kind's second turns still need: not by the
+/// picked question's kind, as adaptive picking seldom draws a kind its single questions get
+/// right, and the follow-ups of such a kind would go untaught), else the question after another
+/// of the sample's. Follow-ups of weight 0 (kinds the configuration leaves out) are not drawn.
+/// The generator is asked only when `share` is above 0, so single-turn configurations draw as
+/// before.
+fn second_turns(s: &Sample, qs: Vec<Qa>, share: f32, weight: impl Fn(Kind) -> f32, rng: &mut Rng) -> Vec<Qa> {
     let mut follow_ups = match s.kind {
         SampleKind::View => view_follow_ups(&s.qas),
         SampleKind::Object => object_follow_ups(&s.qas),
         SampleKind::Scene => Vec::new(),
     };
-    follow_ups.retain(|f| allowed(s.qas[f.twin].kind));
+    follow_ups.retain(|f| weight(s.qas[f.twin].kind) > 0.0);
+    let weights: Vec<f32> = follow_ups.iter().map(|f| weight(s.qas[f.twin].kind)).collect();
     qs.into_iter()
         .map(|q| {
             if rng.f() >= share {
                 return q;
             }
             if !follow_ups.is_empty() && rng.f() < 0.75 {
-                return follow_ups[(rng.next_u64() % follow_ups.len() as u64) as usize].qa(&s.qas);
+                return follow_ups[rng.weighted(&weights)].qa(&s.qas);
             }
             let others: Vec<&Qa> = s.qas.iter().filter(|o| **o != q).collect();
             match others.len() {
@@ -317,8 +320,13 @@ impl Trainer {
         if !(losses.answer.is_finite() && losses.aux.is_finite() && losses.hops.iter().all(|h| h.is_finite())) {
             return Err(Error::Diverged { iter: self.step, loss: losses.answer + losses.aux, detail: String::new() });
         }
-        for (kind, right) in results {
-            self.running.add(kind, right);
+        // in the order of the step's questions (every rank's, gathered)
+        let seconds = samples.iter().flat_map(|s| s.1.iter().map(|q| q.follows.is_some()));
+        for ((kind, right), second) in results.into_iter().zip(seconds) {
+            match second {
+                true => self.running.add_second(kind, right),
+                false => self.running.add(kind, right),
+            }
         }
         self.update(loss, c)?;
         Ok(losses)

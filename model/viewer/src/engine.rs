@@ -215,9 +215,12 @@ impl Queues {
         q.next_ticket += 1;
         let ticket = q.next_ticket;
         q.asks.push_back((ticket, job));
+        // read while the job is still held here: once the lock is let go the inference thread may
+        // answer it before this line runs, and the last finished ticket would be this one
+        let ahead = ticket - 1 - *self.finished.borrow();
         drop(q);
         self.wake.notify_one();
-        Some((ticket, ticket - 1 - *self.finished.borrow()))
+        Some((ticket, ahead))
     }
 
     /// Runs `work` on the inference thread and waits for its answer.

@@ -344,6 +344,20 @@ fn a_trained_model_directory_round_trips_through_the_loader() {
     std::fs::remove_dir_all(&dir).ok();
 }
 
+/// The LLM's input embeddings of each of `sample`'s images, through the vision tower.
+fn image_embeds(vlm: &LlavaOnevision, sample: &train::vlm::data::Sample, dev: &Device) -> Vec<Tensor<2>> {
+    let (g2, dv) = (vlm.cfg.vision.tokens(), vlm.cfg.vision.hidden_size);
+    let s = vlm.cfg.vision.image_size;
+    sample
+        .images
+        .iter()
+        .map(|img| {
+            let px = Tensor::<4>::from_data(TensorData::new(img.pixels.clone(), [1, 3, s, s]), dev);
+            vlm.token_embeds(vlm.vision.forward(px).reshape([g2, dv]))
+        })
+        .collect()
+}
+
 #[test]
 fn packed_batches_score_answers_as_single_turn_inference_does() {
     let dev = Device::ndarray();
@@ -351,7 +365,6 @@ fn packed_batches_score_answers_as_single_turn_inference_does() {
     let t = Trainer::new(&cfg, &dev).unwrap();
     let m = t.model.valid();
     let samples = eval_samples(t.spec(), 77..79, 1, 1);
-    let (s, g2, dv) = (cfg.model.image_size, m.vlm.cfg.vision.tokens(), cfg.model.vision_width);
     for kind in SampleKind::ALL {
         let batch: Vec<_> = samples
             .iter()
@@ -364,14 +377,7 @@ fn packed_batches_score_answers_as_single_turn_inference_does() {
         let vocab = m.vlm.cfg.text.vocab_size;
         let mut q = 0;
         for (sample, qas) in &batch {
-            let embeds: Vec<Tensor<2>> = sample
-                .images
-                .iter()
-                .map(|img| {
-                    let px = Tensor::<4>::from_data(TensorData::new(img.pixels.clone(), [1, 3, s, s]), &dev);
-                    m.vlm.token_embeds(m.vlm.vision.forward(px).reshape([g2, dv]))
-                })
-                .collect();
+            let embeds = image_embeds(&m.vlm, sample, &dev);
             for qa in qas {
                 let e = m.vlm.prompt_embeds(&qa.question, &embeds).unwrap();
                 let n = e.dims()[0];
@@ -390,7 +396,6 @@ fn packed_batches_score_answers_as_single_turn_inference_does() {
 
 #[test]
 fn a_two_turn_stage_grows_the_vocabulary_and_scores_second_turns_as_a_conversation_does() {
-    use model::data::synth::questions::{object_follow_ups, view_follow_ups};
     use model::vlm::Exchange;
     let dev = Device::ndarray();
     let base = VlmTrainConfig { steps: 2, eval_every: 0, eval_seeds: 1, ..tiny_config() };
@@ -423,15 +428,13 @@ fn a_two_turn_stage_grows_the_vocabulary_and_scores_second_turns_as_a_conversati
     let t = Trainer::starting_from(&base, grown, &dev).unwrap();
     let m = t.model.valid();
     let samples = eval_samples(t.spec(), 77..80, 2, 1);
-    let (s, g2, dv) = (base.model.image_size, m.vlm.cfg.vision.tokens(), base.model.vision_width);
     let mut asked = 0;
     for kind in [SampleKind::View, SampleKind::Object] {
         let batch: Vec<_> = samples
             .iter()
             .filter(|x| x.kind == kind)
             .map(|x| {
-                let f = if kind == SampleKind::View { view_follow_ups(&x.qas) } else { object_follow_ups(&x.qas) };
-                let mut qas: Vec<_> = f.iter().take(2).map(|f| f.qa(&x.qas)).collect();
+                let mut qas: Vec<_> = x.follow_ups().iter().take(2).map(|f| f.qa(&x.qas)).collect();
                 qas.push(x.qas[0].clone()); // a single question beside them
                 (x.clone(), qas)
             })
@@ -441,14 +444,7 @@ fn a_two_turn_stage_grows_the_vocabulary_and_scores_second_turns_as_a_conversati
         let vocab = m.vlm.cfg.text.vocab_size;
         let mut q = 0;
         for (sample, qas) in &batch {
-            let embeds: Vec<Tensor<2>> = sample
-                .images
-                .iter()
-                .map(|img| {
-                    let px = Tensor::<4>::from_data(TensorData::new(img.pixels.clone(), [1, 3, s, s]), &dev);
-                    m.vlm.token_embeds(m.vlm.vision.forward(px).reshape([g2, dv]))
-                })
-                .collect();
+            let embeds = image_embeds(&m.vlm, sample, &dev);
             for qa in qas {
                 let earlier: Vec<Exchange> = qa
                     .follows

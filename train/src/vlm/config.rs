@@ -475,11 +475,15 @@ impl RunningAccuracy {
 
     /// How much a kind is still worth drawing: its error plus `floor`.
     pub fn need(&self, kind: Kind, floor: f32) -> f32 {
-        1.0 - self.acc.get(&kind).copied().unwrap_or(0.0) + floor
+        Self::error(&self.acc, kind) + floor
     }
 
     /// The same as a second turn.
     pub fn need_second(&self, kind: Kind, floor: f32) -> f32 {
-        1.0 - self.second.get(&kind).copied().unwrap_or(0.0) + floor
+        Self::error(&self.second, kind) + floor
+    }
+
+    fn error(acc: &BTreeMap<Kind, f32>, kind: Kind) -> f32 {
+        1.0 - acc.get(&kind).copied().unwrap_or(0.0)
     }
 }

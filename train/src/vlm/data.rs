@@ -5,8 +5,8 @@
 //! (`model::data::synth::questions`).
 
 use model::data::synth::questions::{
-    CLICK_FRACTION, Kind, Qa, VISIBLE_FRACTION, ViewFacts, covering_views, object_questions, scene_questions,
-    view_questions,
+    CLICK_FRACTION, FollowUp, Kind, Qa, VISIBLE_FRACTION, ViewFacts, covering_views, object_follow_ups,
+    object_questions, scene_questions, view_follow_ups, view_questions,
 };
 use model::data::synth::raycast::{SynthView, render_view_supersampled};
 use model::data::synth::scene::SynthScene;
@@ -81,6 +81,17 @@ pub struct Sample {
     /// View samples: the pixels (at the rendered resolution) of the smallest object the
     /// questions count as seen; `None` for other samples and for views that see nothing.
     pub smallest: Option<usize>,
+}
+
+impl Sample {
+    /// The follow-ups of its questions (view and object samples; none for the scene).
+    pub fn follow_ups(&self) -> Vec<FollowUp> {
+        match self.kind {
+            SampleKind::View => view_follow_ups(&self.qas),
+            SampleKind::Object => object_follow_ups(&self.qas),
+            SampleKind::Scene => Vec::new(),
+        }
+    }
 }
 
 /// How samples are made.

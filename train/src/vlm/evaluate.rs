@@ -5,7 +5,7 @@ use super::forward::{Trainable, exact, forward};
 use super::pack::{LabelTokens, pack};
 use super::{TRAIN_SEEDS, VlmTrainConfig};
 use burn::tensor::Device;
-use model::data::synth::questions::{Kind, Qa, object_follow_ups, view_follow_ups};
+use model::data::synth::questions::{Kind, Qa};
 use model::error::{Error, Result};
 use model::rng::Rng;
 use model::vlm::LlavaOnevision;
@@ -29,9 +29,7 @@ pub struct Accuracy {
 
 impl Accuracy {
     pub fn add(&mut self, kind: Kind, right: bool) {
-        let e = self.by_kind.entry(kind.as_str().to_string()).or_default();
-        e.0 += right as usize;
-        e.1 += 1;
+        self.add_named(kind.as_str(), right);
     }
 
     /// Files a result under `name`, which is not a [`Kind`] (a follow-up's `follow_color`, ...):
@@ -203,7 +201,7 @@ fn follow_ups(
         let mut of = Vec::new();
         let mut names = Vec::new();
         for s in samples.iter().filter(|s| s.kind == kind) {
-            let f = if kind == SampleKind::View { view_follow_ups(&s.qas) } else { object_follow_ups(&s.qas) };
+            let f = s.follow_ups();
             if !f.is_empty() {
                 // each follow-up, then its twin (the referent spelled out) asked on its own
                 names.extend(f.iter().map(|f| (f.kind, false)).chain(f.iter().map(|f| (f.kind, true))));

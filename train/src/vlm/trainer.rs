@@ -10,7 +10,7 @@ use super::{Accuracy, RunningAccuracy, SCENE_IMAGES, VlmTrainConfig, init_model,
 use crate::dist::{self, Collective};
 use burn::optim::{AdamWConfig, GradientsParams};
 use burn::tensor::Device;
-use model::data::synth::questions::{Kind, Qa, object_follow_ups, view_follow_ups};
+use model::data::synth::questions::{Kind, Qa};
 use model::error::{Error, Result};
 use model::io;
 use model::rng::Rng;
@@ -106,11 +106,7 @@ pub fn step_samples(
 /// The generator is asked only when `share` is above 0, so single-turn configurations draw as
 /// before.
 fn second_turns(s: &Sample, qs: Vec<Qa>, share: f32, weight: impl Fn(Kind) -> f32, rng: &mut Rng) -> Vec<Qa> {
-    let mut follow_ups = match s.kind {
-        SampleKind::View => view_follow_ups(&s.qas),
-        SampleKind::Object => object_follow_ups(&s.qas),
-        SampleKind::Scene => Vec::new(),
-    };
+    let mut follow_ups = s.follow_ups();
     follow_ups.retain(|f| weight(s.qas[f.twin].kind) > 0.0);
     let weights: Vec<f32> = follow_ups.iter().map(|f| weight(s.qas[f.twin].kind)).collect();
     qs.into_iter()

@@ -655,6 +655,11 @@ fn crop(shot: &(usize, usize, Vec<u8>), r: [f64; 4]) -> Vec<u8> {
     (0..h).flat_map(|y| (0..w).flat_map(move |x| (0..3).map(move |c| rgb[3 * ((y0 + y) * sw + x0 + x) + c]))).collect()
 }
 
+/// Whether the built-in model was trained on second turns (a two-turn stage).
+fn builtin_converses() -> bool {
+    model::vlm::LlavaOnevision::load(&fixture::builtin_model(), &burn::tensor::Device::ndarray()).unwrap().converses()
+}
+
 #[test]
 fn the_page_draws_the_scene_picks_in_red_and_answers_at_every_level() {
     let Some(exe) = browser::find() else {
@@ -762,6 +767,10 @@ fn the_page_draws_the_scene_picks_in_red_and_answers_at_every_level() {
         (&json!("done"), &turn["conversation"], Some(2))
     );
     assert!(follow["cached"].as_u64().unwrap() > 0 && follow["timing"].as_str().unwrap().contains("follow-up 2"));
+    // "it" is the object the first turn named, where the built-in model learnt second turns
+    if builtin_converses() {
+        assert_eq!(follow["answer"].as_str(), Some(o.color.word()), "{follow}");
+    }
     b.eval("document.getElementById('new-conversation').click()").unwrap();
     let again = ask_in_page(&mut b, "What is this?");
     assert_eq!((again["turn"].as_u64(), again["cached"].as_u64()), (Some(1), Some(0)), "{again}");
@@ -910,9 +919,7 @@ fn the_page_draws_the_scene_picks_in_red_and_answers_at_every_level() {
     let server_s = t_server.elapsed().as_secs_f64();
     // without ?converse=1 the page holds conversations where the built-in model does (a two-turn
     // stage trained it), and else says that it takes each question on its own
-    let converses = model::vlm::LlavaOnevision::load(&fixture::builtin_model(), &burn::tensor::Device::ndarray())
-        .unwrap()
-        .converses();
+    let converses = builtin_converses();
     let notes = b.eval("window.chatsplat.notes()").unwrap();
     let said = notes.as_array().unwrap().iter().any(|n| n.as_str().unwrap().contains("single questions"));
     assert_eq!(said, !converses, "{notes}");

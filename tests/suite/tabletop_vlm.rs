@@ -279,7 +279,8 @@ fn small_views_fills_a_step_with_views_of_a_small_object() {
 
 /// With `two_turn`, second turns are tracked apart from single questions: a kind its single
 /// questions get right but its follow-ups do not still needs drawing, and of a sample's follow-ups
-/// the ones of such a kind are drawn most (a step of object samples: "What size is it?").
+/// the ones of such a kind are drawn most (a step of object samples: "What size is it?"). Scene
+/// samples stay single-turn.
 #[test]
 fn second_turns_are_drawn_by_what_their_own_accuracy_still_needs() {
     use model::data::synth::questions::Kind;
@@ -313,6 +314,13 @@ fn second_turns_are_drawn_by_what_their_own_accuracy_still_needs() {
         "size follow-ups: {fresh:.2} of the follow-ups drawn afresh, {needed:.2} once colour and shape are right"
     );
     assert!((0.15..0.5).contains(&fresh) && needed > 0.7, "{fresh:.2} afresh, {needed:.2} when needed");
+    let scenes = VlmTrainConfig { mix: [0.0, 0.0, 1.0], images_per_step: 8, ..cfg.clone() };
+    let drawn = train::vlm::step_samples(&scenes, &spec, &running, &mut model::rng::Rng::new(9));
+    let asked: Vec<_> = drawn.iter().flat_map(|(s, qs)| qs.iter().map(move |q| (s.kind, q))).collect();
+    assert!(!asked.is_empty());
+    for (kind, q) in asked {
+        assert!(kind == SampleKind::Scene && q.follows.is_none(), "{kind:?}: {} asked as a second turn", q.question);
+    }
 }
 
 #[test]

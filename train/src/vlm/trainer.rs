@@ -103,9 +103,14 @@ pub fn step_samples(
 /// picked question's kind, as adaptive picking seldom draws a kind its single questions get
 /// right, and the follow-ups of such a kind would go untaught), else the question after another
 /// of the sample's. Follow-ups of weight 0 (kinds the configuration leaves out) are not drawn.
-/// The generator is asked only when `share` is above 0, so single-turn configurations draw as
-/// before.
+/// Scene samples stay single-turn: a count asked after another count teaches nothing a
+/// conversation needs, and trained as second turns they cost the scene's single questions three
+/// points (BENCHMARKS, "Conversations and find"). The generator is asked only when `share` is
+/// above 0, so single-turn configurations draw as before.
 fn second_turns(s: &Sample, qs: Vec<Qa>, share: f32, weight: impl Fn(Kind) -> f32, rng: &mut Rng) -> Vec<Qa> {
+    if s.kind == SampleKind::Scene {
+        return qs;
+    }
     let mut follow_ups = s.follow_ups();
     follow_ups.retain(|f| weight(s.qas[f.twin].kind) > 0.0);
     let weights: Vec<f32> = follow_ups.iter().map(|f| weight(s.qas[f.twin].kind)).collect();

@@ -71,7 +71,7 @@ impl Browser {
         })?;
         let host = url.trim_start_matches("ws://").split('/').next().unwrap_or("").to_string();
         let stream = TcpStream::connect(&host).map_err(|e| format!("DevTools at {host}: {e}"))?;
-        stream.set_read_timeout(Some(Duration::from_secs(120))).map_err(|e| e.to_string())?;
+        stream.set_read_timeout(Some(Duration::from_secs(300))).map_err(|e| e.to_string())?;
         let (ws, _) = tungstenite::client(url.as_str(), stream).map_err(|e| format!("DevTools handshake: {e}"))?;
         let mut b = Self { child, ws, session: String::new(), next_id: 0, page_errors: vec![], _profile: profile };
         let targets = b.call_browser("Target.getTargets", json!({}))?;

@@ -402,6 +402,33 @@ fn packed_batches_score_answers_as_single_turn_inference_does() {
     }
 }
 
+/// `keep_base` ends a stage with every weight moved that share back to its base stage's: the model
+/// it saves is the blend of the base and the same stage trained without it.
+#[test]
+fn keep_base_ends_a_stage_blended_with_its_start() {
+    let dev = Device::ndarray();
+    let base = VlmTrainConfig { steps: 2, eval_every: 0, eval_seeds: 1, ..tiny_config() };
+    let out = temp_dir("vlm-keep-base");
+    train_from(&base, &out.join("base"), None, &dev, &Solo, false, |_| {}).unwrap();
+    let plain = VlmTrainConfig { seed: 5, base: Some(Box::new(base.clone())), ..base.clone() };
+    let kept = VlmTrainConfig { keep_base: 0.25, ..plain.clone() };
+    for (c, dir) in [(&plain, "plain"), (&kept, "kept")] {
+        train_from(c, &out.join(dir), Some(&out.join("base")), &dev, &Solo, false, |_| {}).unwrap();
+    }
+    let flat = |d: &str| train::dist::flat_params(&LlavaOnevision::load(&out.join(d), &dev).unwrap());
+    let (b, p, k) = (flat("base"), flat("plain"), flat("kept"));
+    assert!(b.len() == p.len() && p.len() == k.len() && b.len() > 10_000);
+    let moved = b.iter().zip(&p).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
+    assert!(moved > 1e-4, "the stage did not move the weights ({moved})");
+    for ((x, y), z) in b.iter().zip(&p).zip(&k) {
+        let want = 0.25 * x + 0.75 * y;
+        assert!((z - want).abs() <= 1e-6 * (1.0 + want.abs()), "{z} against 0.25 * {x} + 0.75 * {y}");
+    }
+    let bad = |c: VlmTrainConfig| c.validate().unwrap_err().to_string();
+    assert!(bad(VlmTrainConfig { keep_base: 1.0, ..kept.clone() }).contains("keep_base"));
+    assert!(bad(VlmTrainConfig { keep_base: 0.5, ..base }).contains("needs a base stage"));
+}
+
 #[test]
 fn a_two_turn_stage_grows_the_vocabulary_and_scores_second_turns_as_a_conversation_does() {
     use model::vlm::Exchange;

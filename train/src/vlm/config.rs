@@ -166,6 +166,12 @@ pub struct VlmTrainConfig {
     /// every stage writes beside its model) instead of fresh ones: the tower's first steps then
     /// follow a head that already reads it, not the gradients of a random one.
     pub carry_heads: bool,
+    /// Share of the base stage's weights kept in the model this stage ends with: after its last
+    /// step every weight becomes `keep_base * base + (1 - keep_base) * trained` (weight-space
+    /// ensembling of a fine-tuned model with its start, WiSE-FT: the fine-tuned skill stays while
+    /// the start's robustness to inputs the stage did not see, here a field's tokens, comes back).
+    /// The last evaluation scores the blended model. 0: the trained weights, as before.
+    pub keep_base: f32,
     /// A first stage: train this configuration (same model shape) before this one, which then
     /// starts from its weights with a fresh optimizer and fresh heads (auxiliary, slot, place;
     /// they are not part of the llava-hf files; unless `carry_heads`), so a fine-tuned model is
@@ -213,6 +219,7 @@ impl Default for VlmTrainConfig {
             backend: None,
             two_turn: 0.0,
             carry_heads: false,
+            keep_base: 0.0,
             base: None,
         }
     }
@@ -354,6 +361,12 @@ impl VlmTrainConfig {
         }
         if !(0.0..=0.95).contains(&self.small_views) {
             return bad("small_views", "must be in 0..=0.95 (the share of views without a small object drawn again)");
+        }
+        if !(0.0..1.0).contains(&self.keep_base) {
+            return bad("keep_base", "must be a share in 0..1");
+        }
+        if self.keep_base > 0.0 && self.base.is_none() {
+            return bad("keep_base", "needs a base stage (whose weights are kept)");
         }
         if self.carry_heads && self.base.is_none() {
             return bad("carry_heads", "needs a base stage (whose heads this stage starts from)");

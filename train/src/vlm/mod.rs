@@ -157,6 +157,8 @@ fn train_stages(
     if c.size() > 1 {
         t.model = dist::broadcast_params(c, t.model)?;
     }
+    // the stage's start, for `keep_base` (the same on every rank after the broadcast)
+    let start_weights = (cfg.keep_base > 0.0).then(|| dist::flat_params(&t.model.vlm));
     let root = c.is_root();
     if root {
         io::create_dir(out)?;
@@ -172,6 +174,9 @@ fn train_stages(
         let lr = cfg.lr_at(t.step);
         let losses = t.step(c)?;
         let step = t.step;
+        if let Some(start) = start_weights.as_deref().filter(|_| step == cfg.steps) {
+            t.model.vlm = keep_base(t.model.vlm.clone(), start, cfg.keep_base)?;
+        }
         if step.is_multiple_of(CHECK_EVERY) {
             dist::check_in_step(c, &t.model, step)?;
         }
@@ -222,4 +227,15 @@ fn train_stages(
     // every rank waits here for rank 0's files (the next stage reads them) and checks the weights
     dist::check_in_step(c, &t.model, t.step)?;
     Ok(last)
+}
+
+/// `module` with every weight moved `keep` of the way back to `start` (its flat weights in module
+/// order, [`dist::flat_params`]): `keep * start + (1 - keep) * now` ([`VlmTrainConfig::keep_base`]).
+pub fn keep_base<M: Module>(module: M, start: &[f32], keep: f32) -> Result<M> {
+    let now = dist::flat_params(&module);
+    if now.len() != start.len() {
+        return Err(Error::input(format!("keep_base: {} weights at the start, {} now", start.len(), now.len())));
+    }
+    let blended: Vec<f32> = now.iter().zip(start).map(|(t, b)| keep * b + (1.0 - keep) * t).collect();
+    dist::set_flat_params(module, &blended)
 }

@@ -655,11 +655,6 @@ fn crop(shot: &(usize, usize, Vec<u8>), r: [f64; 4]) -> Vec<u8> {
     (0..h).flat_map(|y| (0..w).flat_map(move |x| (0..3).map(move |c| rgb[3 * ((y0 + y) * sw + x0 + x) + c]))).collect()
 }
 
-/// Whether the built-in model was trained on second turns (a two-turn stage).
-fn builtin_converses() -> bool {
-    model::vlm::LlavaOnevision::load(&fixture::builtin_model(), &burn::tensor::Device::ndarray()).unwrap().converses()
-}
-
 #[test]
 fn the_page_draws_the_scene_picks_in_red_and_answers_at_every_level() {
     let Some(exe) = browser::find() else {
@@ -673,6 +668,10 @@ fn the_page_draws_the_scene_picks_in_red_and_answers_at_every_level() {
     let _serial = SERIAL.lock().unwrap_or_else(|e| e.into_inner());
     let t = scene();
     let truth = scene_json(&t.data);
+    // whether the built-in model was trained on second turns (a two-turn stage)
+    let converses = model::vlm::LlavaOnevision::load(&fixture::builtin_model(), &burn::tensor::Device::ndarray())
+        .unwrap()
+        .converses();
     let server = Server::start(env!("CARGO_BIN_EXE_chatsplat"), &t.run, &[]);
     let mut b = Browser::launch(&exe, 1100, 700).unwrap();
     let t0 = Instant::now();
@@ -768,7 +767,7 @@ fn the_page_draws_the_scene_picks_in_red_and_answers_at_every_level() {
     );
     assert!(follow["cached"].as_u64().unwrap() > 0 && follow["timing"].as_str().unwrap().contains("follow-up 2"));
     // "it" is the object the first turn named, where the built-in model learnt second turns
-    if builtin_converses() {
+    if converses {
         assert_eq!(follow["answer"].as_str(), Some(o.color.word()), "{follow}");
     }
     b.eval("document.getElementById('new-conversation').click()").unwrap();
@@ -919,7 +918,6 @@ fn the_page_draws_the_scene_picks_in_red_and_answers_at_every_level() {
     let server_s = t_server.elapsed().as_secs_f64();
     // without ?converse=1 the page holds conversations where the built-in model does (a two-turn
     // stage trained it), and else says that it takes each question on its own
-    let converses = builtin_converses();
     let notes = b.eval("window.chatsplat.notes()").unwrap();
     let said = notes.as_array().unwrap().iter().any(|n| n.as_str().unwrap().contains("single questions"));
     assert_eq!(said, !converses, "{notes}");

@@ -8,7 +8,7 @@
 
 use burn::module::Module;
 use burn::tensor::{Device, Tensor, TensorData, activation};
-use chatsplat_tests::{host, max_abs_diff, temp_dir};
+use chatsplat_tests::{Scratch, host, max_abs_diff, temp_dir};
 use model::vlm::LlavaOnevision;
 use train::dist::Solo;
 use train::vlm::data::SampleKind;
@@ -402,14 +402,21 @@ fn packed_batches_score_answers_as_single_turn_inference_does() {
     }
 }
 
+/// A tiny model trained two steps into `base` of a fresh temporary directory named `name`: its
+/// configuration and that directory (later stages start from `DIR/base`; removed when dropped).
+fn two_step_base(name: &str, dev: &Device) -> (VlmTrainConfig, Scratch) {
+    let base = VlmTrainConfig { steps: 2, eval_every: 0, eval_seeds: 1, ..tiny_config() };
+    let out = temp_dir(name);
+    train_from(&base, &out.join("base"), None, dev, &Solo, false, |_| {}).unwrap();
+    (base, out)
+}
+
 /// `keep_base` ends a stage with every weight moved that share back to its base stage's: the model
 /// it saves is the blend of the base and the same stage trained without it.
 #[test]
 fn keep_base_ends_a_stage_blended_with_its_start() {
     let dev = Device::ndarray();
-    let base = VlmTrainConfig { steps: 2, eval_every: 0, eval_seeds: 1, ..tiny_config() };
-    let out = temp_dir("vlm-keep-base");
-    train_from(&base, &out.join("base"), None, &dev, &Solo, false, |_| {}).unwrap();
+    let (base, out) = two_step_base("vlm-keep-base", &dev);
     let plain = VlmTrainConfig { seed: 5, base: Some(Box::new(base.clone())), ..base.clone() };
     let kept = VlmTrainConfig { keep_base: 0.25, ..plain.clone() };
     for (c, dir) in [(&plain, "plain"), (&kept, "kept")] {
@@ -433,9 +440,7 @@ fn keep_base_ends_a_stage_blended_with_its_start() {
 fn a_two_turn_stage_grows_the_vocabulary_and_scores_second_turns_as_a_conversation_does() {
     use model::vlm::Exchange;
     let dev = Device::ndarray();
-    let base = VlmTrainConfig { steps: 2, eval_every: 0, eval_seeds: 1, ..tiny_config() };
-    let out = temp_dir("vlm-two-turn");
-    train_from(&base, &out.join("base"), None, &dev, &Solo, false, |_| {}).unwrap();
+    let (base, out) = two_step_base("vlm-two-turn", &dev);
     let single = LlavaOnevision::load(&out.join("base"), &dev).unwrap();
     assert!(single.tokenizer.id("it").is_none() && !single.converses(), "a single-turn model");
     // "it" is added after every word the model had, its row a copy of "this"

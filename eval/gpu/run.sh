@@ -15,6 +15,7 @@
 #          transformers on CUDA at 0.5B (eval/bench/transformers_vlm.py --device cuda), the
 #          reference the vlm step prints its ratios against;
 #   vlm    vlm-bench: the published 0.5B configuration (random weights), wgpu, flex and ndarray;
+#          then wgpu again with f16 weights (--half);
 #   train  geometry and language training s/iter on a built-in synthetic scene (wgpu), and
 #          lang-bench's views/s and objects/s (real-size encoder too) on it;
 #   accuracy  splat-bench --accuracy: forward error against the f64 reference and the wgpu
@@ -173,6 +174,8 @@ bench() {
                 step "$bin/vlm-bench" --random "$vlm" --backend ${CHATSPLAT_GPU_VLM_BACKENDS:-wgpu flex ndarray} \
                     --reps 2 --decode 16 \
                     "${reference[@]}" || true
+                # f16 weights on wgpu (`--half`; where the adapter has f16 shaders, as the report says)
+                step "$bin/vlm-bench" --random "$vlm" --backend wgpu --half --reps 2 --decode 16 || true
             fi
         fi
         if [[ $parts == *" train "* ]]; then

@@ -44,7 +44,8 @@ pub struct Args {
     #[arg(long, default_value_t = Backend::Ndarray)]
     pub backend: Backend,
     /// Hold the model's linear layers and embeddings in f16, as checkpoints store them (half the
-    /// memory: the 7B model in about 15 GiB instead of 30); with `--image` on `--backend flex`.
+    /// memory: the 7B model in about 15 GiB instead of 30); with `--image` on `--backend flex`, or
+    /// on `wgpu` where the adapter's shaders take f16.
     #[arg(long)]
     pub half: bool,
 }
@@ -57,7 +58,11 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         bail!("--half applies to --image (plain LLaVA-OneVision); a scene's model loads in f32");
     }
     if a.half && !a.backend.holds_half() {
-        bail!("--half needs f16 matmuls: add --backend flex ({} holds only f32)", a.backend);
+        bail!(
+            "--half needs f16 matmuls: add --backend flex, or wgpu on an adapter with f16 shaders \
+             ({} here holds only f32)",
+            a.backend
+        );
     }
     match (&a.run, a.image.is_empty()) {
         (Some(_), false) => bail!("--image and --run exclude each other: ask about images or about a trained scene"),

@@ -436,6 +436,32 @@ fn keep_base_ends_a_stage_blended_with_its_start() {
     assert!(bad(VlmTrainConfig { keep_base: 0.5, ..base }).contains("needs a base stage"));
 }
 
+/// `frozen` parts end a stage exactly as its base stage left them, while the rest learns; a part
+/// the model does not have is refused, naming it.
+#[test]
+fn frozen_parts_end_a_stage_as_they_started() {
+    use train::dist::flat_params as flat;
+    let dev = Device::ndarray();
+    let (base, out) = two_step_base("vlm-frozen", &dev);
+    let frozen = vec!["projector".to_string(), "layer.0".to_string()];
+    let stage = VlmTrainConfig { seed: 5, frozen, base: Some(Box::new(base.clone())), ..base.clone() };
+    train_from(&stage, &out.join("stage"), Some(&out.join("base")), &dev, &Solo, false, |_| {}).unwrap();
+    let load = |d: &str| LlavaOnevision::load(&out.join(d), &dev).unwrap();
+    let (b, s) = (load("base"), load("stage"));
+    let moved = |x: Vec<f32>, y: Vec<f32>| x.iter().zip(&y).map(|(p, q)| (p - q).abs()).fold(0.0f32, f32::max);
+    assert_eq!(flat(&s.projector), flat(&b.projector), "the projector is frozen");
+    assert_eq!(host(s.image_newline.val()), host(b.image_newline.val()), "the image newline goes with it");
+    assert_eq!(flat(&s.llm.layers[0]), flat(&b.llm.layers[0]), "layer 0 is frozen");
+    let learnt = moved(flat(&s.llm.layers[1]), flat(&b.llm.layers[1]));
+    assert!(learnt > 1e-4, "layer 1 is not frozen and should have moved ({learnt})");
+    assert!(moved(flat(&s.llm.embed), flat(&b.llm.embed)) > 1e-4, "the embeddings are not frozen");
+    let bad =
+        |part: &str| VlmTrainConfig { frozen: vec![part.into()], ..stage.clone() }.validate().unwrap_err().to_string();
+    let layers = base.model.text_layers;
+    assert!(bad(&format!("layer.{layers}")).contains(&format!("\"layer.{layers}\" is not a part")));
+    assert!(bad("vision").contains("frozen"), "the tower has tower_lr_scale");
+}
+
 #[test]
 fn a_two_turn_stage_grows_the_vocabulary_and_scores_second_turns_as_a_conversation_does() {
     use model::vlm::Exchange;

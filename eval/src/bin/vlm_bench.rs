@@ -48,7 +48,8 @@ struct Args {
     #[arg(long)]
     reference: Option<PathBuf>,
     /// Hold the linear layers and embeddings in f16, as checkpoints store them (half the memory;
-    /// activations, norms and attention stay f32). Needs a backend that holds f16 (flex).
+    /// activations, norms and attention stay f32). Needs a backend that holds f16 (flex, or wgpu
+    /// on an adapter with f16 shaders).
     #[arg(long)]
     half: bool,
     /// With `--random`: write the random model to DIR as a llava-hf directory (bf16 weights, as
@@ -268,7 +269,9 @@ fn bench(a: &Args) -> model::Result<()> {
     let mut timings = Vec::new();
     for backend in &a.backend {
         if a.half && !backend.holds_half() {
-            println!("| {backend} | n/a: --half needs a backend with f16 matmuls (flex) | | | | | |");
+            println!(
+                "| {backend} | n/a: --half needs f16 matmuls (flex, or wgpu on an adapter with f16 shaders) | | | | | |"
+            );
             continue;
         }
         let r = catch_backend("benchmark", || -> model::Result<Timing> {

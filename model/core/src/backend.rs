@@ -19,9 +19,17 @@ pub enum Backend {
 
 impl Backend {
     /// Whether this backend can hold a model's weights in f16 (`--half`): flex (gemm's f16
-    /// matmuls, accumulated in f32); burn-ndarray holds only f32 and f64.
+    /// matmuls, accumulated in f32), and wgpu where the adapter's shaders take f16 (asked of the
+    /// adapter: most GPUs, Mesa lavapipe too); burn-ndarray holds only f32 and f64.
     pub fn holds_half(self) -> bool {
-        self == Backend::Flex
+        match self {
+            Backend::Flex => true,
+            // no adapter at all: no f16 either (the command's own use of wgpu then says why)
+            Backend::Wgpu => {
+                catch_backend("wgpu", || splat_kernels::cube::f16_on(&self.device())).ok().flatten() == Some(true)
+            }
+            Backend::Ndarray => false,
+        }
     }
 
     /// The burn device of this backend.

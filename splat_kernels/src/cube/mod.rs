@@ -103,6 +103,12 @@ pub fn native_float_add_on(device: &burn::tensor::Device) -> Option<bool> {
     cube_client(device).map(|c| native_float_add(&c))
 }
 
+/// Whether `device` is a CubeCL (wgpu) adapter whose shaders take f16 (wgpu's `SHADER_F16`): what
+/// holding a model's weights in f16 there (`--half`) needs. `None` for a host device.
+pub fn f16_on(device: &burn::tensor::Device) -> Option<bool> {
+    cube_client(device).map(|c| c.properties().supports_type(ElemType::Float(FloatKind::F16)))
+}
+
 /// The CubeCL client behind `device` (through a one-element tensor made there); `None` for a host
 /// device.
 fn cube_client(device: &burn::tensor::Device) -> Option<Client> {
@@ -128,10 +134,11 @@ pub fn adapter_report(device: &burn::tensor::Device) -> Option<String> {
         "no".to_string()
     };
     Some(format!(
-        "adapter `{}`: native f32 atomic add {}, plane ops {plane}, cooperative-matrix configs {}, largest binding \
-         {} MiB, shared memory {} KiB",
+        "adapter `{}`: native f32 atomic add {}, plane ops {plane}, f16 in shaders {}, cooperative-matrix configs {}, \
+         largest binding {} MiB, shared memory {} KiB",
         props.identity.name,
         if native_float_add(&client) { "yes" } else { "no (compare-and-swap loop)" },
+        if props.supports_type(ElemType::Float(FloatKind::F16)) { "yes" } else { "no" },
         props.features.matmul.cmma.len(),
         props.memory.max_page_size >> 20,
         hw.max_shared_memory_size >> 10,

@@ -172,6 +172,13 @@ pub struct VlmTrainConfig {
     /// the start's robustness to inputs the stage did not see, here a field's tokens, comes back).
     /// The last evaluation scores the blended model. 0: the trained weights, as before.
     pub keep_base: f32,
+    /// Parts of the VLM this stage leaves as its start had them (their gradients are dropped
+    /// before each update): "projector" (with the image newline: how the LLM is handed image
+    /// tokens), "embed" (the token embeddings, the output head too where tied), "layer.N" (decoder
+    /// layer N of the LLM). A stage that teaches a text skill (second turns) can so keep how the
+    /// model reads a field's tokens. Empty: every part learns (the tower at `tower_lr_scale`).
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub frozen: Vec<String>,
     /// A first stage: train this configuration (same model shape) before this one, which then
     /// starts from its weights with a fresh optimizer and fresh heads (auxiliary, slot, place;
     /// they are not part of the llava-hf files; unless `carry_heads`), so a fine-tuned model is
@@ -220,6 +227,7 @@ impl Default for VlmTrainConfig {
             two_turn: 0.0,
             carry_heads: false,
             keep_base: 0.0,
+            frozen: Vec::new(),
             base: None,
         }
     }
@@ -368,6 +376,13 @@ impl VlmTrainConfig {
         if self.keep_base > 0.0 && self.base.is_none() {
             return bad("keep_base", "needs a base stage (whose weights are kept)");
         }
+        if let Some(bad_part) = self.frozen.iter().find(|p| Frozen::parse(p, m.text_layers).is_none()) {
+            let why = format!(
+                "\"{bad_part}\" is not a part: \"projector\", \"embed\" or \"layer.N\" with N below {}",
+                m.text_layers
+            );
+            return bad("frozen", &why);
+        }
         if self.carry_heads && self.base.is_none() {
             return bad("carry_heads", "needs a base stage (whose heads this stage starts from)");
         }
@@ -498,5 +513,27 @@ impl RunningAccuracy {
 
     fn error(acc: &BTreeMap<Kind, f32>, kind: Kind) -> f32 {
         1.0 - acc.get(&kind).copied().unwrap_or(0.0)
+    }
+}
+
+/// A part of the VLM a stage can leave as it is ([`VlmTrainConfig::frozen`]).
+#[derive(Clone, Copy, Debug, PartialEq)]
+pub enum Frozen {
+    /// The projector and the image newline.
+    Projector,
+    /// The token embeddings (and the output head where tied to them).
+    Embed,
+    /// A decoder layer of the LLM.
+    Layer(usize),
+}
+
+impl Frozen {
+    /// `name` as a part of a model with `layers` decoder layers (`None`: not one).
+    pub fn parse(name: &str, layers: usize) -> Option<Self> {
+        match name {
+            "projector" => Some(Self::Projector),
+            "embed" => Some(Self::Embed),
+            _ => name.strip_prefix("layer.")?.parse().ok().filter(|n| *n < layers).map(Self::Layer),
+        }
     }
 }

@@ -1,6 +1,7 @@
 //! The training state and one step: samples drawn by running accuracy, the packed forward, the
 //! gradients all-reduced over the ranks, AdamW.
 
+use super::config::Frozen;
 use super::data::{DataSpec, Sample, SampleKind, pick_questions};
 use super::forward::{
     Parts, SLOT_CLASSES, Trainable, counts, exact, forward, place_classes, tower_accuracy, tower_loss, tower_tokens,
@@ -422,6 +423,7 @@ impl Trainer {
     /// next step.
     fn update(&mut self, loss: burn::tensor::Tensor<1>, c: &dyn Collective) -> Result<()> {
         let mut grads = loss.backward();
+        self.drop_frozen(&mut grads);
         let lr = self.cfg.lr_at(self.step);
         let scale = self.cfg.tower_lr_scale;
         let split = self.step >= self.cfg.tower_steps && scale != 1.0;
@@ -443,5 +445,26 @@ impl Trainer {
         }
         self.step += 1;
         Ok(())
+    }
+
+    /// Drops the gradients of the parts the stage leaves as they are (`cfg.frozen`): the
+    /// optimizer then leaves them untouched, weight decay included. Every rank drops the same.
+    fn drop_frozen(&self, grads: &mut burn::tensor::Gradients) {
+        let vlm = &self.model.vlm;
+        for name in &self.cfg.frozen {
+            let Some(part) = Frozen::parse(name, vlm.llm.layers.len()) else { continue };
+            match part {
+                Frozen::Projector => {
+                    GradientsParams::from_module(grads, &vlm.projector);
+                    GradientsParams::from_module(grads, &vlm.image_newline);
+                }
+                Frozen::Embed => {
+                    GradientsParams::from_module(grads, &vlm.llm.embed);
+                }
+                Frozen::Layer(n) => {
+                    GradientsParams::from_module(grads, &vlm.llm.layers[n]);
+                }
+            }
+        }
     }
 }

@@ -411,6 +411,23 @@ fn two_step_base(name: &str, dev: &Device) -> (VlmTrainConfig, Scratch) {
     (base, out)
 }
 
+/// The flat weights of the models in `out`'s folders `dirs` (of one shape; the first two differ).
+fn three_models(out: &std::path::Path, dirs: [&str; 3], dev: &Device) -> [Vec<f32>; 3] {
+    let m = dirs.map(|d| train::dist::flat_params(&LlavaOnevision::load(&out.join(d), dev).unwrap()));
+    assert!(m[0].len() == m[1].len() && m[1].len() == m[2].len() && m[0].len() > 10_000);
+    let apart = m[0].iter().zip(&m[1]).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
+    assert!(apart > 1e-4, "{} and {} hold the same weights ({apart})", dirs[0], dirs[1]);
+    m
+}
+
+/// Every weight of `got` is `want` of the same weight of `a` and `b`, to f32 rounding.
+fn assert_made_of(a: &[f32], b: &[f32], got: &[f32], want: impl Fn(f32, f32) -> f32) {
+    for ((x, y), z) in a.iter().zip(b).zip(got) {
+        let w = want(*x, *y);
+        assert!((z - w).abs() <= 1e-6 * (1.0 + w.abs()), "{z} against {w}, made of {x} and {y}");
+    }
+}
+
 /// `keep_base` ends a stage with every weight moved that share back to its base stage's: the model
 /// it saves is the blend of the base and the same stage trained without it.
 #[test]
@@ -422,18 +439,32 @@ fn keep_base_ends_a_stage_blended_with_its_start() {
     for (c, dir) in [(&plain, "plain"), (&kept, "kept")] {
         train_from(c, &out.join(dir), Some(&out.join("base")), &dev, &Solo, false, |_| {}).unwrap();
     }
-    let flat = |d: &str| train::dist::flat_params(&LlavaOnevision::load(&out.join(d), &dev).unwrap());
-    let (b, p, k) = (flat("base"), flat("plain"), flat("kept"));
-    assert!(b.len() == p.len() && p.len() == k.len() && b.len() > 10_000);
-    let moved = b.iter().zip(&p).map(|(x, y)| (x - y).abs()).fold(0.0f32, f32::max);
-    assert!(moved > 1e-4, "the stage did not move the weights ({moved})");
-    for ((x, y), z) in b.iter().zip(&p).zip(&k) {
-        let want = 0.25 * x + 0.75 * y;
-        assert!((z - want).abs() <= 1e-6 * (1.0 + want.abs()), "{z} against 0.25 * {x} + 0.75 * {y}");
-    }
+    let [b, p, k] = three_models(&out, ["base", "plain", "kept"], &dev);
+    assert_made_of(&b, &p, &k, |x, y| 0.25 * x + 0.75 * y);
     let bad = |c: VlmTrainConfig| c.validate().unwrap_err().to_string();
     assert!(bad(VlmTrainConfig { keep_base: 1.0, ..kept.clone() }).contains("keep_base"));
     assert!(bad(VlmTrainConfig { keep_base: 0.5, ..base }).contains("needs a base stage"));
+}
+
+/// `soup` ends a stage with the mean of its own run and one run per further seed (each kept in
+/// `OUT/soup-seed<N>`, the stage with that seed): the saved model is the average of the stage
+/// trained alone and its other run.
+#[test]
+fn a_soup_stage_ends_with_the_mean_of_its_runs() {
+    let dev = Device::ndarray();
+    let (base, out) = two_step_base("vlm-soup", &dev);
+    let stage = VlmTrainConfig { seed: 5, base: Some(Box::new(base.clone())), ..base.clone() };
+    let souped = VlmTrainConfig { soup: vec![6], ..stage.clone() };
+    for (c, dir) in [(&stage, "alone"), (&souped, "soup")] {
+        train_from(c, &out.join(dir), Some(&out.join("base")), &dev, &Solo, false, |_| {}).unwrap();
+    }
+    let member: VlmTrainConfig = model::io::read_config(&out.join("soup/soup-seed6/train_config.json")).unwrap();
+    assert_eq!(member, VlmTrainConfig { seed: 6, ..stage.clone() }, "the other run is the stage with its seed");
+    let [a, b, s] = three_models(&out, ["alone", "soup/soup-seed6", "soup"], &dev);
+    assert_made_of(&a, &b, &s, |x, y| ((f64::from(x) + f64::from(y)) / 2.0) as f32);
+    let bad = |soup: Vec<u64>| VlmTrainConfig { soup, ..stage.clone() }.validate().unwrap_err().to_string();
+    assert!(bad(vec![5]).contains("soup"), "the stage's own seed");
+    assert!(bad(vec![6, 6]).contains("soup"), "a seed twice");
 }
 
 /// `frozen` parts end a stage exactly as its base stage left them, while the rest learns; a part

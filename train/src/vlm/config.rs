@@ -179,6 +179,13 @@ pub struct VlmTrainConfig {
     /// model reads a field's tokens. Empty: every part learns (the tower at `tower_lr_scale`).
     #[serde(skip_serializing_if = "Vec::is_empty")]
     pub frozen: Vec<String>,
+    /// Seeds of more runs of this stage (each in `OUT/soup-seed<N>/`, trained first, from the same
+    /// start): the stage ends with its weights the average of its own run's and theirs (a model
+    /// soup; runs of one recipe that differ in their draws average into a model that keeps what
+    /// each learnt and loses less through a field's tokens; BENCHMARKS, "Conversations and find").
+    /// Before `keep_base`. The last evaluation scores the average. Empty: the run's own weights.
+    #[serde(skip_serializing_if = "Vec::is_empty")]
+    pub soup: Vec<u64>,
     /// A first stage: train this configuration (same model shape) before this one, which then
     /// starts from its weights with a fresh optimizer and fresh heads (auxiliary, slot, place;
     /// they are not part of the llava-hf files; unless `carry_heads`), so a fine-tuned model is
@@ -228,6 +235,7 @@ impl Default for VlmTrainConfig {
             carry_heads: false,
             keep_base: 0.0,
             frozen: Vec::new(),
+            soup: Vec::new(),
             base: None,
         }
     }
@@ -382,6 +390,12 @@ impl VlmTrainConfig {
                 m.text_layers
             );
             return bad("frozen", &why);
+        }
+        if self.soup.contains(&self.seed) || (1..self.soup.len()).any(|i| self.soup[..i].contains(&self.soup[i])) {
+            return bad(
+                "soup",
+                "must name seeds other than `seed`, each once (a run averaged with itself adds nothing)",
+            );
         }
         if self.carry_heads && self.base.is_none() {
             return bad("carry_heads", "needs a base stage (whose heads this stage starts from)");

@@ -123,6 +123,7 @@ fn train_stages(
     }
     let command_device = device;
     let device = &cfg.backend.map_or_else(|| device.clone(), |b| b.device());
+    let mut base_dir = None;
     let mut t = match &cfg.base {
         None => {
             if let Some(dir) = base_model {
@@ -151,9 +152,18 @@ fn train_stages(
             if cfg.carry_heads {
                 t.load_heads(&dir)?;
             }
+            base_dir = Some(dir);
             t
         }
     };
+    // the soup's other runs, each a stage of its own from the same start (resumed like one)
+    let mut soup = Vec::with_capacity(cfg.soup.len());
+    for &seed in &cfg.soup {
+        let member = VlmTrainConfig { seed, soup: Vec::new(), ..cfg.clone() };
+        let dir = out.join(format!("soup-seed{seed}"));
+        train_stages(&member, &dir, base_dir.as_deref(), command_device, c, resume, progress)?;
+        soup.push(dist::flat_params(&LlavaOnevision::load(&dir, device)?));
+    }
     if c.size() > 1 {
         t.model = dist::broadcast_params(c, t.model)?;
     }
@@ -174,6 +184,9 @@ fn train_stages(
         let lr = cfg.lr_at(t.step);
         let losses = t.step(c)?;
         let step = t.step;
+        if step == cfg.steps && !soup.is_empty() {
+            t.model.vlm = averaged(t.model.vlm.clone(), &soup)?;
+        }
         if let Some(start) = start_weights.as_deref().filter(|_| step == cfg.steps) {
             t.model.vlm = keep_base(t.model.vlm.clone(), start, cfg.keep_base)?;
         }
@@ -227,6 +240,20 @@ fn train_stages(
     // every rank waits here for rank 0's files (the next stage reads them) and checks the weights
     dist::check_in_step(c, &t.model, t.step)?;
     Ok(last)
+}
+
+/// `module` with every weight the mean of its own and those of `others` (flat weights in module
+/// order, [`dist::flat_params`]; [`VlmTrainConfig::soup`]).
+pub fn averaged<M: Module>(module: M, others: &[Vec<f32>]) -> Result<M> {
+    let mut sum: Vec<f64> = dist::flat_params(&module).into_iter().map(f64::from).collect();
+    for o in others {
+        if o.len() != sum.len() {
+            return Err(Error::input(format!("soup: {} weights in a run, {} in this one", o.len(), sum.len())));
+        }
+        sum.iter_mut().zip(o).for_each(|(s, v)| *s += f64::from(*v));
+    }
+    let n = (others.len() + 1) as f64;
+    dist::set_flat_params(module, &sum.iter().map(|s| (s / n) as f32).collect::<Vec<_>>())
 }
 
 /// `module` with every weight moved `keep` of the way back to `start` (its flat weights in module

@@ -462,6 +462,18 @@ fn a_soup_stage_ends_with_the_mean_of_its_runs() {
     assert_eq!(member, VlmTrainConfig { seed: 6, ..stage.clone() }, "the other run is the stage with its seed");
     let [a, b, s] = three_models(&out, ["alone", "soup/soup-seed6", "soup"], &dev);
     assert_made_of(&a, &b, &s, |x, y| ((f64::from(x) + f64::from(y)) / 2.0) as f32);
+    // a run stopped after its soup's other run resumes from it (that run is not trained again)
+    let member = out.join("resumed/soup-seed6");
+    std::fs::create_dir_all(&member).unwrap();
+    for f in std::fs::read_dir(out.join("soup/soup-seed6")).unwrap() {
+        let f = f.unwrap().path();
+        std::fs::copy(&f, member.join(f.file_name().unwrap())).unwrap();
+    }
+    std::fs::write(member.join("model.safetensors"), std::fs::read(out.join("alone/model.safetensors")).unwrap())
+        .unwrap();
+    train_from(&souped, &out.join("resumed"), Some(&out.join("base")), &dev, &Solo, true, |_| {}).unwrap();
+    let resumed = train::dist::flat_params(&LlavaOnevision::load(&out.join("resumed"), &dev).unwrap());
+    assert_eq!(resumed, a, "the mean of the seed-5 run and the seed-5 weights put in the other run's place");
     let bad = |soup: Vec<u64>| VlmTrainConfig { soup, ..stage.clone() }.validate().unwrap_err().to_string();
     assert!(bad(vec![5]).contains("soup"), "the stage's own seed");
     assert!(bad(vec![6, 6]).contains("soup"), "a seed twice");

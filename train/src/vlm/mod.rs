@@ -72,7 +72,11 @@ pub fn train_from(
     resume: bool,
     mut progress: impl FnMut(&LogLine),
 ) -> Result<Accuracy> {
-    if resume && !out.join("train_config.json").is_file() && !checkpoint::exists(out) && !out.join("base").is_dir() {
+    let begun = out.join("train_config.json").is_file()
+        || checkpoint::exists(out)
+        || out.join("base").is_dir()
+        || cfg.soup.iter().any(|s| soup_dir(out, *s).is_dir());
+    if resume && !begun {
         return Err(Error::invalid(out, "--resume: there is no train-vlm run here to resume"));
     }
     train_stages(cfg, out, base_model, device, c, resume, &mut progress)
@@ -160,7 +164,7 @@ fn train_stages(
     let mut soup = Vec::with_capacity(cfg.soup.len());
     for &seed in &cfg.soup {
         let member = VlmTrainConfig { seed, soup: Vec::new(), ..cfg.clone() };
-        let dir = out.join(format!("soup-seed{seed}"));
+        let dir = soup_dir(out, seed);
         train_stages(&member, &dir, base_dir.as_deref(), command_device, c, resume, progress)?;
         soup.push(dist::flat_params(&LlavaOnevision::load(&dir, device)?));
     }
@@ -240,6 +244,11 @@ fn train_stages(
     // every rank waits here for rank 0's files (the next stage reads them) and checks the weights
     dist::check_in_step(c, &t.model, t.step)?;
     Ok(last)
+}
+
+/// Where a stage in `out` trains its soup's run of `seed` ([`VlmTrainConfig::soup`]).
+fn soup_dir(out: &Path, seed: u64) -> std::path::PathBuf {
+    out.join(format!("soup-seed{seed}"))
 }
 
 /// `module` with every weight the mean of its own and those of `others` (flat weights in module

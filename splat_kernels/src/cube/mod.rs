@@ -106,7 +106,12 @@ pub fn native_float_add_on(device: &burn::tensor::Device) -> Option<bool> {
 /// Whether `device` is a CubeCL (wgpu) adapter whose shaders take f16 (wgpu's `SHADER_F16`): what
 /// holding a model's weights in f16 there (`--half`) needs. `None` for a host device.
 pub fn f16_on(device: &burn::tensor::Device) -> Option<bool> {
-    cube_client(device).map(|c| c.properties().supports_type(ElemType::Float(FloatKind::F16)))
+    cube_client(device).map(|c| f16_shaders(&c))
+}
+
+/// Whether the adapter's shaders take f16.
+fn f16_shaders(client: &Client) -> bool {
+    client.properties().supports_type(ElemType::Float(FloatKind::F16))
 }
 
 /// The CubeCL client behind `device` (through a one-element tensor made there); `None` for a host
@@ -138,7 +143,7 @@ pub fn adapter_report(device: &burn::tensor::Device) -> Option<String> {
          largest binding {} MiB, shared memory {} KiB",
         props.identity.name,
         if native_float_add(&client) { "yes" } else { "no (compare-and-swap loop)" },
-        if props.supports_type(ElemType::Float(FloatKind::F16)) { "yes" } else { "no" },
+        if f16_shaders(&client) { "yes" } else { "no" },
         props.features.matmul.cmma.len(),
         props.memory.max_page_size >> 20,
         hw.max_shared_memory_size >> 10,

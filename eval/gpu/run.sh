@@ -24,7 +24,9 @@
 #          backward's error against ndarray, for each way of adding a tile's gradients;
 #   reduce splat-bench's wgpu forward+backward with each way (--grad-reduce atomic, plane);
 #   cas    splat-bench's wgpu table again with the compare-and-swap float add (--float-add cas),
-#          against the native add that the first table used where the adapter has one.
+#          against the native add that the first table used where the adapter has one;
+#   bitonic  splat-bench's wgpu table again with the per-tile bitonic sort (--tile-sort bitonic),
+#          against the two global radix sorts that the first table used.
 # CHATSPLAT_GPU_TRAIN_REDUCE: the language stage runs once per word in it (default "auto"; e.g.
 # "atomic plane", each through CHATSPLAT_WGPU_GRAD_REDUCE), CHATSPLAT_GPU_GEO_ITERS and
 # CHATSPLAT_GPU_LANG_ITERS shorten the training (defaults 1000 and 300).
@@ -149,6 +151,11 @@ bench() {
         if [[ $parts == *" cas "* ]]; then
             # the same table with the compare-and-swap loop in place of the native float add
             step "$bin/splat-bench" --n "$n" --c "$c" --res "$res" --impls wgpu --max-secs 20 --float-add cas || true
+        fi
+        if [[ $parts == *" bitonic "* ]]; then
+            # the same table with each tile's list sorted by a bitonic sort in place of the radix sorts
+            step "$bin/splat-bench" --n "$n" --c "$c" --res "$res" --impls wgpu --max-secs 20 --tile-sort bitonic ||
+                true
         fi
         if [[ $parts == *" accuracy "* ]]; then
             step "$bin/splat-bench" --accuracy || true

@@ -54,6 +54,8 @@ pub struct RasterConfig {
     pub grad_reduce: GradReduce,
     /// Which atomic add the wgpu backward uses (the CPU backends ignore it).
     pub float_add: FloatAdd,
+    /// How the wgpu forward orders each tile's Gaussians (the CPU backends ignore it).
+    pub tile_sort: TileSort,
 }
 
 /// How the wgpu backward accumulates a tile's per-pixel contributions to one Gaussian's gradient.
@@ -85,6 +87,21 @@ pub enum FloatAdd {
     Cas,
 }
 
+/// How the wgpu forward puts each tile's Gaussians in (depth, id) order. Both give the same lists.
+#[derive(Clone, Copy, Debug, PartialEq, Eq, Default)]
+pub enum TileSort {
+    /// [`TileSort::Radix`]. The environment variable `CHATSPLAT_WGPU_SORT=radix|bitonic`
+    /// overrides the choice (to compare them).
+    #[default]
+    Auto,
+    /// The Gaussians sorted once by depth, then every tile entry by tile: two global, stable
+    /// radix sorts (what gsplat and Brush do), work in proportion to the entries.
+    Radix,
+    /// A bitonic sort of each tile's list by a workgroup, in global memory: n log² n per tile, and a
+    /// tile's workgroup waits on its longest list.
+    Bitonic,
+}
+
 impl Default for RasterConfig {
     fn default() -> Self {
         Self {
@@ -94,6 +111,7 @@ impl Default for RasterConfig {
             extent: 3.0,
             grad_reduce: GradReduce::Auto,
             float_add: FloatAdd::Auto,
+            tile_sort: TileSort::Auto,
         }
     }
 }

@@ -30,5 +30,5 @@ pub mod reference;
 
 pub use api::{Gaussians, SplatRender, splat};
 pub use camera::Camera;
-pub use constants::{FloatAdd, GradReduce, RasterConfig};
+pub use constants::{FloatAdd, GradReduce, RasterConfig, TileSort};
 pub use error::SplatError;

@@ -7,7 +7,7 @@
 use burn::tensor::{Device, Tensor, TensorData};
 use chatsplat_tests::*;
 use splat_kernels::api::{SplatOptions, splat};
-use splat_kernels::{Camera, FloatAdd, GradReduce, RasterConfig, SplatError, cpu, reference};
+use splat_kernels::{Camera, FloatAdd, GradReduce, RasterConfig, SplatError, TileSort, cpu, reference};
 
 struct Grads {
     means: Vec<f32>,
@@ -277,6 +277,7 @@ fn wgpu_matches_ndarray_forward_backward_and_hard_cases() {
     let mut ways = vec![
         ("plane", RasterConfig { grad_reduce: GradReduce::Plane, ..RasterConfig::smooth() }),
         ("cas", RasterConfig { float_add: FloatAdd::Cas, ..RasterConfig::smooth() }),
+        ("bitonic", RasterConfig { tile_sort: TileSort::Bitonic, ..RasterConfig::smooth() }),
     ];
     if native {
         ways.push(("native", RasterConfig { float_add: FloatAdd::Native, ..RasterConfig::smooth() }));
@@ -351,6 +352,7 @@ fn wgpu_matches_ndarray_forward_backward_and_hard_cases() {
     assert!(f0.chunks(2).all(|px| px == empty.background.as_slice()));
     assert!(g0.means.is_empty() && g0.features.is_empty());
     assert_close("N = 0 background gradient", &g0.background, &g0n.background, 1e-5);
+    assert_radix_and_bitonic_lists_agree(&wgpu, &nd);
     // Last: on lavapipe it ends in a caught panic.
     assert_right_or_refused_past_the_loop_limit(&wgpu, &nd);
 }
@@ -362,6 +364,40 @@ fn wgpu_matches_ndarray_forward_backward_and_hard_cases() {
 /// GPU, without the limit, it must match ndarray. (Up to 64 channels the channel loops are
 /// unrolled and such a tile stays below the limit.) The Gaussians are anisotropic, so that every
 /// gradient, the rotations' too, is well above rounding.
+/// The two ways of ordering the tiles' lists ([`TileSort`]) give the same lists: the same image
+/// and top contributors bit for bit, and ndarray's top contributors where depths tie (the
+/// (depth, id) order). The scene spans several radix blocks of Gaussians and of tile entries and
+/// two tile-id digits, with 400 overlapping Gaussians at one depth, in front of the others, and
+/// some behind the camera.
+fn assert_radix_and_bitonic_lists_agree(wgpu: &Device, nd: &Device) {
+    let cam = front_camera(200, 150, 120.0); // 13 x 10 tiles
+    let mut scene = random_scene(5000, 3, &cam, 17);
+    let mut r = Rng::new(18);
+    for k in 0..400 {
+        let (x, y) = (r.range(-0.7, 0.7), r.range(-0.5, 0.5));
+        scene.push([x, y, 2.0], [-2.5, -2.8, -3.0], [1.0, 0.0, 0.0, 0.0], r.range(0.0, 3.0), &[k as f32 / 400.0; 3]);
+    }
+    for _ in 0..50 {
+        scene.push([r.range(-1.0, 1.0), 0.0, -2.0], [-2.0; 3], [1.0, 0.0, 0.0, 0.0], 2.0, &[1.0; 3]);
+    }
+    let render = |device: &Device, tile_sort: TileSort| {
+        let (g, bg) = scene.gaussians(device);
+        let opts = SplatOptions { config: RasterConfig { tile_sort, ..RasterConfig::default() }, ..Default::default() };
+        let out = splat(&g, &cam, bg, &opts).unwrap();
+        (host(out.features), out.top_id.into_data().convert::<i32>().to_vec::<i32>().unwrap())
+    };
+    let (radix, radix_ids) = render(wgpu, TileSort::Radix);
+    let (bitonic, bitonic_ids) = render(wgpu, TileSort::Bitonic);
+    assert_eq!(radix, bitonic, "radix and bitonic lists composite differently");
+    assert_eq!(radix_ids, bitonic_ids, "radix and bitonic lists differ in top contributors");
+    let (cpu, cpu_ids) = render(nd, TileSort::Auto);
+    assert_close("radix against ndarray", &radix, &cpu, 1e-4);
+    let same = radix_ids.iter().zip(&cpu_ids).filter(|(a, b)| a == b).count();
+    assert!(same * 1000 >= 999 * cpu_ids.len(), "top ids differ from ndarray on {} pixels", cpu_ids.len() - same);
+    let tied: std::collections::BTreeSet<i32> = radix_ids.iter().copied().filter(|&i| i >= 5000).collect();
+    assert!(tied.len() > 50, "the tied Gaussians lead many pixels ({} do)", tied.len());
+}
+
 fn assert_right_or_refused_past_the_loop_limit(wgpu: &Device, nd: &Device) {
     let cam = front_camera(16, 16, 16.0);
     let mut r = Rng::new(91);

@@ -12,7 +12,7 @@ use clap::Parser;
 use model::rng::Rng;
 use model::{Backend, catch_backend};
 use splat_kernels::api::{SplatOptions, splat};
-use splat_kernels::{Camera, FloatAdd, Gaussians, GradReduce, RasterConfig, dense};
+use splat_kernels::{Camera, FloatAdd, Gaussians, GradReduce, RasterConfig, TileSort, dense};
 use std::time::Instant;
 
 #[derive(Parser)]
@@ -47,6 +47,27 @@ struct Args {
     /// cas (a compare-and-swap loop).
     #[arg(long, value_enum, default_value_t = Add::Auto)]
     float_add: Add,
+    /// How the wgpu forward orders each tile's Gaussians: auto (radix), radix (two global radix
+    /// sorts) or bitonic (a bitonic sort per tile).
+    #[arg(long, value_enum, default_value_t = Sort::Auto)]
+    tile_sort: Sort,
+}
+
+#[derive(Clone, Copy, clap::ValueEnum)]
+enum Sort {
+    Auto,
+    Radix,
+    Bitonic,
+}
+
+impl From<Sort> for TileSort {
+    fn from(s: Sort) -> Self {
+        match s {
+            Sort::Auto => TileSort::Auto,
+            Sort::Radix => TileSort::Radix,
+            Sort::Bitonic => TileSort::Bitonic,
+        }
+    }
 }
 
 #[derive(Clone, Copy, clap::ValueEnum)]
@@ -340,12 +361,16 @@ fn bench(a: &Args) -> model::Result<()> {
     let config = RasterConfig {
         grad_reduce: GradReduce::from(a.grad_reduce),
         float_add: FloatAdd::from(a.float_add),
+        tile_sort: TileSort::from(a.tile_sort),
         ..Default::default()
     };
     if want("wgpu") {
         match catch_backend("wgpu", || splat_kernels::cube::adapter_report(&Backend::Wgpu.device())) {
             Ok(Some(line)) => println!("{line}"),
             _ => println!("wgpu: no adapter"),
+        }
+        if let Ok(Some(line)) = catch_backend("wgpu", || splat_kernels::cube::paths(&Backend::Wgpu.device(), &config)) {
+            println!("wgpu: {line}");
         }
     }
     println!(

@@ -6,9 +6,12 @@
 //! 1. `project_kernel` (thread per Gaussian): screen-space centre, conic, depth, opacity, tile
 //!    rectangle; atomically counts Gaussians per tile.
 //! 2. `scan_kernel` (one workgroup): exclusive prefix sum of the tile counts -> tile offsets, total.
-//! 3. `emit_kernel` (thread per Gaussian): writes (depth, id) into each touched tile's segment.
-//! 4. `tile_sort_kernel` (workgroup per tile): bitonic sort of the segment by (depth, id), so the
-//!    order is the same total order as on the CPU.
+//! 3. Each tile's list of Gaussians in (depth, id) order, the same total order as on the CPU, one
+//!    of two ways ([`TileSort`]). By default (`radix`, [`radix`]) the Gaussians are sorted once by
+//!    depth, their tile entries written in that order and then sorted by tile, both with a global,
+//!    stable radix sort.
+//! 4. Or (`bitonic`): `emit_kernel` (thread per Gaussian) writes (depth, id) into each touched
+//!    tile's segment and `tile_sort_kernel` (workgroup per tile) sorts it.
 //! 5. `raster_fwd_kernel` (workgroup per 16x16 tile, thread per pixel): front-to-back compositing
 //!    with Gaussians staged through shared memory in batches of 256, a pixel's features summed in
 //!    registers (up to [`MAX_REG_CHANNELS`] channels), the tile stopped once every pixel is
@@ -24,16 +27,17 @@
 //! bitwise deterministic).
 //!
 //! The math mirrors [`crate::project`] and [`crate::cpu`] line for line; see there for derivations.
-//! Files by pipeline stage: `project` (1, 7), `sort` (2-4), `raster` (5, 6), `layout` (the packed
-//! buffers' named offsets); this module launches them (host side).
+//! Files by pipeline stage: `project` (1, 7), `sort` (2, 4), `radix` (3), `raster` (5, 6),
+//! `layout` (the packed buffers' named offsets); this module launches them (host side).
 
 mod layout;
 mod project;
+mod radix;
 mod raster;
 mod sort;
 
 use crate::camera::Camera;
-use crate::constants::{FloatAdd, GradReduce, RasterConfig, TILE_PIXELS};
+use crate::constants::{FloatAdd, GradReduce, RasterConfig, TILE_PIXELS, TileSort};
 use crate::ext::{SplatBackend, SplatBins, SplatFwdPrims, SplatPrims, SplatSaved};
 use burn::backend::ops::FloatTensorOps;
 use burn::backend::try_read_sync;
@@ -65,6 +69,19 @@ pub const MAX_REG_CHANNELS: usize = 64;
 /// The raster kernels' `reg_channels` for `c` channels: its bucket, or 0 above the largest.
 pub(super) fn reg_channels(c: usize) -> usize {
     if c <= MAX_REG_CHANNELS { c.next_power_of_two().max(4) } else { 0 }
+}
+
+/// Overrides [`TileSort::Auto`]'s choice for the whole process: `radix` or `bitonic`.
+pub const TILE_SORT_ENV: &str = "CHATSPLAT_WGPU_SORT";
+
+/// Whether the forward orders the tiles' lists with the global radix sorts ([`TileSort`]).
+fn use_radix(choice: TileSort) -> bool {
+    static CELL: std::sync::OnceLock<Option<bool>> = std::sync::OnceLock::new();
+    match choice {
+        TileSort::Auto => forced(TILE_SORT_ENV, "radix", "bitonic", &CELL).unwrap_or(true),
+        TileSort::Radix => true,
+        TileSort::Bitonic => false,
+    }
 }
 
 /// Overrides [`FloatAdd::Auto`]'s choice for the whole process: `native` or `cas`.
@@ -147,6 +164,19 @@ pub fn adapter_report(device: &burn::tensor::Device) -> Option<String> {
         props.features.matmul.cmma.len(),
         props.memory.max_page_size >> 20,
         hw.max_shared_memory_size >> 10,
+    ))
+}
+
+/// Which paths the op takes on `device` under `config`, each `Auto` resolved as the kernels will
+/// (adapter and `CHATSPLAT_WGPU_*` overrides): "tile lists by radix sort, backward with plane sums
+/// and the native float add". `None` for a host device.
+pub fn paths(device: &burn::tensor::Device, config: &RasterConfig) -> Option<String> {
+    let client = cube_client(device)?;
+    Some(format!(
+        "tile lists by {}, backward with {} and the {} float add",
+        if use_radix(config.tile_sort) { "radix sort" } else { "bitonic sort" },
+        if use_plane(&client, config.grad_reduce) { "plane sums" } else { "an atomic per pixel" },
+        if use_native_add(&client, config.float_add) { "native" } else { "compare-and-swap" },
     ))
 }
 
@@ -275,9 +305,11 @@ fn bin(p: &SplatPrims<CubeBackend>, camera: &Camera, config: &RasterConfig) -> D
             .expect("synchronous read is supported")
             .expect("tensor read succeeds");
     let n_isect = total_data.convert::<i64>().into_vec::<i64>().expect("int data")[0] as usize;
-    let keys = alloc(like, vec![n_isect.max(1)], DType::F32);
-    let gids = zeros(like, vec![n_isect.max(1)], DType::I32);
-    if n > 0 && n_isect > 0 {
+    let mut gids = zeros(like, vec![n_isect.max(1)], DType::I32);
+    if n > 0 && n_isect > 0 && use_radix(config.tile_sort) {
+        gids = radix::tile_lists(&proj, &rects, n, n_isect, camera);
+    } else if n > 0 && n_isect > 0 {
+        let keys = alloc(like, vec![n_isect.max(1)], DType::F32);
         let cursors = zeros(like, vec![num_tiles], DType::I32);
         emit_kernel::launch(
             client,

@@ -14,7 +14,10 @@ nvidia-smi line), `gsplat.json` and `transformers_cuda.json` where present, and 
      "transformers": {transformers_cuda.json}}
 
 `ours_cas_fwdbwd_ms` is the compare-and-swap table's figure (`--float-add cas`) where the lease ran
-one. Exits non-zero, naming the file, when a folder holds no splat-bench table.
+one; likewise `ours_bitonic_*` (`--tile-sort bitonic`), `ours_spirv_*` (the SPIR-V build) and
+`ours_atomic_*` / `ours_plane_*` (`--grad-reduce`). Before, the SPIR-V and `--grad-reduce` tables
+were read as the default one and overwrote its rows. Exits non-zero, naming the file, when a
+folder holds no splat-bench table.
 """
 import argparse
 import json
@@ -23,12 +26,25 @@ import re
 import sys
 
 
+def flavour_of(command):
+    """Which table a splat-bench command line makes: "auto" (the default paths), "cas", "bitonic",
+    "plane" / "atomic" (--grad-reduce), "spirv" (the SPIR-V build), or None (--accuracy)."""
+    if "--accuracy" in command:
+        return None
+    for flag, name in [("splat-bench-spirv", "spirv"), ("--float-add cas", "cas"),
+                       ("--tile-sort bitonic", "bitonic"), ("--grad-reduce atomic", "atomic"),
+                       ("--grad-reduce plane", "plane")]:
+        if flag in command:
+            return name
+    return "auto"
+
+
 def splat_tables(log):
     """splat-bench tables of the log: {command flavour: {(res, n, c): (fwd, fwdbwd)}}."""
     tables, flavour = {}, None
     for line in log.splitlines():
         if line.startswith("$ ") and "splat-bench" in line:
-            flavour = None if "--accuracy" in line else ("cas" if "--float-add cas" in line else "auto")
+            flavour = flavour_of(line)
             continue
         cells = [c.strip() for c in line.strip().strip("|").split("|")]
         if flavour and len(cells) == 10 and re.fullmatch(r"\d+x\d+", cells[0]):
@@ -97,6 +113,9 @@ def main():
                "ours_fwdbwd_ms": fb, "gsplat_fwdbwd_ms": g[1]}
         if key in tables.get("cas", {}):
             row["ours_cas_fwdbwd_ms"] = tables["cas"][key][1]
+        for other in ["bitonic", "spirv", "atomic", "plane"]:
+            if key in tables.get(other, {}):
+                row[f"ours_{other}_fwd_ms"], row[f"ours_{other}_fwdbwd_ms"] = tables[other][key]
         result["splat"].append(row)
     os.makedirs(os.path.dirname(a.out) or ".", exist_ok=True)
     tmp = a.out + ".tmp"

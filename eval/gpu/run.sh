@@ -30,7 +30,7 @@
 # CHATSPLAT_GPU_TRAIN_REDUCE: the language stage runs once per word in it (default "auto"; e.g.
 # "atomic plane", each through CHATSPLAT_WGPU_GRAD_REDUCE), CHATSPLAT_GPU_GEO_ITERS and
 # CHATSPLAT_GPU_LANG_ITERS shorten the training (defaults 1000 and 300).
-# CHATSPLAT_GPU_PARTS picks the parts (default "splat peers vlm spirv train"; "peers" is "gsplat
+# CHATSPLAT_GPU_PARTS picks the parts (default "splat bitonic peers vlm spirv train"; "peers" is "gsplat
 # transformers": split them over two calls if one would pass the device's 10-minute limit per
 # command; vlm takes its reference from CHATSPLAT_GPU_REFERENCE, default
 # OUTDIR/transformers_cuda.json, when there is one).
@@ -130,7 +130,7 @@ bench() {
     if [ -f /usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json ]; then
         export VK_DRIVER_FILES=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json
     fi
-    local quick=${CHATSPLAT_GPU_QUICK:-0} parts=" ${CHATSPLAT_GPU_PARTS:-splat peers vlm spirv train} "
+    local quick=${CHATSPLAT_GPU_QUICK:-0} parts=" ${CHATSPLAT_GPU_PARTS:-splat bitonic peers vlm spirv train} "
     parts=${parts/ peers / gsplat transformers }
     local n=100000,1000000 c=3,32 res=384x384,1280x720 vlm=0.5b views=32 side=96 be=wgpu
     local geo=${CHATSPLAT_GPU_GEO_ITERS:-1000} lang=${CHATSPLAT_GPU_LANG_ITERS:-300}

@@ -6,6 +6,18 @@
 //! list is in the same (depth, id) total order as the CPU's and the bitonic sort's.
 //!
 //! Kernels here, their launches in [`tile_lists`], [`sort_pairs`] and [`scan_blocks`].
+//!
+//! The kernels launch unchecked (no bounds test on each access); every index is in range:
+//! - an item index `i` is read only under `i < n`, and every item buffer holds at least `n`;
+//! - a block `b` past the last one leaves at once ([`block_index`]), so `hist`, `starts` and
+//!   `sums` indices `digit * blocks + b` and `b` stay below their `DIGITS * blocks` and `blocks`;
+//!   the shared arrays are indexed by `digit * TILE_PIXELS + UNIT_POS` (of `DIGITS * TILE_PIXELS`)
+//!   or by `UNIT_POS` and `TILE_PIXELS` (of `TILE_PIXELS + 1`);
+//! - a scatter's target is its digit's start (the exclusive scan of the very histogram this pass
+//!   counted from the same keys) plus the items of that digit before it in its block: below `n`;
+//! - a Gaussian's entries are written from the scan of the tiles its rectangle touches, whose
+//!   total is the projection's count of entries from the same rectangles: the entry buffers' length;
+//!   `order` is a permutation of the Gaussian ids, below `n`.
 
 use super::layout::*;
 use super::sort::scan_kernel;
@@ -60,7 +72,7 @@ fn count_digits(keys: &[u32], counts: &mut Shared<[u32]>, n: u32, shift: u32, fi
 /// Block per [`BLOCK_ITEMS`] pairs: how many of its keys have each digit at `shift`, into
 /// `hist[digit * blocks + block]` (digit-major, so one exclusive scan gives every block's start
 /// for every digit).
-#[cube(launch)]
+#[cube(launch_unchecked)]
 pub(super) fn radix_hist_kernel(keys: &[u32], hist: &mut [u32], n: u32, shift: u32, blocks: u32) {
     let b = block_index(blocks);
     let mut counts = Shared::<[u32]>::new_slice((DIGITS * TILE_PIXELS) as usize);
@@ -79,7 +91,7 @@ pub(super) fn radix_hist_kernel(keys: &[u32], hist: &mut [u32], n: u32, shift: u
 /// Block per [`BLOCK_ITEMS`] pairs: each pair moved to its place, `starts` being the exclusive
 /// scan of [`radix_hist_kernel`]'s counts. Within a digit a block keeps its pairs' order, and the
 /// blocks keep theirs: the sort is stable.
-#[cube(launch)]
+#[cube(launch_unchecked)]
 pub(super) fn radix_scatter_kernel(
     keys: &[u32],
     vals: &[u32],
@@ -122,7 +134,7 @@ pub(super) fn radix_scatter_kernel(
 
 /// Thread per Gaussian: its depth as a key whose unsigned order is `f32::total_cmp`'s (the sign
 /// bit flipped on positives, every bit on negatives), and its id as the value.
-#[cube(launch)]
+#[cube(launch_unchecked)]
 pub(super) fn depth_keys_kernel(proj: &[f32], keys: &mut [u32], ids: &mut [u32], n: u32) {
     let i = ABSOLUTE_POS as u32;
     if i >= n {
@@ -138,7 +150,7 @@ pub(super) fn depth_keys_kernel(proj: &[f32], keys: &mut [u32], ids: &mut [u32],
 }
 
 /// Thread per depth-sorted Gaussian: how many tiles its rectangle touches.
-#[cube(launch)]
+#[cube(launch_unchecked)]
 pub(super) fn tile_counts_kernel(rects: &[u32], order: &[u32], counts: &mut [u32], n: u32) {
     let k = ABSOLUTE_POS as u32;
     if k >= n {
@@ -150,7 +162,7 @@ pub(super) fn tile_counts_kernel(rects: &[u32], order: &[u32], counts: &mut [u32
 
 /// Thread per depth-sorted Gaussian: (tile, id) for each tile it touches, from `starts[k]` on
 /// (the exclusive scan of [`tile_counts_kernel`]), so the entries are in depth order.
-#[cube(launch)]
+#[cube(launch_unchecked)]
 pub(super) fn emit_sorted_kernel(
     rects: &[u32],
     order: &[u32],
@@ -202,7 +214,7 @@ fn block_partials(vals: &[u32], partial: &mut Shared<[u32]>, n: u32, first: u32)
 }
 
 /// Block per [`BLOCK_ITEMS`] values: their sum into `sums[block]`.
-#[cube(launch)]
+#[cube(launch_unchecked)]
 pub(super) fn block_sum_kernel(vals: &[u32], sums: &mut [u32], n: u32, blocks: u32) {
     let b = block_index(blocks);
     let mut partial = Shared::<[u32]>::new_slice(TILE_PIXELS as usize + 1);
@@ -213,7 +225,7 @@ pub(super) fn block_sum_kernel(vals: &[u32], sums: &mut [u32], n: u32, blocks: u
 }
 
 /// Block per [`BLOCK_ITEMS`] values: their exclusive scan, each block starting at its `base`.
-#[cube(launch)]
+#[cube(launch_unchecked)]
 pub(super) fn block_scan_kernel(vals: &[u32], base: &[u32], out: &mut [u32], n: u32, blocks: u32) {
     let b = block_index(blocks);
     let first = first_item(b);
@@ -248,9 +260,24 @@ pub(super) fn scan_blocks(client: &Client, vals: &CubeTensor, n: usize) -> CubeT
     let out = alloc(vals, vec![n.max(1)], DType::I32);
     let dim = CubeDim::new_1d(TILE_PIXELS);
     let (n32, b32) = (n as u32, blocks as u32);
-    block_sum_kernel::launch(client, block_grid(blocks), dim, buf(vals), buf(&sums), n32, b32);
+    // SAFETY: every index is in range (the module docs say why).
+    unsafe {
+        block_sum_kernel::launch_unchecked(client, block_grid(blocks), dim, buf(vals), buf(&sums), n32, b32);
+    }
     scan_kernel::launch(client, CubeCount::Static(1, 1, 1), dim, buf(&sums), buf(&base), buf(&total), b32);
-    block_scan_kernel::launch(client, block_grid(blocks), dim, buf(vals), buf(&base), buf(&out), n32, b32);
+    // SAFETY: every index is in range (the module docs say why).
+    unsafe {
+        block_scan_kernel::launch_unchecked(
+            client,
+            block_grid(blocks),
+            dim,
+            buf(vals),
+            buf(&base),
+            buf(&out),
+            n32,
+            b32,
+        );
+    }
     out
 }
 
@@ -274,22 +301,37 @@ pub(super) fn sort_pairs(
     let (n32, b32) = (n as u32, blocks as u32);
     for pass in 0..bits.div_ceil(DIGIT_BITS) {
         let shift = pass * DIGIT_BITS;
-        radix_hist_kernel::launch(client, block_grid(blocks), dim, buf(&keys), buf(&hist), n32, shift, b32);
+        // SAFETY: every index is in range (the module docs say why).
+        unsafe {
+            radix_hist_kernel::launch_unchecked(
+                client,
+                block_grid(blocks),
+                dim,
+                buf(&keys),
+                buf(&hist),
+                n32,
+                shift,
+                b32,
+            );
+        }
         let len = b32 * DIGITS;
         scan_kernel::launch(client, CubeCount::Static(1, 1, 1), dim, buf(&hist), buf(&starts), buf(&total), len);
-        radix_scatter_kernel::launch(
-            client,
-            block_grid(blocks),
-            dim,
-            buf(&keys),
-            buf(&vals),
-            buf(&starts),
-            buf(&keys_to),
-            buf(&vals_to),
-            n32,
-            shift,
-            b32,
-        );
+        // SAFETY: every index is in range (the module docs say why).
+        unsafe {
+            radix_scatter_kernel::launch_unchecked(
+                client,
+                block_grid(blocks),
+                dim,
+                buf(&keys),
+                buf(&vals),
+                buf(&starts),
+                buf(&keys_to),
+                buf(&vals_to),
+                n32,
+                shift,
+                b32,
+            );
+        }
         std::mem::swap(&mut keys, &mut keys_to);
         std::mem::swap(&mut vals, &mut vals_to);
     }
@@ -312,25 +354,34 @@ pub(super) fn tile_lists(
     let [tx, ty] = camera.tiles();
     let keys = alloc(proj, vec![n], DType::I32);
     let ids = alloc(proj, vec![n], DType::I32);
-    depth_keys_kernel::launch(client, groups(n), dim, buf(proj), buf(&keys), buf(&ids), n as u32);
+    // SAFETY: every index is in range (the module docs say why).
+    unsafe {
+        depth_keys_kernel::launch_unchecked(client, groups(n), dim, buf(proj), buf(&keys), buf(&ids), n as u32);
+    }
     let (_, order) = sort_pairs(client, keys, ids, n, 32);
     let touched = alloc(proj, vec![n], DType::I32);
-    tile_counts_kernel::launch(client, groups(n), dim, buf(rects), buf(&order), buf(&touched), n as u32);
+    // SAFETY: every index is in range (the module docs say why).
+    unsafe {
+        tile_counts_kernel::launch_unchecked(client, groups(n), dim, buf(rects), buf(&order), buf(&touched), n as u32);
+    }
     let starts = scan_blocks(client, &touched, n);
     let tiles = alloc(proj, vec![n_isect], DType::I32);
     let gids = alloc(proj, vec![n_isect], DType::I32);
-    emit_sorted_kernel::launch(
-        client,
-        groups(n),
-        dim,
-        buf(rects),
-        buf(&order),
-        buf(&starts),
-        buf(&tiles),
-        buf(&gids),
-        n as u32,
-        tx,
-    );
+    // SAFETY: every index is in range (the module docs say why).
+    unsafe {
+        emit_sorted_kernel::launch_unchecked(
+            client,
+            groups(n),
+            dim,
+            buf(rects),
+            buf(&order),
+            buf(&starts),
+            buf(&tiles),
+            buf(&gids),
+            n as u32,
+            tx,
+        );
+    }
     // the tile ids' significant bits only: 12 for 1280x720's 3,600 tiles (three passes)
     let tile_bits = u32::BITS - (tx * ty).saturating_sub(1).leading_zeros();
     sort_pairs(client, tiles, gids, n_isect, tile_bits).1

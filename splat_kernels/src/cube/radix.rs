@@ -11,8 +11,9 @@
 //! - an item index `i` is read only under `i < n`, and every item buffer holds at least `n`;
 //! - a block `b` past the last one leaves at once ([`block_index`]), so `hist`, `starts` and
 //!   `sums` indices `digit * blocks + b` and `b` stay below their `DIGITS * blocks` and `blocks`;
-//!   the shared arrays are indexed by `digit * TILE_PIXELS + UNIT_POS` (of `DIGITS * TILE_PIXELS`)
-//!   or by `UNIT_POS` and `TILE_PIXELS` (of `TILE_PIXELS + 1`);
+//!   the shared arrays are indexed by `digit * TILE_PIXELS + UNIT_POS` or a row's cells (of
+//!   `DIGITS * TILE_PIXELS`), or by `UNIT_POS` and `TILE_PIXELS` (of `TILE_PIXELS + 1`) and
+//!   `UNIT_POS + k` for a row's first thread, `k < ROW_THREADS` (of `TILE_PIXELS`);
 //! - a scatter's target is its digit's start (the exclusive scan of the very histogram this pass
 //!   counted from the same keys) plus the items of that digit before it in its block: below `n`;
 //! - a Gaussian's entries are written from the scan of the tiles its rectangle touches, whose
@@ -69,6 +70,60 @@ fn count_digits(keys: &[u32], counts: &mut Shared<[u32]>, n: u32, shift: u32, fi
     }
 }
 
+/// Cells of a digit's row (one cell per thread of the block) each thread sums or scans: the block's
+/// threads work the [`DIGITS`] rows together, [`ROW_THREADS`] to a row.
+const ROW_CELLS: u32 = TILE_PIXELS / DIGITS;
+const ROW_THREADS: u32 = TILE_PIXELS / ROW_CELLS;
+
+/// Every thread sums its [`ROW_CELLS`] consecutive cells of one digit's row of `counts` into
+/// `part[UNIT_POS]`; returns the row's total to the row's first thread (0 to the others). About
+/// 32 dependent steps where one thread per row took 256.
+#[cube]
+fn row_parts(counts: &mut Shared<[u32]>, part: &mut Shared<[u32]>) -> u32 {
+    let first = (UNIT_POS / ROW_THREADS) * TILE_PIXELS + (UNIT_POS % ROW_THREADS) * ROW_CELLS;
+    let mut s = 0u32;
+    for k in 0..ROW_CELLS {
+        s += counts[(first + k) as usize];
+    }
+    part[UNIT_POS as usize] = s;
+    sync_cube();
+    let mut total = 0u32;
+    let lane = UNIT_POS % ROW_THREADS;
+    if lane == 0 {
+        for k in 0..ROW_THREADS {
+            total += part[(UNIT_POS + k) as usize];
+        }
+    }
+    total
+}
+
+/// Turns every digit's row of `counts` into its exclusive scan (per digit, the items of the
+/// threads before each thread), all threads working.
+#[cube]
+fn scan_rows(counts: &mut Shared<[u32]>, part: &mut Shared<[u32]>) {
+    let first = (UNIT_POS / ROW_THREADS) * TILE_PIXELS + (UNIT_POS % ROW_THREADS) * ROW_CELLS;
+    row_parts(counts, part);
+    // the row's first thread scans the row's parts in place
+    let lane = UNIT_POS % ROW_THREADS;
+    if lane == 0 {
+        let mut running = 0u32;
+        for k in 0..ROW_THREADS {
+            let i = (UNIT_POS + k) as usize;
+            let v = part[i];
+            part[i] = running;
+            running += v;
+        }
+    }
+    sync_cube();
+    let mut running = part[UNIT_POS as usize];
+    for k in 0..ROW_CELLS {
+        let i = (first + k) as usize;
+        let v = counts[i];
+        counts[i] = running;
+        running += v;
+    }
+}
+
 /// Block per [`BLOCK_ITEMS`] pairs: how many of its keys have each digit at `shift`, into
 /// `hist[digit * blocks + block]` (digit-major, so one exclusive scan gives every block's start
 /// for every digit).
@@ -76,15 +131,13 @@ fn count_digits(keys: &[u32], counts: &mut Shared<[u32]>, n: u32, shift: u32, fi
 pub(super) fn radix_hist_kernel(keys: &[u32], hist: &mut [u32], n: u32, shift: u32, blocks: u32) {
     let b = block_index(blocks);
     let mut counts = Shared::<[u32]>::new_slice((DIGITS * TILE_PIXELS) as usize);
+    let mut part = Shared::<[u32]>::new_slice(TILE_PIXELS as usize);
     count_digits(keys, &mut counts, n, shift, first_item(b));
     sync_cube();
-    if UNIT_POS < DIGITS {
-        let row = UNIT_POS * TILE_PIXELS;
-        let mut s = 0u32;
-        for t in 0..TILE_PIXELS {
-            s += counts[(row + t) as usize];
-        }
-        hist[(UNIT_POS * blocks + b) as usize] = s;
+    let total = row_parts(&mut counts, &mut part);
+    let lane = UNIT_POS % ROW_THREADS;
+    if lane == 0 {
+        hist[((UNIT_POS / ROW_THREADS) * blocks + b) as usize] = total;
     }
 }
 
@@ -105,18 +158,11 @@ pub(super) fn radix_scatter_kernel(
     let b = block_index(blocks);
     let first = first_item(b);
     let mut counts = Shared::<[u32]>::new_slice((DIGITS * TILE_PIXELS) as usize);
+    let mut part = Shared::<[u32]>::new_slice(TILE_PIXELS as usize);
     count_digits(keys, &mut counts, n, shift, first);
     sync_cube();
     // per digit, the threads before this one: an exclusive scan along each digit's row
-    if UNIT_POS < DIGITS {
-        let row = UNIT_POS * TILE_PIXELS;
-        let mut running = 0u32;
-        for t in 0..TILE_PIXELS {
-            let v = counts[(row + t) as usize];
-            counts[(row + t) as usize] = running;
-            running += v;
-        }
-    }
+    scan_rows(&mut counts, &mut part);
     sync_cube();
     for k in 0..PER_THREAD {
         let i = first + k;

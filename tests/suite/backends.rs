@@ -357,13 +357,6 @@ fn wgpu_matches_ndarray_forward_backward_and_hard_cases() {
     assert_right_or_refused_past_the_loop_limit(&wgpu, &nd);
 }
 
-/// One 16x16 tile under 3,000 faint Gaussians with 80 channels (above the kernels' register limit,
-/// so their channel loops run in global memory): about 240,000 loop iterations per pixel, past the
-/// 65,535 at which Mesa lavapipe silently ends a shader's loops. The wgpu op must then refuse
-/// (panic naming the limit) instead of returning an image and gradients that lost Gaussians; on a
-/// GPU, without the limit, it must match ndarray. (Up to 64 channels the channel loops are
-/// unrolled and such a tile stays below the limit.) The Gaussians are anisotropic, so that every
-/// gradient, the rotations' too, is well above rounding.
 /// The two ways of ordering the tiles' lists ([`TileSort`]) give the same lists: the same image
 /// and top contributors bit for bit, and ndarray's top contributors where depths tie (the
 /// (depth, id) order). The scene spans several radix blocks of Gaussians and of tile entries and
@@ -398,6 +391,13 @@ fn assert_radix_and_bitonic_lists_agree(wgpu: &Device, nd: &Device) {
     assert!(tied.len() > 50, "the tied Gaussians lead many pixels ({} do)", tied.len());
 }
 
+/// One 16x16 tile under 3,000 faint Gaussians with 80 channels (above the kernels' register limit,
+/// so their channel loops run in global memory): about 240,000 loop iterations per pixel, past the
+/// 65,535 at which Mesa lavapipe silently ends a shader's loops. The wgpu op must then refuse
+/// (panic naming the limit) instead of returning an image and gradients that lost Gaussians; on a
+/// GPU, without the limit, it must match ndarray. (Up to 64 channels the channel loops are
+/// unrolled and such a tile stays below the limit.) The Gaussians are anisotropic, so that every
+/// gradient, the rotations' too, is well above rounding.
 fn assert_right_or_refused_past_the_loop_limit(wgpu: &Device, nd: &Device) {
     let cam = front_camera(16, 16, 16.0);
     let mut r = Rng::new(91);

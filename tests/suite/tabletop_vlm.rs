@@ -709,11 +709,7 @@ fn the_committed_model_answers_questions_on_held_out_scenes() {
     );
     // it converses: every follow-up is asked after the question it follows
     assert!(cfg.two_turn > 0.0, "the built-in model's last stage trained second turns");
-    let (right, asked) = acc
-        .by_kind
-        .iter()
-        .filter(|(k, _)| k.starts_with("follow_") && !k.ends_with("_twin"))
-        .fold((0, 0), |a, (_, v)| (a.0 + v.0, a.1 + v.1));
+    let (right, asked) = acc.follow_ups();
     let follow = right as f64 / asked.max(1) as f64;
     eprintln!("  follow-ups: {}", acc.follow_up_line().unwrap_or_default());
     assert!(asked >= 20, "two seeds ask follow-ups ({asked} asked)");

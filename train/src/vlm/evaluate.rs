@@ -40,6 +40,16 @@ impl Accuracy {
         e.1 += 1;
     }
 
+    /// The follow-ups' (right, asked) by kind (`follow_color`, ...; their twins left out).
+    fn follow_up_kinds(&self) -> impl Iterator<Item = (&String, &(usize, usize))> {
+        self.by_kind.iter().filter(|(k, _)| k.starts_with("follow_") && !k.ends_with("_twin"))
+    }
+
+    /// The follow-ups, all kinds together: (right, asked); their twins left out.
+    pub fn follow_ups(&self) -> (usize, usize) {
+        self.follow_up_kinds().fold((0, 0), |a, (_, v)| (a.0 + v.0, a.1 + v.1))
+    }
+
     /// "follow_color 98.0 (twin 100.0) ... all 91.2 (twins 95.1) of 412": percent right of the
     /// follow-ups and of their twins (`KIND_twin`: the referent spelled out, asked on its own), or
     /// `None` where none were asked.
@@ -47,7 +57,7 @@ impl Accuracy {
         let pct = |(r, n): (usize, usize)| 100.0 * r as f64 / n.max(1) as f64;
         let (mut all, mut twins) = ((0, 0), (0, 0));
         let mut parts = Vec::new();
-        for (k, &v) in self.by_kind.iter().filter(|(k, _)| k.starts_with("follow_") && !k.ends_with("_twin")) {
+        for (k, &v) in self.follow_up_kinds() {
             let t = self.by_kind.get(&format!("{k}_twin")).copied().unwrap_or_default();
             parts.push(format!("{k} {:.1} (twin {:.1})", pct(v), pct(t)));
             all = (all.0 + v.0, all.1 + v.1);

@@ -305,38 +305,41 @@ fn bin(p: &SplatPrims<CubeBackend>, camera: &Camera, config: &RasterConfig) -> D
             .expect("synchronous read is supported")
             .expect("tensor read succeeds");
     let n_isect = total_data.convert::<i64>().into_vec::<i64>().expect("int data")[0] as usize;
-    let mut gids = zeros(like, vec![n_isect.max(1)], DType::I32);
-    if n > 0 && n_isect > 0 && use_radix(config.tile_sort) {
-        gids = radix::tile_lists(&proj, &rects, n, n_isect, camera);
-    } else if n > 0 && n_isect > 0 {
-        let keys = alloc(like, vec![n_isect.max(1)], DType::F32);
-        let cursors = zeros(like, vec![num_tiles], DType::I32);
-        emit_kernel::launch(
-            client,
-            groups(n),
-            dim,
-            buf(&proj),
-            buf(&rects),
-            buf(&offsets),
-            buf(&cursors),
-            buf(&keys),
-            buf(&gids),
-            n as u32,
-            tx,
-        );
-        tile_sort_kernel::launch(
-            client,
-            CubeCount::Static(tx, ty, 1),
-            dim,
-            buf(&keys),
-            buf(&gids),
-            buf(&offsets),
-            buf(&counts),
-            tx,
-            CANARY_TRIPS,
-            buf(&truncated),
-        );
-    }
+    let gids = if n > 0 && n_isect > 0 && use_radix(config.tile_sort) {
+        radix::tile_lists(&proj, &rects, n, n_isect, camera)
+    } else {
+        let gids = zeros(like, vec![n_isect.max(1)], DType::I32);
+        if n > 0 && n_isect > 0 {
+            let keys = alloc(like, vec![n_isect.max(1)], DType::F32);
+            let cursors = zeros(like, vec![num_tiles], DType::I32);
+            emit_kernel::launch(
+                client,
+                groups(n),
+                dim,
+                buf(&proj),
+                buf(&rects),
+                buf(&offsets),
+                buf(&cursors),
+                buf(&keys),
+                buf(&gids),
+                n as u32,
+                tx,
+            );
+            tile_sort_kernel::launch(
+                client,
+                CubeCount::Static(tx, ty, 1),
+                dim,
+                buf(&keys),
+                buf(&gids),
+                buf(&offsets),
+                buf(&counts),
+                tx,
+                CANARY_TRIPS,
+                buf(&truncated),
+            );
+        }
+        gids
+    };
     DeviceBins { proj, rects, offsets, counts, gids, cam, truncated }
 }
 

@@ -35,7 +35,7 @@ const DIGITS: u32 = 16;
 /// Pairs each thread of a block handles, consecutively: thread order is item order.
 const PER_THREAD: u32 = 8;
 /// Pairs per block of [`TILE_PIXELS`] threads.
-pub(super) const BLOCK_ITEMS: usize = (TILE_PIXELS * PER_THREAD) as usize;
+const BLOCK_ITEMS: usize = (TILE_PIXELS * PER_THREAD) as usize;
 
 /// The block's index (the grid may be two-dimensional, [`block_grid`]); the whole block leaves
 /// when it is past the last one.
@@ -128,7 +128,7 @@ fn scan_rows(counts: &mut Shared<[u32]>, part: &mut Shared<[u32]>) {
 /// `hist[digit * blocks + block]` (digit-major, so one exclusive scan gives every block's start
 /// for every digit).
 #[cube(launch_unchecked)]
-pub(super) fn radix_hist_kernel(keys: &[u32], hist: &mut [u32], n: u32, shift: u32, blocks: u32) {
+fn radix_hist_kernel(keys: &[u32], hist: &mut [u32], n: u32, shift: u32, blocks: u32) {
     let b = block_index(blocks);
     let mut counts = Shared::<[u32]>::new_slice((DIGITS * TILE_PIXELS) as usize);
     let mut part = Shared::<[u32]>::new_slice(TILE_PIXELS as usize);
@@ -145,7 +145,7 @@ pub(super) fn radix_hist_kernel(keys: &[u32], hist: &mut [u32], n: u32, shift: u
 /// scan of [`radix_hist_kernel`]'s counts. Within a digit a block keeps its pairs' order, and the
 /// blocks keep theirs: the sort is stable.
 #[cube(launch_unchecked)]
-pub(super) fn radix_scatter_kernel(
+fn radix_scatter_kernel(
     keys: &[u32],
     vals: &[u32],
     starts: &[u32],
@@ -181,7 +181,7 @@ pub(super) fn radix_scatter_kernel(
 /// Thread per Gaussian: its depth as a key whose unsigned order is `f32::total_cmp`'s (the sign
 /// bit flipped on positives, every bit on negatives), and its id as the value.
 #[cube(launch_unchecked)]
-pub(super) fn depth_keys_kernel(proj: &[f32], keys: &mut [u32], ids: &mut [u32], n: u32) {
+fn depth_keys_kernel(proj: &[f32], keys: &mut [u32], ids: &mut [u32], n: u32) {
     let i = ABSOLUTE_POS as u32;
     if i >= n {
         terminate!();
@@ -197,7 +197,7 @@ pub(super) fn depth_keys_kernel(proj: &[f32], keys: &mut [u32], ids: &mut [u32],
 
 /// Thread per depth-sorted Gaussian: how many tiles its rectangle touches.
 #[cube(launch_unchecked)]
-pub(super) fn tile_counts_kernel(rects: &[u32], order: &[u32], counts: &mut [u32], n: u32) {
+fn tile_counts_kernel(rects: &[u32], order: &[u32], counts: &mut [u32], n: u32) {
     let k = ABSOLUTE_POS as u32;
     if k >= n {
         terminate!();
@@ -209,7 +209,7 @@ pub(super) fn tile_counts_kernel(rects: &[u32], order: &[u32], counts: &mut [u32
 /// Thread per depth-sorted Gaussian: (tile, id) for each tile it touches, from `starts[k]` on
 /// (the exclusive scan of [`tile_counts_kernel`]), so the entries are in depth order.
 #[cube(launch_unchecked)]
-pub(super) fn emit_sorted_kernel(
+fn emit_sorted_kernel(
     rects: &[u32],
     order: &[u32],
     starts: &[u32],
@@ -261,7 +261,7 @@ fn block_partials(vals: &[u32], partial: &mut Shared<[u32]>, n: u32, first: u32)
 
 /// Block per [`BLOCK_ITEMS`] values: their sum into `sums[block]`.
 #[cube(launch_unchecked)]
-pub(super) fn block_sum_kernel(vals: &[u32], sums: &mut [u32], n: u32, blocks: u32) {
+fn block_sum_kernel(vals: &[u32], sums: &mut [u32], n: u32, blocks: u32) {
     let b = block_index(blocks);
     let mut partial = Shared::<[u32]>::new_slice(TILE_PIXELS as usize + 1);
     let total = block_partials(vals, &mut partial, n, first_item(b));
@@ -272,7 +272,7 @@ pub(super) fn block_sum_kernel(vals: &[u32], sums: &mut [u32], n: u32, blocks: u
 
 /// Block per [`BLOCK_ITEMS`] values: their exclusive scan, each block starting at its `base`.
 #[cube(launch_unchecked)]
-pub(super) fn block_scan_kernel(vals: &[u32], base: &[u32], out: &mut [u32], n: u32, blocks: u32) {
+fn block_scan_kernel(vals: &[u32], base: &[u32], out: &mut [u32], n: u32, blocks: u32) {
     let b = block_index(blocks);
     let first = first_item(b);
     let mut partial = Shared::<[u32]>::new_slice(TILE_PIXELS as usize + 1);
@@ -344,13 +344,7 @@ fn scan_blocks(client: &Client, vals: &CubeTensor, n: usize) -> CubeTensor {
 
 /// Sorts the `n` (key, value) pairs by the keys' low `bits` bits, stably (pairs with equal keys
 /// keep their order); returns the sorted keys and values. Values are carried, never read.
-pub(super) fn sort_pairs(
-    client: &Client,
-    keys: CubeTensor,
-    vals: CubeTensor,
-    n: usize,
-    bits: u32,
-) -> (CubeTensor, CubeTensor) {
+fn sort_pairs(client: &Client, keys: CubeTensor, vals: CubeTensor, n: usize, bits: u32) -> (CubeTensor, CubeTensor) {
     let blocks = n.div_ceil(BLOCK_ITEMS).max(1);
     let hist = alloc(&keys, vec![blocks * DIGITS as usize], DType::I32);
     let (mut keys, mut vals) = (keys, vals);

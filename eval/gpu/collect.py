@@ -14,9 +14,10 @@ nvidia-smi line), `gsplat.json` and `transformers_cuda.json` where present, and 
      "transformers": {transformers_cuda.json}}
 
 `ours_cas_fwdbwd_ms` is the compare-and-swap table's figure (`--float-add cas`) where the lease ran
-one; likewise `ours_bitonic_*` (`--tile-sort bitonic`), `ours_spirv_*` (the SPIR-V build) and
-`ours_atomic_*` / `ours_plane_*` (`--grad-reduce`). Before, the SPIR-V and `--grad-reduce` tables
-were read as the default one and overwrote its rows. Exits non-zero, naming the file, when a
+one; likewise `ours_bitonic_*` (`--tile-sort bitonic`), `ours_spirv_*` (the SPIR-V build),
+`ours_fusion_*` (the fusion build) and `ours_atomic_*` / `ours_plane_*` (`--grad-reduce`); each vlm
+row likewise `ours_half` (`--half`), `ours_spirv` and `ours_fusion` (those builds). Before, the
+SPIR-V and `--grad-reduce` tables were read as the default one and overwrote its rows. Exits non-zero, naming the file, when a
 folder holds no splat-bench table.
 """
 import argparse
@@ -28,10 +29,11 @@ import sys
 
 def flavour_of(command):
     """Which table a splat-bench command line makes: "auto" (the default paths), "cas", "bitonic",
-    "plane" / "atomic" (--grad-reduce), "spirv" (the SPIR-V build), or None (--accuracy)."""
+    "plane" / "atomic" (--grad-reduce), "spirv" (the SPIR-V build), "fusion" (the fusion build), or None
+    (--accuracy)."""
     if "--accuracy" in command:
         return None
-    for flag, name in [("splat-bench-spirv", "spirv"), ("--float-add cas", "cas"),
+    for flag, name in [("splat-bench-spirv", "spirv"), ("splat-bench-fusion", "fusion"), ("--float-add cas", "cas"),
                        ("--tile-sort bitonic", "bitonic"), ("--grad-reduce atomic", "atomic"),
                        ("--grad-reduce plane", "plane")]:
         if flag in command:
@@ -56,19 +58,31 @@ def splat_tables(log):
 
 
 def vlm_rows(log, reference):
-    """The wgpu row of vlm-bench's table against transformers' JSON (`reference`)."""
+    """The wgpu row of vlm-bench's tables against transformers' JSON (`reference`): `ours` from the
+    default build in f32, and `ours_half` / `ours_spirv` / `ours_fusion` from the `--half` run and the
+    SPIR-V and fusion builds where the lease ran them."""
+    found, flavour = {}, None
     for line in log.splitlines():
+        if line.startswith("$ ") and "vlm-bench" in line:
+            flavour = ("spirv" if "vlm-bench-spirv" in line else "fusion" if "vlm-bench-fusion" in line
+                       else "half" if "--half" in line else "")
+            continue
         cells = [c.strip() for c in line.strip().strip("|").split("|")]
-        if len(cells) == 7 and cells[0] == "wgpu" and cells[1].endswith(" ms"):
-            return [
-                {"stage": "tower", "ours": float(cells[1].split()[0]), "transformers": reference["vision_s"] * 1e3,
-                 "unit": "ms"},
-                {"stage": "prefill", "ours": float(cells[5]), "transformers": reference["prefill_tokens_per_s"],
-                 "unit": "tokens/s"},
-                {"stage": "decode", "ours": float(cells[6]), "transformers": reference["decode_tokens_per_s"],
-                 "unit": "tokens/s"},
-            ]
-    return []
+        if flavour is not None and len(cells) == 7 and cells[0] == "wgpu" and cells[1].endswith(" ms"):
+            found.setdefault(flavour, (float(cells[1].split()[0]), float(cells[5]), float(cells[6])))
+    if "" not in found:
+        return []
+    stages = [("tower", reference["vision_s"] * 1e3, "ms"),
+              ("prefill", reference["prefill_tokens_per_s"], "tokens/s"),
+              ("decode", reference["decode_tokens_per_s"], "tokens/s")]
+    rows = []
+    for k, (stage, peer, unit) in enumerate(stages):
+        row = {"stage": stage, "ours": found[""][k], "transformers": peer, "unit": unit}
+        for flavour in ["half", "spirv", "fusion"]:
+            if flavour in found:
+                row["ours_" + flavour] = found[flavour][k]
+        rows.append(row)
+    return rows
 
 
 def main():
@@ -113,7 +127,7 @@ def main():
                "ours_fwdbwd_ms": fb, "gsplat_fwdbwd_ms": g[1]}
         if key in tables.get("cas", {}):
             row["ours_cas_fwdbwd_ms"] = tables["cas"][key][1]
-        for other in ["bitonic", "spirv", "atomic", "plane"]:
+        for other in ["bitonic", "spirv", "fusion", "atomic", "plane"]:
             if key in tables.get(other, {}):
                 row[f"ours_{other}_fwd_ms"], row[f"ours_{other}_fwdbwd_ms"] = tables[other][key]
         result["splat"].append(row)

@@ -18,6 +18,8 @@
 #          then wgpu again with f16 weights (--half);
 #   spirv  where packed with CHATSPLAT_GPU_SPIRV=1: splat-bench and vlm-bench (wgpu) built with the
 #          `spirv` feature (Vulkan's SPIR-V compiler, cooperative-matrix matmuls; never in CI);
+#   fusion where packed with CHATSPLAT_GPU_FUSION=1: splat-bench and vlm-bench (wgpu) built with the
+#          `fusion` feature (burn's kernel fusion; the splatting op runs outside it);
 #   train  geometry and language training s/iter on a built-in synthetic scene (wgpu), and
 #          lang-bench's views/s and objects/s (real-size encoder too) on it;
 #   accuracy  splat-bench --accuracy: forward error against the f64 reference and the wgpu
@@ -30,7 +32,7 @@
 # CHATSPLAT_GPU_TRAIN_REDUCE: the language stage runs once per word in it (default "auto"; e.g.
 # "atomic plane", each through CHATSPLAT_WGPU_GRAD_REDUCE), CHATSPLAT_GPU_GEO_ITERS and
 # CHATSPLAT_GPU_LANG_ITERS shorten the training (defaults 1000 and 300).
-# CHATSPLAT_GPU_PARTS picks the parts (default "splat bitonic peers vlm spirv train"; "peers" is "gsplat
+# CHATSPLAT_GPU_PARTS picks the parts (default "splat bitonic peers vlm spirv fusion train"; "peers" is "gsplat
 # transformers": split them over two calls if one would pass the device's 10-minute limit per
 # command; vlm takes its reference from CHATSPLAT_GPU_REFERENCE, default
 # OUTDIR/transformers_cuda.json, when there is one).
@@ -57,20 +59,24 @@ pack() {
     for b in "${bins[@]}"; do
         strip -o "$stripped/$b" "target/release/$b"
     done
-    local spirv=()
-    if [ "${CHATSPLAT_GPU_SPIRV:-0}" = 1 ]; then
-        # the two benchmarks again with the SPIR-V compiler (feature `spirv`), in their own target
-        # folder: the burn stack builds again with other features, about as long as the build above
-        CARGO_TARGET_DIR=target/spirv cargo build --release -p eval --features eval/autotune,eval/spirv \
+    local extra=()
+    # the two benchmarks again with one more feature, in its own target folder (the burn stack
+    # builds again with other features, about as long as the build above): `spirv` (Vulkan's SPIR-V
+    # compiler) and `fusion` (burn's kernel fusion)
+    variant() {
+        local b
+        CARGO_TARGET_DIR="target/$1" cargo build --release -p eval --features "eval/autotune,eval/$1" \
             --bin splat-bench --bin vlm-bench
         for b in splat-bench vlm-bench; do
-            strip -o "$stripped/$b-spirv" "target/spirv/release/$b"
-            spirv+=("$b-spirv")
+            strip -o "$stripped/$b-$1" "target/$1/release/$b"
+            extra+=("$b-$1")
         done
-    fi
+    }
+    if [ "${CHATSPLAT_GPU_SPIRV:-0}" = 1 ]; then variant spirv; fi
+    if [ "${CHATSPLAT_GPU_FUSION:-0}" = 1 ]; then variant fusion; fi
     # one archive with a dictionary that spans all four binaries, which share most of their code:
     # 24 MB against 43 MB compressed one by one (the carry, the working tree included, takes 64 MiB)
-    tar -C "$stripped" -cf - "${bins[@]}" "${spirv[@]}" | xz --lzma2=preset=6,dict=256MiB -T1 >.gpu/bin/bins.tar.xz
+    tar -C "$stripped" -cf - "${bins[@]}" "${extra[@]}" | xz --lzma2=preset=6,dict=256MiB -T1 >.gpu/bin/bins.tar.xz
     rm -rf "$stripped"
     du -sh .gpu/bin
     mkdir -p .git/info && touch .git/info/exclude
@@ -130,7 +136,7 @@ bench() {
     if [ -f /usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json ]; then
         export VK_DRIVER_FILES=/usr/local/nvidia/share/vulkan/icd.d/nvidia_icd.json
     fi
-    local quick=${CHATSPLAT_GPU_QUICK:-0} parts=" ${CHATSPLAT_GPU_PARTS:-splat bitonic peers vlm spirv train} "
+    local quick=${CHATSPLAT_GPU_QUICK:-0} parts=" ${CHATSPLAT_GPU_PARTS:-splat bitonic peers vlm spirv fusion train} "
     parts=${parts/ peers / gsplat transformers }
     local n=100000,1000000 c=3,32 res=384x384,1280x720 vlm=0.5b views=32 side=96 be=wgpu
     local geo=${CHATSPLAT_GPU_GEO_ITERS:-1000} lang=${CHATSPLAT_GPU_LANG_ITERS:-300}
@@ -205,6 +211,15 @@ bench() {
                 step "$bin/vlm-bench-spirv" --random "$vlm" --backend wgpu --reps 2 --decode 16 || true
             else
                 echo "(spirv: not packed; CHATSPLAT_GPU_SPIRV=1 bash eval/gpu/run.sh pack builds it)"
+            fi
+        fi
+        if [[ $parts == *" fusion "* ]]; then
+            # the op and the port with burn's kernel fusion (element-wise chains in one kernel)
+            if [ -x "$bin/vlm-bench-fusion" ]; then
+                step "$bin/splat-bench-fusion" --n "$n" --c "$c" --res "$res" --impls wgpu --max-secs 20 || true
+                step "$bin/vlm-bench-fusion" --random "$vlm" --backend wgpu --reps 2 --decode 16 || true
+            else
+                echo "(fusion: not packed; CHATSPLAT_GPU_FUSION=1 bash eval/gpu/run.sh pack builds it)"
             fi
         fi
         if [[ $parts == *" train "* ]]; then

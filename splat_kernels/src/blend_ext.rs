@@ -63,6 +63,9 @@ macro_rules! host_blend_backend {
 }
 
 host_blend_backend!(NdArray, Flex, CubeBackend);
+// with the `fusion` feature, `Cube` is the fusion backend over CubeBackend
+#[cfg(feature = "fusion")]
+host_blend_backend!(burn::backend::fusion::Fusion<CubeBackend>);
 
 #[derive(Debug)]
 struct BlendBackwardOp;

@@ -255,7 +255,12 @@ fn bench(a: &Args) -> model::Result<()> {
     if a.backend.contains(&Backend::Wgpu) {
         match catch_backend("wgpu", || splat_kernels::cube::adapter_report(&Backend::Wgpu.device())) {
             Ok(Some(line)) => {
-                println!("{line}; burn autotune {}", if cfg!(feature = "autotune") { "on" } else { "off" })
+                let on = |yes: bool| if yes { "on" } else { "off" };
+                println!(
+                    "{line}; burn autotune {}, fusion {}",
+                    on(cfg!(feature = "autotune")),
+                    on(cfg!(feature = "fusion"))
+                )
             }
             _ => println!("wgpu: no adapter"),
         }

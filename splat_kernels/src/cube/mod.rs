@@ -28,8 +28,11 @@
 //!
 //! The math mirrors [`crate::project`] and [`crate::cpu`] line for line; see there for derivations.
 //! Files by pipeline stage: `project` (1, 7), `sort` (2, 4), `radix` (3), `raster` (5, 6),
-//! `layout` (the packed buffers' named offsets); this module launches them (host side).
+//! `layout` (the packed buffers' named offsets); this module launches them (host side); `fusion`
+//! (cargo feature `fusion`) runs the op on burn's fusion backend, outside fusion.
 
+#[cfg(feature = "fusion")]
+mod fusion;
 mod layout;
 mod project;
 mod radix;
@@ -169,14 +172,16 @@ pub fn adapter_report(device: &burn::tensor::Device) -> Option<String> {
 
 /// Which paths the op takes on `device` under `config`, each `Auto` resolved as the kernels will
 /// (adapter and `CHATSPLAT_WGPU_*` overrides): "tile lists by radix sort, backward with plane sums
-/// and the native float add". `None` for a host device.
+/// and the native float add", and "; burn's fusion on, the op outside it" in a `fusion` build.
+/// `None` for a host device.
 pub fn paths(device: &burn::tensor::Device, config: &RasterConfig) -> Option<String> {
     let client = cube_client(device)?;
     Some(format!(
-        "tile lists by {}, backward with {} and the {} float add",
+        "tile lists by {}, backward with {} and the {} float add{}",
         if use_radix(config.tile_sort) { "radix sort" } else { "bitonic sort" },
         if use_plane(&client, config.grad_reduce) { "plane sums" } else { "an atomic per pixel" },
         if use_native_add(&client, config.float_add) { "native" } else { "compare-and-swap" },
+        if cfg!(feature = "fusion") { "; burn's fusion on, the op outside it" } else { "" },
     ))
 }
 

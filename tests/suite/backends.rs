@@ -436,3 +436,16 @@ fn assert_right_or_refused_past_the_loop_limit(wgpu: &Device, nd: &Device) {
         }
     }
 }
+
+/// The benchmarks' launch counter (`eval::launches`) sees the kernels wgpu work issues: three
+/// element-wise ops are three launches at least without burn's fusion (other tests' launches in
+/// this process may add to the count, never take from it).
+#[test]
+fn the_launch_counter_sees_wgpu_kernels() {
+    let Some(wgpu) = wgpu_device() else { return };
+    let x = Tensor::<1>::from_floats([1.0, 2.0, 3.0], &wgpu);
+    let (v, n) = eval::launches::count_launches(|| host((x.clone() + 1.0).exp() * 2.0));
+    let want: Vec<f32> = [2.0f32, 3.0, 4.0].iter().map(|a| a.exp() * 2.0).collect();
+    assert_close("the work itself", &v, &want, 1e-6);
+    assert!(n >= 3, "{n} launches counted for three element-wise ops on wgpu");
+}

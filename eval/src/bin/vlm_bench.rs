@@ -13,6 +13,7 @@
 
 use burn::tensor::Tensor;
 use clap::Parser;
+use eval::launches::count_launches;
 use model::vlm::config::LlavaConfig;
 use model::vlm::generate::{last_row, pick};
 use model::vlm::{Exchange, GenerateOptions, LlavaOnevision, PromptCache, RgbImage};
@@ -72,6 +73,9 @@ struct Timing {
     prompt_tokens: usize,
     decode_tokens_per_s: f64,
     follow_up: FollowUp,
+    /// Kernels launched on a CubeCL device: one tower pass, one prefill, one decoded token (the
+    /// mean over the decoded tokens); `None` on the host backends.
+    launches: Option<[usize; 3]>,
 }
 
 /// A conversation's second question: its prompt, the tokens its cache held, and the seconds to
@@ -338,6 +342,19 @@ fn bench(a: &Args) -> model::Result<()> {
                 }
                 decode = decode.min(t0.elapsed().as_secs_f64());
             }
+            // kernel launches, counted on warm kernels (after the timed runs: no autotune trials)
+            let launches = splat_kernels::api::on_cube(&device).then(|| {
+                let (_, vision) = count_launches(tower);
+                let mut cache = model::vlm::qwen2::KvCache::with_capacity(prompt_tokens + a.decode + 1);
+                let (mut next, prefill) = count_launches(|| pick(&last_logits(&mut cache), &greedy, &mut rng));
+                let (_, decode) = count_launches(|| {
+                    for _ in 0..a.decode {
+                        let h = m.llm.forward(m.llm.embed(&[next]), &mut cache);
+                        next = pick(&last_row(m.llm.logits(h)), &greedy, &mut rng);
+                    }
+                });
+                [vision, prefill, decode / a.decode.max(1)]
+            });
             let follow_up = follow_up(&m, m.image_embeds(&one), reps, !a.cold)?;
             Ok(Timing {
                 vision: vis,
@@ -346,6 +363,7 @@ fn bench(a: &Args) -> model::Result<()> {
                 prompt_tokens,
                 decode_tokens_per_s: a.decode as f64 / decode,
                 follow_up,
+                launches,
             })
         });
         match r {
@@ -362,6 +380,16 @@ fn bench(a: &Args) -> model::Result<()> {
                 timings.push((*backend, t));
             }
             Ok(Err(e)) | Err(e) => println!("| {backend} | n/a: {e} | | | | | |"),
+        }
+    }
+    for (backend, t) in &timings {
+        if let Some([vision, prefill, decode]) = t.launches {
+            println!();
+            println!(
+                "{backend} kernel launches (burn fusion {}): vision tower {vision}, prefill {prefill}, decode {decode} \
+                    per token",
+                if cfg!(feature = "fusion") { "on" } else { "off" }
+            );
         }
     }
     println!();

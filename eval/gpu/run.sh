@@ -3,9 +3,15 @@
 #
 #   bash eval/gpu/run.sh pack            # here: release binaries, stripped and xz-compressed
 #                                        # together (24 MB for the four; a carry takes 64 MiB)
-#                                        # into .gpu/bin; the Vulkan loader .debs into .gl/; gsplat's
-#                                        # wheel into .whl/ (all three git-excluded)
-#   bash eval/gpu/run.sh bench [OUTDIR]  # there (carry .gpu .gl .whl), or here on the CPU
+#                                        # into .gpu/bin/bins.tar.xz, each variant build into its
+#                                        # own .gpu/bin/VARIANT.tar.xz; the Vulkan loader .debs into
+#                                        # .gl/; gsplat's wheel into .whl/ (all three git-excluded)
+#   bash eval/gpu/run.sh bench [OUTDIR]  # there (carry .gpu/bin/bins.tar.xz .gl .whl), or here
+#
+# The carry holds 64 MiB, the working tree's 29 MB included: the four binaries (24 MB) with
+# .whl (6 MB) fit, and the variants (fusion's pair 17.2 MB; spirv's not packed yet) fit in a call of
+# their own, which carries .gpu/bin/fusion.tar.xz .gpu/bin/spirv.tar.xz .gl and runs
+# CHATSPLAT_GPU_PARTS="fusion spirv". `bench` unpacks every archive it finds.
 #
 # `bench` unpacks the carried Vulkan loaders when the machine has none, then times, each with the
 # command line printed above its output (into OUTDIR, default $OUT or ./gpu-out):
@@ -59,8 +65,10 @@ pack() {
     for b in "${bins[@]}"; do
         strip -o "$stripped/$b" "target/release/$b"
     done
-    local extra=()
-    # the two benchmarks again with one more feature, in its own target folder (the burn stack
+    # one archive with a dictionary that spans all four binaries, which share most of their code:
+    # 24 MB against 43 MB compressed one by one (the carry, the working tree included, takes 64 MiB)
+    tar -C "$stripped" -cf - "${bins[@]}" | xz --lzma2=preset=6,dict=256MiB -T1 >.gpu/bin/bins.tar.xz
+    # the two benchmarks again with one more feature, in its own target folder and archive (the burn stack
     # builds again with other features, about as long as the build above): `spirv` (Vulkan's SPIR-V
     # compiler) and `fusion` (burn's kernel fusion)
     variant() {
@@ -69,16 +77,13 @@ pack() {
             --bin splat-bench --bin vlm-bench
         for b in splat-bench vlm-bench; do
             strip -o "$stripped/$b-$1" "target/$1/release/$b"
-            extra+=("$b-$1")
         done
+        tar -C "$stripped" -cf - "splat-bench-$1" "vlm-bench-$1" | xz --lzma2=preset=6,dict=256MiB -T1 \
+            >".gpu/bin/$1.tar.xz"
     }
     if [ "${CHATSPLAT_GPU_SPIRV:-0}" = 1 ]; then variant spirv; fi
     if [ "${CHATSPLAT_GPU_FUSION:-0}" = 1 ]; then variant fusion; fi
-    # one archive with a dictionary that spans all four binaries, which share most of their code:
-    # 24 MB against 43 MB compressed one by one (the carry, the working tree included, takes 64 MiB)
-    tar -C "$stripped" -cf - "${bins[@]}" "${extra[@]}" | xz --lzma2=preset=6,dict=256MiB -T1 >.gpu/bin/bins.tar.xz
     rm -rf "$stripped"
-    du -sh .gpu/bin
     mkdir -p .git/info && touch .git/info/exclude
     grep -qx '/.gpu/' .git/info/exclude || echo '/.gpu/' >>.git/info/exclude
     grep -qx '/.gl/' .git/info/exclude || echo '/.gl/' >>.git/info/exclude
@@ -94,7 +99,10 @@ pack() {
         # shellcheck disable=SC2086
         apt-get $o update -qq && (cd .gl && apt-get $o download libvulkan1 libegl1 libglvnd0 libgl1 libglx0)
     fi
-    echo "carry: .gpu .gl .whl; command: bash eval/gpu/run.sh bench"
+    du -h .gpu/bin/*.tar.xz
+    echo "carry: .gpu/bin/bins.tar.xz .gl .whl (a call of their own for the variants: .gpu/bin/fusion.tar.xz"
+    echo "  .gpu/bin/spirv.tar.xz .gl, CHATSPLAT_GPU_PARTS=\"fusion spirv\"; 64 MiB a call, the tree's 29 MB included)"
+    echo "command: bash eval/gpu/run.sh bench"
 }
 
 step() {
@@ -116,19 +124,19 @@ bench() {
     local out=${1:-${OUT:-gpu-out}}
     mkdir -p "$out"
     local bin=target/release
-    if [ -f .gpu/bin/bins.tar.xz ]; then
+    if ls .gpu/bin/*.tar.xz >/dev/null 2>&1; then
         unpacked=$(mktemp -d /tmp/chatsplat-gpu.XXXX)
         trap 'rm -rf "$unpacked"' EXIT
         bin=$unpacked
-        if command -v xz >/dev/null; then
-            xz -dc .gpu/bin/bins.tar.xz | tar -C "$bin" -xf -
-        else
-            python3 -c 'import sys, tarfile; tarfile.open(sys.argv[1]).extractall(sys.argv[2])' .gpu/bin/bins.tar.xz "$bin"
-        fi
+        local archive
+        for archive in .gpu/bin/*.tar.xz; do
+            if command -v xz >/dev/null; then
+                xz -dc "$archive" | tar -C "$bin" -xf -
+            else
+                python3 -c 'import sys, tarfile; tarfile.open(sys.argv[1]).extractall(sys.argv[2])' "$archive" "$bin"
+            fi
+        done
     fi
-    for b in "${bins[@]}"; do
-        [ -x "$bin/$b" ] || { echo "error: $bin/$b is missing: run \`bash eval/gpu/run.sh pack\` first" >&2; exit 1; }
-    done
     if ! ldconfig -p 2>/dev/null | grep -q libvulkan && ls .gl/*.deb >/dev/null 2>&1; then
         for f in .gl/*.deb; do dpkg -x "$f" /; done
         ldconfig
@@ -138,11 +146,20 @@ bench() {
     fi
     local quick=${CHATSPLAT_GPU_QUICK:-0} parts=" ${CHATSPLAT_GPU_PARTS:-splat bitonic peers vlm spirv fusion train} "
     parts=${parts/ peers / gsplat transformers }
+    # the parts that run the four binaries of bins.tar.xz
+    if [[ $parts =~ " "(splat|cas|bitonic|accuracy|reduce|vlm|train)" " ]]; then
+        for b in "${bins[@]}"; do
+            [ -x "$bin/$b" ] || { echo "error: $bin/$b is missing: run \`bash eval/gpu/run.sh pack\` first" >&2; exit 1; }
+        done
+    fi
     local n=100000,1000000 c=3,32 res=384x384,1280x720 vlm=0.5b views=32 side=96 be=wgpu
     local geo=${CHATSPLAT_GPU_GEO_ITERS:-1000} lang=${CHATSPLAT_GPU_LANG_ITERS:-300}
     local impls=${CHATSPLAT_GPU_IMPLS:-wgpu,ndarray}
+    # the variant builds' vlm-bench (the built-in model in a quick run)
+    local variant_vlm=(--random "$vlm" --backend wgpu --reps 2 --decode 16)
     if [ "$quick" = 1 ]; then
         n=10000 c=3 res=384x384 views=8 side=64 geo=20 lang=5 be=ndarray
+        variant_vlm=(--backend wgpu --reps 1 --decode 4)
     fi
     local cuda=0
     if python3 -c 'import sys, torch; sys.exit(0 if torch.cuda.is_available() else 1)' 2>/dev/null; then
@@ -208,7 +225,7 @@ bench() {
             # the op and the port through Vulkan's SPIR-V compiler (cooperative-matrix matmuls)
             if [ -x "$bin/vlm-bench-spirv" ]; then
                 step "$bin/splat-bench-spirv" --n "$n" --c "$c" --res "$res" --impls wgpu --max-secs 20 || true
-                step "$bin/vlm-bench-spirv" --random "$vlm" --backend wgpu --reps 2 --decode 16 || true
+                step "$bin/vlm-bench-spirv" "${variant_vlm[@]}" || true
             else
                 echo "(spirv: not packed; CHATSPLAT_GPU_SPIRV=1 bash eval/gpu/run.sh pack builds it)"
             fi
@@ -217,7 +234,7 @@ bench() {
             # the op and the port with burn's kernel fusion (element-wise chains in one kernel)
             if [ -x "$bin/vlm-bench-fusion" ]; then
                 step "$bin/splat-bench-fusion" --n "$n" --c "$c" --res "$res" --impls wgpu --max-secs 20 || true
-                step "$bin/vlm-bench-fusion" --random "$vlm" --backend wgpu --reps 2 --decode 16 || true
+                step "$bin/vlm-bench-fusion" "${variant_vlm[@]}" || true
             else
                 echo "(fusion: not packed; CHATSPLAT_GPU_FUSION=1 bash eval/gpu/run.sh pack builds it)"
             fi

@@ -221,24 +221,19 @@ bench() {
                 step "$bin/vlm-bench" --random "$vlm" --backend wgpu --half --reps 2 --decode 16 || true
             fi
         fi
-        if [[ $parts == *" spirv "* ]]; then
-            # the op and the port through Vulkan's SPIR-V compiler (cooperative-matrix matmuls)
-            if [ -x "$bin/vlm-bench-spirv" ]; then
-                step "$bin/splat-bench-spirv" --n "$n" --c "$c" --res "$res" --impls wgpu --max-secs 20 || true
-                step "$bin/vlm-bench-spirv" "${variant_vlm[@]}" || true
-            else
-                echo "(spirv: not packed; CHATSPLAT_GPU_SPIRV=1 bash eval/gpu/run.sh pack builds it)"
+        # the op and the port built with one more feature: `spirv` (Vulkan's SPIR-V compiler,
+        # cooperative-matrix matmuls), `fusion` (burn's kernel fusion, element-wise chains in one kernel)
+        local v
+        for v in spirv fusion; do
+            if [[ $parts == *" $v "* ]]; then
+                if [ -x "$bin/vlm-bench-$v" ]; then
+                    step "$bin/splat-bench-$v" --n "$n" --c "$c" --res "$res" --impls wgpu --max-secs 20 || true
+                    step "$bin/vlm-bench-$v" "${variant_vlm[@]}" || true
+                else
+                    echo "($v: not packed; CHATSPLAT_GPU_${v^^}=1 bash eval/gpu/run.sh pack builds it)"
+                fi
             fi
-        fi
-        if [[ $parts == *" fusion "* ]]; then
-            # the op and the port with burn's kernel fusion (element-wise chains in one kernel)
-            if [ -x "$bin/vlm-bench-fusion" ]; then
-                step "$bin/splat-bench-fusion" --n "$n" --c "$c" --res "$res" --impls wgpu --max-secs 20 || true
-                step "$bin/vlm-bench-fusion" "${variant_vlm[@]}" || true
-            else
-                echo "(fusion: not packed; CHATSPLAT_GPU_FUSION=1 bash eval/gpu/run.sh pack builds it)"
-            fi
-        fi
+        done
         if [[ $parts == *" train "* ]]; then
             # the scene and the runs stay out of OUTDIR (the device returns a few files only)
             local work=${CHATSPLAT_GPU_WORK:-/tmp/chatsplat-gpu-work}

@@ -1,6 +1,7 @@
-//! Counting the CubeCL (wgpu) kernels a piece of work launches: a figure that, unlike a time, the
-//! same on any GPU and on Mesa lavapipe, and what burn's kernel fusion (the `fusion` feature) and
-//! fused layers are meant to lower. The benchmarks print it beside their timings.
+//! Counting the CubeCL (wgpu) kernels a piece of work launches: a figure that, unlike a time, does
+//! not depend on how fast the device is (Mesa lavapipe counts as a GPU would, up to the autotuner's
+//! and fusion's choices), and what burn's kernel fusion (the `fusion` feature) and fused layers are
+//! meant to lower. The benchmarks print it beside their timings.
 
 use cubecl::logging::{LaunchObservation, LaunchObserver};
 use std::sync::Arc;

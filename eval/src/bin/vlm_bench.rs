@@ -205,6 +205,11 @@ fn random_model(
     train::vlm::random_published(cfg, 0, device, half)
 }
 
+/// "on" or "off".
+fn on(yes: bool) -> &'static str {
+    if yes { "on" } else { "off" }
+}
+
 fn sync(t: Tensor<2>) {
     let _ = t.into_data();
 }
@@ -259,7 +264,6 @@ fn bench(a: &Args) -> model::Result<()> {
     if a.backend.contains(&Backend::Wgpu) {
         match catch_backend("wgpu", || splat_kernels::cube::adapter_report(&Backend::Wgpu.device())) {
             Ok(Some(line)) => {
-                let on = |yes: bool| if yes { "on" } else { "off" };
                 println!(
                     "{line}; burn autotune {}, fusion {}",
                     on(cfg!(feature = "autotune")),
@@ -329,30 +333,29 @@ fn bench(a: &Args) -> model::Result<()> {
                 last_row(m.llm.logits(h.narrow(0, prompt_tokens - 1, 1)))
             };
             warm_up(&|| drop(last_logits(&mut Default::default())));
+            // `a.decode` greedy steps of one token each after `cache`, from `next`
+            let decode_tokens = |cache: &mut model::vlm::qwen2::KvCache, mut next: u32, rng: &mut model::rng::Rng| {
+                for _ in 0..a.decode {
+                    let h = m.llm.forward(m.llm.embed(&[next]), cache);
+                    next = pick(&last_row(m.llm.logits(h)), &greedy, rng);
+                }
+            };
             let (mut prefill, mut decode) = (0.0, f64::INFINITY);
             for _ in 0..reps {
                 let t0 = Instant::now();
                 let mut cache = model::vlm::qwen2::KvCache::with_capacity(prompt_tokens + a.decode + 1);
-                let mut next = pick(&last_logits(&mut cache), &greedy, &mut rng);
+                let next = pick(&last_logits(&mut cache), &greedy, &mut rng);
                 prefill += t0.elapsed().as_secs_f64() / reps as f64;
                 let t0 = Instant::now();
-                for _ in 0..a.decode {
-                    let h = m.llm.forward(m.llm.embed(&[next]), &mut cache);
-                    next = pick(&last_row(m.llm.logits(h)), &greedy, &mut rng);
-                }
+                decode_tokens(&mut cache, next, &mut rng);
                 decode = decode.min(t0.elapsed().as_secs_f64());
             }
             // kernel launches, counted on warm kernels (after the timed runs: no autotune trials)
             let launches = splat_kernels::api::on_cube(&device).then(|| {
                 let (_, vision) = count_launches(tower);
                 let mut cache = model::vlm::qwen2::KvCache::with_capacity(prompt_tokens + a.decode + 1);
-                let (mut next, prefill) = count_launches(|| pick(&last_logits(&mut cache), &greedy, &mut rng));
-                let (_, decode) = count_launches(|| {
-                    for _ in 0..a.decode {
-                        let h = m.llm.forward(m.llm.embed(&[next]), &mut cache);
-                        next = pick(&last_row(m.llm.logits(h)), &greedy, &mut rng);
-                    }
-                });
+                let (next, prefill) = count_launches(|| pick(&last_logits(&mut cache), &greedy, &mut rng));
+                let (_, decode) = count_launches(|| decode_tokens(&mut cache, next, &mut rng));
                 [vision, prefill, decode / a.decode.max(1)]
             });
             let follow_up = follow_up(&m, m.image_embeds(&one), reps, !a.cold)?;
@@ -388,7 +391,7 @@ fn bench(a: &Args) -> model::Result<()> {
             println!(
                 "{backend} kernel launches (burn fusion {}): vision tower {vision}, prefill {prefill}, decode {decode} \
                     per token",
-                if cfg!(feature = "fusion") { "on" } else { "off" }
+                on(cfg!(feature = "fusion"))
             );
         }
     }

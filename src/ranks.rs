@@ -82,7 +82,7 @@ impl Ranks {
             let share = |d: std::time::Duration| 100.0 * d.as_secs_f64() / seconds.max(1e-9);
             let parts: Vec<String> =
                 by.iter().take(3).map(|(what, d)| format!("{what} {:.1} s", d.as_secs_f64())).collect();
-            let peak = eval::progress::peak_rss_gib().map_or(String::new(), |g| format!("; peak memory {g:.2} GiB"));
+            let peak = scoring::progress::peak_rss_gib().map_or(String::new(), |g| format!("; peak memory {g:.2} GiB"));
             say(&format!(
                 "rank {} of {}: {:.1} s in collectives ({:.1} % of {seconds:.1} s: {}){peak}",
                 m.rank(),

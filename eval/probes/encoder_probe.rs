@@ -14,7 +14,6 @@
 
 use burn::tensor::{Device, Tensor, TensorData};
 use clap::Parser;
-use eval::compare::{exact, greedy};
 use eval::harness::{HeldOutSeeds, ModelArgs};
 use eval::probe::{Region, count_answer, regions, token_l1, view_truth};
 use model::Result;
@@ -26,6 +25,7 @@ use model::language::{Encoder, LanguageConfig};
 use model::rng::Rng;
 use model::splats::host;
 use model::vlm::{LlavaOnevision, RgbImage};
+use scoring::compare::{exact, greedy};
 use std::collections::BTreeMap;
 use std::path::PathBuf;
 
@@ -71,7 +71,7 @@ fn tokens(enc_names: &[String], p: &BTreeMap<String, Tensor<2>>, map: Tensor<3>)
 }
 
 fn probe(a: &Args) -> Result<()> {
-    let device: Device = a.model.device();
+    let device: Device = a.model.device()?;
     let vlm_dir = a.model.vlm_dir()?;
     let vlm = LlavaOnevision::load(&vlm_dir, &device)?;
     let (d, p) = (vlm.cfg.vision.hidden_size, vlm.cfg.vision.patch_size);

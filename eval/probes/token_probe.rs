@@ -21,7 +21,6 @@
 
 use burn::tensor::{Device, Tensor, TensorData};
 use clap::Parser;
-use eval::compare::{exact, greedy};
 use eval::harness::ModelArgs;
 use eval::probe::{REGIONS, Region, count_answer, regions, token_l1, view_truth};
 use model::Result;
@@ -34,6 +33,7 @@ use model::rng::Rng;
 use model::run::GeometryRun;
 use model::splats::host;
 use model::vlm::{LlavaOnevision, RgbImage};
+use scoring::compare::{exact, greedy};
 use splat_kernels::Camera;
 use std::collections::BTreeMap;
 use std::path::PathBuf;
@@ -158,7 +158,7 @@ fn novel_views(scene: &SynthScene, ds: &model::data::Dataset, n: usize) -> Resul
 eval::bench_main!("token-probe", probe);
 
 fn probe(a: &Args) -> Result<()> {
-    let device: Device = a.model.device();
+    let device: Device = a.model.device()?;
     let vlm_dir = a.model.vlm_dir()?;
     let vlm = LlavaOnevision::load(&vlm_dir, &device)?;
     let (d, p) = (vlm.cfg.vision.hidden_size, vlm.cfg.vision.patch_size);

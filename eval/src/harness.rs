@@ -57,7 +57,8 @@ impl ModelArgs {
         vlm_dir(self.vlm.as_deref())
     }
 
-    pub fn device(&self) -> Device {
+    /// `--backend`'s device, or why there is none (no usable wgpu adapter).
+    pub fn device(&self) -> Result<Device> {
         self.backend.device()
     }
 }

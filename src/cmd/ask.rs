@@ -75,7 +75,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
 fn ask_images(a: &Args) -> anyhow::Result<()> {
     let imgs = a.image.iter().map(|p| model::images::read_rgb_image(p)).collect::<Result<Vec<_>, _>>()?;
     let opts = a.sampling.options()?;
-    let device = a.backend.device();
+    let device = a.backend.device()?;
     let vlm_dir = super::vlm_dir(a.vlm.as_ref())?;
     let t0 = std::time::Instant::now();
     let m = model::catch_backend("loading the model", || LlavaOnevision::load_with(&vlm_dir, &device, a.half))??;
@@ -125,6 +125,9 @@ pub fn answer(
     question: &str,
     opts: &GenerateOptions,
 ) -> anyhow::Result<()> {
+    if let Some(note) = model::known::unknown_question_note(&s.vlm, target, question) {
+        eprintln!("note: {note}");
+    }
     let t1 = std::time::Instant::now();
     let out = model::catch_backend("generation", || s.ask(target, question, opts, print_piece))??;
     println!();

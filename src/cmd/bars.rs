@@ -2,10 +2,10 @@
 //! line. `train`, `extract` and `train-language` show their one stage through it, the demo and
 //! `batch` the whole [`train::pipeline`]; so every command prints the same lines.
 
-use eval::progress::Progress;
 use model::Backend;
 use model::data::Dataset;
 use model::run::{GeometryRun, LanguageRun, TeacherDir};
+use scoring::progress::Progress;
 use std::path::Path;
 use std::time::Instant;
 use train::geometry::{self, RunSummary};

@@ -12,8 +12,8 @@ use super::SceneArgs;
 use super::bars::Bars;
 use super::vqa::Scoring;
 use anyhow::{Context, bail};
-use eval::score::LevelSummary;
 use model::run::{GeometryRun, LanguageRun, TeacherDir};
+use scoring::score::LevelSummary;
 use std::path::{Path, PathBuf};
 use train::manifest::{Job, Plan};
 use train::pipeline::{Recipe, TeacherModel, train_scene};
@@ -157,7 +157,7 @@ fn run_scene(plan: &Plan, s: &Job, d: &JobDirs, shard: &str, job: &str) -> anyho
     };
     let mut bars = Bars::new(plan.backend);
     // resumable: finished stages are skipped, views already extracted kept
-    let trained = train_scene(TeacherModel::Dir(&vlm), &dirs, &recipe, &plan.backend.device(), true, &mut bars)?;
+    let trained = train_scene(TeacherModel::Dir(&vlm), &dirs, &recipe, &plan.backend.device()?, true, &mut bars)?;
     for (stage, secs) in &trained.seconds {
         seconds.insert(stage.name().into(), serde_json::json!((secs * 10.0).round() / 10.0));
     }
@@ -180,7 +180,7 @@ fn run_scene(plan: &Plan, s: &Job, d: &JobDirs, shard: &str, job: &str) -> anyho
                 keep_going: true,
                 find_threshold: model::find::DEFAULT_THRESHOLD,
             };
-            let grader = eval::score::Grader::from_env()?;
+            let grader = scoring::score::Grader::from_env()?;
             let qf = model::vqa::load_questions(q)?;
             model::question_file::check_scene(&qf, q, &s.data)?;
             let names = model::find::ObjectNames::of_run(&d.run, &mut Vec::new());

@@ -76,6 +76,11 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     if !converses {
         eprintln!("note: {}", model::vlm::conversation::SINGLE_TURN_NOTE);
     }
+    let names = model::find::ObjectNames::of_run(&a.scene.geometry(), &mut Vec::new());
+    let forms = known_forms(&s, &names.objects());
+    if let Some(forms) = &forms {
+        eprintln!("{forms}");
+    }
     let mut state = State::new(0, Target::View(*s.camera(0)?), "view 0".into());
     eprint!("[{}] > ", state.label);
     let mut input = std::io::stdin().lock();
@@ -95,6 +100,9 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         match parse(line) {
             Ok(Line::Quit) => break,
             Ok(cmd) => {
+                if let (Line::Help, Some(forms)) = (&cmd, &forms) {
+                    eprintln!("{forms}");
+                }
                 if let Err(e) = apply(&s, cmd, &mut state, &opts, converses) {
                     eprintln!("error: {e}");
                 }
@@ -151,6 +159,9 @@ fn apply(
             if !converses {
                 state.conversation = Conversation::new(state.conversation.target.clone());
             }
+            if let Some(note) = model::known::unknown_question_note(&s.vlm, &state.conversation.target, &q) {
+                eprintln!("note: {note}");
+            }
             let reply = model::catch_backend("generation", || {
                 s.converse_until(&mut state.conversation, &q, opts, |piece| {
                     print_piece(piece);
@@ -164,4 +175,16 @@ fn apply(
         }
     }
     Ok(())
+}
+
+/// The questions a model trained on the synthetic forms knows, about this scene's objects, one
+/// line per level; `None` for a model that takes any question.
+fn known_forms(s: &ChatSession, objects: &[String]) -> Option<String> {
+    let examples = model::known::examples(&s.vlm, objects)?;
+    let mut out = String::from("this model was trained on these questions (others get a guess):");
+    for level in [model::vqa::Level::View, model::vqa::Level::Object, model::vqa::Level::Scene] {
+        let at: Vec<&str> = examples.iter().filter(|(l, _)| *l == level).map(|(_, q)| q.as_str()).collect();
+        out += &format!("\n  {level}: {}", at.join(" | "));
+    }
+    Some(out)
 }

@@ -1,7 +1,11 @@
 //! `chatsplat demo`: the whole pipeline on the built-in scene, each step what the subcommand a
 //! user would run does (synth -> train -> extract -> train-language -> ask at view, object and
 //! scene level -> vqa -> export-encoder), called with typed settings; the scene and the model
-//! are loaded once for the questions and the question file.
+//! are loaded once for the questions and the question file. Before the export, the paper's
+//! comparison in miniature: the question file's single questions answered from the held-out
+//! photos, from the geometry's renders through the vision tower, and from ChatSplat's tokens
+//! (`scoring::compare`), exact match per level and views/s of each path, also in
+//! `OUT/summary.json`.
 
 use super::SceneArgs;
 use super::bars::Bars;
@@ -12,6 +16,7 @@ use model::data::synth::SynthOptions;
 use model::run::GeometryRun;
 use model::vlm::GenerateOptions;
 use model::vqa::{Level, load_questions};
+use scoring::compare;
 use std::path::PathBuf;
 use train::pipeline::{Recipe, SceneDirs, Stage, TeacherModel, train_scene};
 
@@ -30,7 +35,9 @@ pub struct Args {
     /// Language-field iterations.
     #[arg(long, default_value_t = 100)]
     language_iters: usize,
-    #[arg(long, default_value_t = Backend::Ndarray)]
+    /// The compute backend: flex by default (burn-flex, the faster CPU backend here: the demo ran
+    /// in 361 s on flex against 413 s on ndarray, 2026-12-06, BENCHMARKS.md).
+    #[arg(long, default_value_t = Backend::Flex)]
     backend: Backend,
 }
 
@@ -39,7 +46,7 @@ pub struct Args {
 const MAX_SIDE: usize = 128;
 
 fn step(n: usize, what: &str) {
-    eprintln!("\n== {n}/7 {what}");
+    eprintln!("\n== {n}/8 {what}");
 }
 
 pub fn run(a: Args) -> anyhow::Result<()> {
@@ -63,7 +70,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         Stage::Language => step(4, "language field, encoder and scaling adjustment"),
     });
     let dirs = SceneDirs::beside(&data, &run.dir);
-    train_scene(TeacherModel::Dir(&vlm), &dirs, &recipe, &a.backend.device(), false, &mut bars)?;
+    train_scene(TeacherModel::Dir(&vlm), &dirs, &recipe, &a.backend.device()?, false, &mut bars)?;
 
     step(5, "chat: view, object (click) and scene level");
     let scene = SceneArgs { run: run.dir.clone(), language: None, vlm: Some(vlm), backend: a.backend };
@@ -101,11 +108,19 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         keep_going: true,
         find_threshold: model::find::DEFAULT_THRESHOLD,
     };
-    let grader = eval::score::Grader::from_env()?;
+    let grader = scoring::score::Grader::from_env()?;
     let names = model::find::ObjectNames::of_run(&run, &mut Vec::new());
     super::vqa::score(&s, (&questions, &qf), &lang.vqa(), &scoring, names, grader.as_ref())?;
 
-    step(7, "encoder export");
+    step(7, "the paper's comparison on the held-out views: images, rendered RGB, ChatSplat's tokens");
+    let ds = model::data::load_any(&data, &model::data::LoadOptions::default())?;
+    let compared = model::catch_backend("the comparison", || compare::three_ways(&s, &qf, &ds))??;
+    println!("{}", compare::table(&compared));
+    let summary = a.out.join("summary.json");
+    model::io::write_json(&summary, &compare::summary_json(&compared, (&questions, &qf)))?;
+    println!("(one answer per question from each source; as JSON in {})", summary.display());
+
+    step(8, "encoder export");
     super::export_encoder::export(&lang, &lang.dir.join("encoder.safetensors"))?;
     println!(
         "\ndemo done: renders in {}, language run in {}, highlighted pick in {}",

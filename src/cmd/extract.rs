@@ -91,7 +91,7 @@ pub fn teacher(
     opts: &ExtractOptions,
     backend: Backend,
 ) -> anyhow::Result<()> {
-    let device = backend.device();
+    let device = backend.device()?;
     let m = model::catch_backend("loading the model", || model::vlm::LlavaOnevision::load(vlm_dir, &device))??;
     // the plan and the progress both report to the bars, one after the other
     let bars = std::cell::RefCell::new(Bars::new(backend));

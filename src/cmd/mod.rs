@@ -212,7 +212,7 @@ impl SceneArgs {
     pub fn open(&self) -> anyhow::Result<ChatSession> {
         let vlm = self.vlm_dir()?;
         let t0 = std::time::Instant::now();
-        let device = self.backend.device();
+        let device = self.backend.device()?;
         let s = model::catch_backend("loading", || {
             ChatSession::open(&self.geometry(), self.language.as_deref(), &vlm, &device)
         })??;

@@ -122,7 +122,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     let backend = a.backend;
     let t0 = std::time::Instant::now();
     let (rgb, alpha, depth, ids) = model::catch_backend(&format!("rendering on {backend}"), || {
-        let device = backend.device();
+        let device = backend.device()?;
         let g = cloud.to_gaussians(&device);
         let bgt = Tensor::<1>::from_data(TensorData::new(bg.to_array().to_vec(), [3]), &device);
         let out = splat(&g, &cam, bgt, &SplatOptions::default())?;

@@ -1,7 +1,7 @@
 //! `chatsplat synth`: the built-in synthetic tabletop as a dataset.
 
-use eval::progress::Progress;
 use model::data::synth::{SynthOptions, write_dataset};
+use scoring::progress::Progress;
 use std::path::{Path, PathBuf};
 
 #[derive(clap::Args)]

@@ -89,7 +89,7 @@ pub fn fit(
     let mut bars = Bars::new(backend);
     bars.start(Stage::Geometry, None);
     bars.dataset(data, &ds);
-    let device = backend.device();
+    let device = backend.device()?;
     let s = model::catch_backend("training", || {
         train_geometry(&ds, points.as_ref(), data, load, out, cfg, &device, resume, |p| bars.geometry(&p))
     })??;

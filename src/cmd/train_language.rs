@@ -125,7 +125,7 @@ pub fn fit(
     ranks: &crate::ranks::Ranks,
 ) -> anyhow::Result<()> {
     cfg.validate()?;
-    let device = backend.device();
+    let device = backend.device()?;
     let c = ranks.collective();
     if c.size() > 1 && c.is_root() {
         eprintln!(

@@ -1,7 +1,7 @@
 //! `chatsplat train-vlm`: trains the tabletop LLaVA-OneVision from scratch.
 
-use eval::progress::Progress;
 use model::Backend;
+use scoring::progress::Progress;
 use std::path::PathBuf;
 use train::vlm::{EVAL_SEEDS, TRAIN_SEEDS, VlmTrainConfig, evaluate_model, train_from};
 
@@ -62,7 +62,7 @@ fn evaluate(dir: &std::path::Path, a: &Args) -> anyhow::Result<()> {
             a.eval_seeds
         );
     }
-    let device = a.backend.device();
+    let device = a.backend.device()?;
     let t0 = std::time::Instant::now();
     let seeds = a.eval_from..a.eval_from + a.eval_seeds;
     let acc = model::catch_backend("VLM evaluation", || {
@@ -119,7 +119,7 @@ pub fn run(a: Args, ranks: &crate::ranks::Ranks) -> anyhow::Result<()> {
     super::check_config(a.config.as_deref(), cfg.validate())?;
     let inputs: Vec<_> = a.base_model.iter().map(|b| ("the --base-model directory", b.clone())).collect();
     model::io::refuse_output_onto("--out", &a.out, &inputs)?;
-    let device = a.backend.device();
+    let device = a.backend.device()?;
     let (stages, first) = stages(&cfg, &a.out, a.base_model.as_deref(), a.resume);
     let mut stage = first;
     let stage_label =

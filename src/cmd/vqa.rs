@@ -1,11 +1,11 @@
 //! `chatsplat vqa`: answer a question file about a trained scene and score the answers.
 
 use super::SceneArgs;
-use eval::progress::Progress;
-use eval::score::{Grader, Summary, offline_score, summarize};
 use model::chat::ChatSession;
 use model::find::{FindTally, ObjectNames, check_threshold};
 use model::vqa::{FindOptions, Level, QuestionFile, answer_all, load_questions};
+use scoring::progress::Progress;
+use scoring::score::{Grader, Summary, offline_score, summarize};
 use serde::Serialize;
 use std::path::{Path, PathBuf};
 

@@ -35,6 +35,31 @@ fn render_writes_png_files_of_the_requested_size() {
     assert!(stdout.contains("rendered"), "{stdout}");
 }
 
+/// On a machine whose only wgpu adapter the op cannot run on (here: the Vulkan loader shown no
+/// driver, so wgpu falls back to OpenGL, on Mesa's llvmpipe where it is installed), `--backend
+/// wgpu` is refused with the adapter and its graphics API named, or with "no wgpu adapter" where
+/// there is no OpenGL either; never a panic, a kernel that fails to compile, or a PNG.
+#[test]
+fn wgpu_without_a_usable_adapter_is_refused_by_name() {
+    let out = tmp("gl.png");
+    let st = chatsplat()
+        .args(["render", "--density", "4", "--width", "32", "--height", "32", "--backend", "wgpu", "--out"])
+        .arg(&out)
+        .env("VK_ICD_FILENAMES", "/nonexistent.json")
+        .env("VK_DRIVER_FILES", "/nonexistent.json")
+        .output()
+        .unwrap();
+    let err = String::from_utf8_lossy(&st.stderr);
+    assert_eq!(st.status.code(), Some(1), "{err}");
+    assert!(!err.contains("panicked"), "{err}");
+    let gl = err.contains("through OpenGL, a software rasterizer") && err.contains("mesa-vulkan-drivers");
+    assert!(gl || err.contains("no wgpu adapter"), "{err}");
+    if !gl {
+        eprintln!("(no OpenGL on this machine either: {err})");
+    }
+    assert!(!out.exists(), "nothing written");
+}
+
 #[test]
 fn bad_input_gives_a_clear_error_and_a_non_zero_exit() {
     let missing = tmp("does-not-exist.ply");

@@ -91,6 +91,15 @@ fn serve_answers_like_the_library_and_refuses_bad_requests_by_name() {
         let listed = info["objects"].as_array().unwrap().iter().find(|x| x["id"] == o.id);
         assert_eq!(listed.map(|x| x["name"].as_str().unwrap()), Some(o.name().as_str()), "object {}", o.id);
     }
+    // the table is ground, not an object: the page's count is the scene's objects
+    assert_eq!(info["objects"].as_array().unwrap().len(), truth.objects.len(), "{}", info["objects"]);
+    // the built-in model offers the question forms it was trained on, about this scene's objects
+    let forms = info["question_forms"].as_array().expect("the built-in model's question forms");
+    for level in ["view", "object", "scene"] {
+        assert!(forms.iter().any(|f| f["level"] == level), "no {level} form: {forms:?}");
+    }
+    let first = truth.objects[0].name();
+    assert!(forms.iter().any(|f| f["question"] == format!("Is there a {first}?")), "{forms:?}");
     let ply = http::get(&a, "/api/splats.ply");
     assert_eq!(model::ply::parse(&ply.body, "splats.ply").unwrap().len(), shown);
     // one object's Gaussians to download (by each Gaussian's identity class, as export-ply
@@ -362,7 +371,7 @@ fn serve_answers_like_the_library_and_refuses_bad_requests_by_name() {
             "/api/ask",
             json!({"scope": "object", "camera": cam0, "id": 200, "question": "What is this?"}).to_string(),
             400,
-            "not visible",
+            "has no object 200",
         ),
         (
             "object without id",
@@ -750,9 +759,25 @@ fn the_page_draws_the_scene_picks_in_red_and_answers_at_every_level() {
     let outside: Vec<usize> = (0..inside.len()).filter(|&p| !inside[p]).step_by(7).collect();
     let (before, after) = (mean(&outside, &|p| luma(&canvas, p)), mean(&outside, &|p| luma(&tinted, p)));
     assert!(after < 0.7 * before, "the rest of the view is not dimmed ({before:.0} -> {after:.0})");
+    // a new window size keeps the pick: its tint and label stay (drawn again at the new size)
+    let metrics = |w: u32, h: u32| json!({"width": w, "height": h, "deviceScaleFactor": 1, "mobile": false});
+    b.call("Emulation.setDeviceMetricsOverride", metrics(900, 600)).unwrap();
+    b.wait_for("window.chatsplat.idle", Duration::from_secs(60)).unwrap();
+    let label = "!document.getElementById('label').hidden && document.getElementById('label').textContent";
+    assert_eq!(b.eval(label).unwrap(), o.name(), "the label after a resize");
+    assert_eq!(b.eval("window.chatsplat.selection && window.chatsplat.selection.id").unwrap(), json!(o.id));
+    b.call("Emulation.setDeviceMetricsOverride", metrics(1100, 700)).unwrap();
+    b.wait_for("window.chatsplat.idle", Duration::from_secs(60)).unwrap();
+    assert_eq!(b.eval(label).unwrap(), o.name(), "the label after the size came back");
+    let back = canvas_rect(&mut b);
+    assert!(back.iter().zip(rect).all(|(a, b)| (a - b).abs() < 1.0), "the canvas moved: {back:?} {rect:?}");
+    // the menu still names the camera of the capture the view is at
+    assert_eq!(b.eval("document.getElementById('views').value").unwrap(), "0");
 
-    // --- the object question streams the right name
+    // --- the object question streams the right name; the page offers the model's question forms
     assert_eq!(b.eval("window.chatsplat.scope").unwrap(), "object");
+    let known = b.eval("window.chatsplat.known()").unwrap();
+    assert!(known.as_array().unwrap().iter().any(|q| q == "What is this?"), "{known}");
     let turn = ask_in_page(&mut b, "What is this?");
     eprintln!("object: {turn}");
     assert_eq!(turn["state"], "done", "{turn}");
@@ -788,6 +813,8 @@ fn the_page_draws_the_scene_picks_in_red_and_answers_at_every_level() {
     b.drag(mid, (mid.0 + 60.0, mid.1 + 25.0), 6).unwrap();
     b.wait_for("window.chatsplat.idle", Duration::from_secs(60)).unwrap();
     let (_, novel) = page_camera(&mut b);
+    // moved off the capture's cameras, the menu names none of them
+    assert_eq!(b.eval("document.getElementById('views').value").unwrap(), "");
     let eye = |c: &Camera| c.world_to_cam.inverse().w_axis.truncate();
     let session_cams = GeometryRun::new(&t.run).read_cameras().unwrap().all();
     let nearest = session_cams.iter().map(|c| eye(c).distance(eye(&novel))).fold(f32::MAX, f32::min);
@@ -808,8 +835,18 @@ fn the_page_draws_the_scene_picks_in_red_and_answers_at_every_level() {
         assert_eq!(turn["turn"].as_u64(), Some(1), "{turn}");
         eprintln!("view (novel camera): {} -> {} (truth {})", q.question, turn["answer"], q.answer);
         assert_eq!(turn["answer"].as_str(), Some(q.answer.as_str()), "{turn}");
+        assert!(turn["unknown_form"].is_null(), "a question of the model's forms: {turn}");
+        // a list answer shows its items apart ("red, blue")
+        if q.kind == Kind::Colors && q.answer.contains(' ') {
+            assert_eq!(turn["shown"].as_str(), Some(q.answer.replace(' ', ", ").as_str()), "{turn}");
+        }
         view_timing = turn["timing"].as_str().unwrap_or("").to_string();
     }
+    // a question far from every form the model knows is marked as a guess, beside its answer
+    b.eval("document.getElementById('new-conversation').click()").unwrap();
+    let guess = ask_in_page(&mut b, "What is on the table?");
+    assert!(guess["unknown_form"].as_str().is_some_and(|n| n.contains("not a question this model")), "{guess}");
+    assert!(guess["timing"].as_str().unwrap().contains("not a question this model"), "{guess}");
 
     // --- a search at this moved camera: the objects of the picked one's shape tinted red
     // (those the camera shows), listed with their scores; a click on one selects it for object

@@ -11,7 +11,7 @@
 use burn::backend::fusion::Fusion;
 use burn::backend::wgpu::CubeBackend;
 use burn::tensor::activation::sigmoid;
-use burn::tensor::{Device, DeviceKind, Tensor, TensorData};
+use burn::tensor::{Device, Tensor, TensorData};
 use splat_kernels::api::SplatOptions;
 use splat_kernels::{Camera, Gaussians, RasterConfig, splat};
 
@@ -19,18 +19,16 @@ use splat_kernels::{Camera, Gaussians, RasterConfig, splat};
 /// compile-time check: this only builds when the two types are one).
 const _: fn(burn::backend::Cube) -> Fusion<CubeBackend> = |b| b;
 
-/// The wgpu device if an adapter works; `None` (with a SKIPPED line) otherwise, unless
-/// CHATSPLAT_REQUIRE_WGPU=1, which makes a missing adapter a failure.
+/// The wgpu device where the op can run on the adapter; `None` (with a SKIPPED line saying why)
+/// otherwise, unless CHATSPLAT_REQUIRE_WGPU=1, which makes that a failure.
 fn wgpu_device() -> Option<Device> {
-    let device = Device::wgpu(DeviceKind::DefaultDevice);
-    let probe = std::panic::catch_unwind(|| Tensor::<1>::from_floats([1.0, 2.0], &device).into_data().to_vec::<f32>());
-    match probe {
-        Ok(Ok(v)) if v == [1.0, 2.0] => Some(device),
-        _ if std::env::var("CHATSPLAT_REQUIRE_WGPU").is_ok_and(|v| v == "1") => {
-            panic!("CHATSPLAT_REQUIRE_WGPU=1 but no wgpu adapter works (install mesa-vulkan-drivers)")
+    match splat_kernels::cube::adapter::device() {
+        Ok(device) => Some(device),
+        Err(why) if std::env::var("CHATSPLAT_REQUIRE_WGPU").is_ok_and(|v| v == "1") => {
+            panic!("CHATSPLAT_REQUIRE_WGPU=1 but {why}")
         }
-        _ => {
-            eprintln!("SKIPPED: no wgpu adapter on this machine");
+        Err(why) => {
+            eprintln!("SKIPPED: {why}");
             None
         }
     }

@@ -275,10 +275,21 @@ fn wgpu_matches_ndarray_forward_backward_and_hard_cases() {
         eprintln!("skipping the native float add: this adapter has none (the compare-and-swap loop is tested)");
     }
     let mut ways = vec![
-        ("plane", RasterConfig { grad_reduce: GradReduce::Plane, ..RasterConfig::smooth() }),
         ("cas", RasterConfig { float_add: FloatAdd::Cas, ..RasterConfig::smooth() }),
         ("bitonic", RasterConfig { tile_sort: TileSort::Bitonic, ..RasterConfig::smooth() }),
     ];
+    // (lavapipe through Vulkan has subgroups; an adapter without them refuses the plane path by name)
+    if splat_kernels::cube::adapter::subgroups() == Some(true) {
+        ways.push(("plane", RasterConfig { grad_reduce: GradReduce::Plane, ..RasterConfig::smooth() }));
+    } else {
+        eprintln!("skipping the plane-summed backward: this adapter has no subgroup operations");
+        let forced = RasterConfig { grad_reduce: GradReduce::Plane, ..RasterConfig::smooth() };
+        let scene = random_scene(40, 3, &cam, 60);
+        let refused = std::panic::catch_unwind(|| render_and_grad(&scene, &cam, forced, &wgpu.clone().autodiff(), 5));
+        let payload = refused.map(|_| ()).expect_err("a forced plane path without subgroups runs");
+        let message = payload.downcast_ref::<String>().cloned().unwrap_or_default();
+        assert!(message.contains("subgroup"), "a forced plane path is refused by name: {message}");
+    }
     if native {
         ways.push(("native", RasterConfig { float_add: FloatAdd::Native, ..RasterConfig::smooth() }));
     }

@@ -9,6 +9,7 @@
 use burn::tensor::{Device, Tensor};
 use chatsplat_tests::temp_dir;
 use glam::{Mat4, Quat, Vec3, Vec4};
+use model::data::synth::forms::form_of;
 use model::data::synth::questions::{
     Kind, ViewFacts, object_follow_ups, object_questions, scene_questions, view_questions,
 };
@@ -231,6 +232,8 @@ fn view_answers_are_true_by_construction() {
             }
             for qa in &qas {
                 assert_eq!(qa.kind.level(), Level::View);
+                // every question takes a form the page and `chat` offer (synth::forms)
+                assert!(form_of(Level::View, &qa.question).is_some(), "no form for {}", qa.question);
                 let want = recompute(&scene, &v.ids, &v.depth, 96, qa);
                 assert_eq!(qa.answer, want, "seed {seed}: {}", qa.question);
                 *per_kind.entry(qa.kind.as_str()).or_default() += 1;
@@ -261,6 +264,12 @@ fn object_and_scene_answers_describe_the_scene() {
         );
     }
     let qs = scene_questions(&scene);
+    for (level, qa) in scene.objects.iter().flat_map(|o| object_questions(o).into_iter().map(|q| (Level::Object, q))) {
+        assert!(form_of(level, &qa.question).is_some(), "no form for {}", qa.question);
+    }
+    for qa in &qs {
+        assert!(form_of(Level::Scene, &qa.question).is_some(), "no form for {}", qa.question);
+    }
     let total = qs.iter().find(|q| q.kind == Kind::Total).unwrap();
     assert_eq!(total.answer, scene.objects.len().to_string());
     let by_color: usize =
@@ -352,6 +361,10 @@ fn dataset_is_deterministic_complete_and_geometrically_consistent() {
     let mut follow_kinds = BTreeSet::new();
     for q in &qf.questions {
         levels.insert(q.level);
+        // follow-ups included: every question takes a form the page and `chat` offer
+        if q.level != Level::Find {
+            assert!(form_of(q.level, &q.question).is_some(), "{}: no form for {}", q.id, q.question);
+        }
         match q.level {
             Level::View | Level::Object => {
                 assert!(synth::held_out(q.view.unwrap()), "{} is not on a held-out view", q.id)

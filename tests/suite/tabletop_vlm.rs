@@ -752,23 +752,37 @@ fn view_questions_are_filed_under_their_smallest_object() {
 /// from ChatSplat's tokens (the paper's comparison in miniature; `vqa-bench` runs it at full size).
 #[test]
 fn chatsplat_tokens_answer_a_held_out_scene_nearly_as_well_as_ground_truth_images() {
-    use eval::compare::{Source, answer_file};
     use model::data::{LoadOptions, load_any};
     use model::run::GeometryRun;
+    use scoring::compare::{Source, summary_json, table, three_ways};
     let dev = Device::ndarray();
     let scene = chatsplat_tests::fixture::tabletop(std::path::Path::new(env!("CARGO_TARGET_TMPDIR")));
     let vlm_dir = chatsplat_tests::fixture::builtin_model();
-    let vlm = LlavaOnevision::load(&vlm_dir, &dev).unwrap();
     let ds = load_any(&scene.data, &LoadOptions::default()).unwrap();
     let run = GeometryRun::new(&scene.run);
     let session = model::chat::ChatSession::open(&run, None, &vlm_dir, &dev).unwrap();
-    let qf = model::vqa::load_questions(&scene.data.join("questions.json")).unwrap();
+    let path = scene.data.join("questions.json");
+    let qf = model::vqa::load_questions(&path).unwrap();
+    // the three ways `chatsplat demo` prints
+    let rows = three_ways(&session, &qf, &ds).unwrap();
+    let printed = table(&rows);
+    eprintln!("{printed}");
+    assert_eq!(rows.iter().map(|(s, _)| *s).collect::<Vec<_>>(), Source::ALL);
+    assert!(printed.contains("(b) VLM on the rendered RGB") && printed.contains("as fast as rendering"), "{printed}");
     let score = |source| {
-        let t = answer_file(&vlm, &qf, &ds, Some(&session), source, model::language::CROP_MARGIN).unwrap().tally;
+        let t = &rows.iter().find(|(s, _)| *s == source).unwrap().1.tally;
         let (right, n): (usize, usize) = t.by_level.values().fold((0, 0), |(r, n), v| (r + v.0, n + v.1));
-        right as f64 / n.max(1) as f64
+        (right, n)
     };
-    let (gt, cs) = (score(Source::GroundTruth), score(Source::ChatSplat));
+    let json = summary_json(&rows, (&path, &qf));
+    for source in Source::ALL {
+        let key = serde_json::to_value(source).unwrap();
+        let answers = json["comparison"][key.as_str().unwrap()]["answers"].as_array().unwrap().clone();
+        let right = answers.iter().filter(|a| a["right"] == true).count();
+        assert_eq!((right, answers.len()), score(source), "{source:?}: the JSON's answers are the tally's");
+    }
+    let rate = |(r, n): (usize, usize)| r as f64 / n.max(1) as f64;
+    let (gt, cs) = (rate(score(Source::GroundTruth)), rate(score(Source::ChatSplat)));
     eprintln!("{} questions: ground-truth images {gt:.3}, ChatSplat tokens {cs:.3}", qf.questions.len());
     assert!(cs >= E2E_FLOOR, "ChatSplat exact match {cs:.3} < {E2E_FLOOR} (ground truth {gt:.3})");
     assert!(cs >= gt - E2E_GAP, "ChatSplat {cs:.3} more than {E2E_GAP} below ground-truth images {gt:.3}");

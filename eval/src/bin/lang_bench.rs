@@ -15,7 +15,6 @@
 use burn::tensor::{Device, Tensor, TensorData, activation};
 use clap::Parser;
 use eval::harness::{ModelArgs, TokenFidelity};
-use eval::plot::{Chart, Series};
 use model::Result;
 use model::chat::ChatSession;
 use model::data::View;
@@ -24,6 +23,7 @@ use model::run::{GeometryRun, LanguageRun};
 use model::scene::LanguageScene;
 use model::splats::host;
 use model::vlm::{LlavaOnevision, RgbImage};
+use scoring::plot::{Chart, Series};
 use std::path::PathBuf;
 use std::time::Instant;
 use train::language::{LanguageTrainConfig, fit};
@@ -300,7 +300,7 @@ fn row(
 eval::bench_main!("lang-bench", bench);
 
 fn bench(a: &Args) -> Result<()> {
-    let device: Device = a.model.device();
+    let device: Device = a.model.device()?;
     let vlm_dir = a.model.vlm_dir()?;
     let geometry = GeometryRun::new(&a.run);
     let lang = a.language.as_ref().map(LanguageRun::new).unwrap_or_else(|| geometry.language());
@@ -493,7 +493,7 @@ fn bench(a: &Args) -> Result<()> {
             cfg.iters = a.sweep_iters;
             cfg.checkpoint_every = 0;
             let dir = LanguageRun::new(out.join(name.replace([' ', '/', '(', ')', '='], "_")));
-            let bar = eval::progress::Progress::new(name.clone(), "it");
+            let bar = scoring::progress::Progress::new(name.clone(), "it");
             let resume = dir.checkpoint().is_file();
             let summary = fit(&geometry, &teacher_dir, &dir, cfg, &device, resume, &train::dist::Solo, |p| {
                 bar.update_with(p.iter, p.iters, &format!("loss {:.4}", p.step.loss))

@@ -128,7 +128,9 @@ fn accuracy() {
         let r = reference::render(&inp, &cam, &cfg);
         let amb = r.ambiguous.iter().filter(|&&a| a).count();
         let mut rows: Vec<(&str, Vec<f32>, Vec<f32>)> = vec![];
-        for (name, dev) in [("ndarray", Device::ndarray()), ("wgpu", Backend::Wgpu.device())] {
+        let mut devices = vec![("ndarray", Device::ndarray())];
+        devices.extend(Backend::Wgpu.device().ok().map(|d| ("wgpu", d)));
+        for (name, dev) in devices {
             let got = catch_backend(name, || {
                 let (g, bgt) = tensors(&host, n, c, &dev, false);
                 let out = splat(&g, &cam, bgt, &SplatOptions::default()).expect("valid");
@@ -209,7 +211,10 @@ fn grad_errors(n: usize, c: usize, w: u32, h: u32) {
         ]
     };
     let want = grads(&Device::ndarray(), (GradReduce::Atomic, FloatAdd::Auto));
-    let wgpu = Backend::Wgpu.device();
+    let wgpu = match Backend::Wgpu.device() {
+        Ok(d) => d,
+        Err(e) => return println!("| N={n}, C={c}, {w}x{h} | {e} | | | | | |"),
+    };
     let mut ways = vec![
         ("atomic, cas", (GradReduce::Atomic, FloatAdd::Cas)),
         ("plane, cas", (GradReduce::Plane, FloatAdd::Cas)),
@@ -365,11 +370,14 @@ fn bench(a: &Args) -> model::Result<()> {
         ..Default::default()
     };
     if want("wgpu") {
-        match catch_backend("wgpu", || splat_kernels::cube::adapter_report(&Backend::Wgpu.device())) {
+        match Backend::Wgpu.device().and_then(|d| catch_backend("wgpu", || splat_kernels::cube::adapter_report(&d))) {
             Ok(Some(line)) => println!("{line}"),
-            _ => println!("wgpu: no adapter"),
+            Ok(None) => println!("wgpu: no adapter"),
+            Err(e) => println!("{e}"),
         }
-        if let Ok(Some(line)) = catch_backend("wgpu", || splat_kernels::cube::paths(&Backend::Wgpu.device(), &config)) {
+        if let Ok(Some(line)) =
+            Backend::Wgpu.device().and_then(|d| catch_backend("wgpu", || splat_kernels::cube::paths(&d, &config)))
+        {
             println!("wgpu: {line}");
         }
     }
@@ -402,12 +410,16 @@ fn bench(a: &Args) -> model::Result<()> {
                 let nd = Device::ndarray();
                 let ndf = run(0, want("ndarray"), &mut || op_fwd(&host, n, c, &cam, &nd));
                 let ndb = run(1, want("ndarray"), &mut || op_fwd_bwd(&host, n, c, &cam, &nd, config));
-                let wg = Backend::Wgpu.device();
-                let wgf = run(2, want("wgpu"), &mut || {
-                    catch_backend("wgpu", || op_fwd(&host, n, c, &cam, &wg)).unwrap_or(f64::NAN)
+                // no usable adapter: the wgpu columns stay empty (the line above the table says why)
+                let wg = if want("wgpu") { Backend::Wgpu.device().ok() } else { None };
+                let wgf = run(2, wg.is_some(), &mut || {
+                    wg.as_ref().map_or(f64::NAN, |d| {
+                        catch_backend("wgpu", || op_fwd(&host, n, c, &cam, d)).unwrap_or(f64::NAN)
+                    })
                 });
-                let wgb = run(3, want("wgpu"), &mut || {
-                    catch_backend("wgpu", || op_fwd_bwd(&host, n, c, &cam, &wg, config)).unwrap_or(f64::NAN)
+                let wgb = run(3, wg.is_some(), &mut || {
+                    let fb = |d| catch_backend("wgpu", || op_fwd_bwd(&host, n, c, &cam, d, config)).unwrap_or(f64::NAN);
+                    wg.as_ref().map_or(f64::NAN, fb)
                 });
                 let (mut df, mut db) = (None, None);
                 let (mut cf, mut cb) = (1.0, 1.0);

@@ -262,7 +262,7 @@ fn bench(a: &Args) -> model::Result<()> {
         println!("(linear layers and embeddings held in f16)");
     }
     if a.backend.contains(&Backend::Wgpu) {
-        match catch_backend("wgpu", || splat_kernels::cube::adapter_report(&Backend::Wgpu.device())) {
+        match Backend::Wgpu.device().and_then(|d| catch_backend("wgpu", || splat_kernels::cube::adapter_report(&d))) {
             Ok(Some(line)) => {
                 println!(
                     "{line}; burn autotune {}, fusion {}",
@@ -270,7 +270,8 @@ fn bench(a: &Args) -> model::Result<()> {
                     on(cfg!(feature = "fusion"))
                 )
             }
-            _ => println!("wgpu: no adapter"),
+            Ok(None) => println!("wgpu: no adapter"),
+            Err(e) => println!("{e}"),
         }
     }
     println!();
@@ -288,12 +289,12 @@ fn bench(a: &Args) -> model::Result<()> {
             continue;
         }
         let r = catch_backend("benchmark", || -> model::Result<Timing> {
-            let device = backend.device();
+            let device = backend.device()?;
             let m = match &a.random {
                 Some(size) => random_model(size, layers, &device, a.half)?,
                 None => LlavaOnevision::load_with(&dir, &device, a.half)?,
             };
-            if let Some(gib) = eval::progress::peak_rss_gib() {
+            if let Some(gib) = scoring::progress::peak_rss_gib() {
                 eprintln!("{backend}: model ready, peak resident memory so far {gib:.2} GiB");
             }
             let img = model::images::read_rgb_image(&dir.join("image_wide.png")).unwrap_or_else(|_| {
@@ -419,7 +420,7 @@ fn bench(a: &Args) -> model::Result<()> {
     if let Some(r) = &reference {
         print_reference(r, &timings);
     }
-    if let Some(gib) = eval::progress::peak_rss_gib() {
+    if let Some(gib) = scoring::progress::peak_rss_gib() {
         println!();
         println!("Peak resident memory of this run: {gib:.2} GiB");
     }

@@ -1,7 +1,7 @@
 //! The compute backends and the one place where a panic inside a backend becomes an [`Error`].
 
 use crate::error::{Error, Result};
-use burn::tensor::{Device, DeviceKind};
+use burn::tensor::Device;
 
 /// The compute backends chatsplat runs on.
 #[derive(Clone, Copy, Debug, Default, PartialEq, Eq, serde::Serialize, serde::Deserialize)]
@@ -25,19 +25,23 @@ impl Backend {
         match self {
             Backend::Flex => true,
             // no adapter at all: no f16 either (the command's own use of wgpu then says why)
-            Backend::Wgpu => {
-                catch_backend("wgpu", || splat_kernels::cube::f16_on(&self.device())).ok().flatten() == Some(true)
-            }
+            Backend::Wgpu => self
+                .device()
+                .and_then(|d| catch_backend("wgpu", || splat_kernels::cube::f16_on(&d)))
+                .is_ok_and(|f16| f16 == Some(true)),
             Backend::Ndarray => false,
         }
     }
 
-    /// The burn device of this backend.
-    pub fn device(self) -> Device {
+    /// The burn device of this backend. For wgpu, the adapter burn picks, once per process, where
+    /// the splatting op can run on it; else [`Error::Backend`] naming the adapter, its graphics API
+    /// and what to install or use instead (`splat_kernels::cube::adapter`).
+    pub fn device(self) -> Result<Device> {
         match self {
-            Backend::Ndarray => Device::ndarray(),
-            Backend::Wgpu => Device::wgpu(DeviceKind::DefaultDevice),
-            Backend::Flex => Device::flex(),
+            Backend::Ndarray => Ok(Device::ndarray()),
+            Backend::Wgpu => splat_kernels::cube::adapter::device()
+                .map_err(|message| Error::Backend { what: "wgpu".into(), message }),
+            Backend::Flex => Ok(Device::flex()),
         }
     }
 }

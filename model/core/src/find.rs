@@ -64,6 +64,12 @@ impl ObjectNames {
         self.names.get(&id).cloned().unwrap_or_else(|| format!("object {id}"))
     }
 
+    /// The names of a synthetic scene's objects (not its table), in id order; none where the
+    /// dataset does not say.
+    pub fn objects(&self) -> Vec<String> {
+        self.objects.iter().flatten().map(|&id| self.name(id)).collect()
+    }
+
     /// Whether a search looks at instance `id`: every instance, except a synthetic scene's table
     /// (the ground its objects stand on, which its questions and the built-in model never name).
     pub fn searched(&self, id: u8) -> bool {

@@ -11,7 +11,8 @@
 //!    `llava-onevision` crate (model/llava-onevision), re-exported.
 //! 5. [`scene`] and [`chat`] — a trained scene answering questions at view, object and scene
 //!    level: frozen Gaussians + language field -> tokens -> prompt -> LLM; [`vqa`] runs a
-//!    question file through it; [`find`] scores the scene's objects against a phrase.
+//!    question file through it; [`find`] scores the scene's objects against a phrase; [`known`]
+//!    says which questions a model trained on the synthetic forms knows.
 //!
 //! Around them: [`run`] (the files of a run directory, typed), [`io`] (atomic writes, JSON,
 //! safetensors), [`error`] and [`images`] (PNG), all three from the `data` crate; [`backend`]
@@ -37,6 +38,7 @@ pub use llava_onevision as vlm;
 
 pub mod chat;
 pub mod find;
+pub mod known;
 pub mod run;
 pub mod scene;
 pub mod vqa;

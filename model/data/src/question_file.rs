@@ -1,6 +1,6 @@
 //! Question files about a scene (the paper's view / object / scene-level question answering): the
 //! types, reading and validating them, and which scene view an index means. Answering them
-//! through a chat session is `model::vqa`'s; scoring is `eval::score`'s. A leaf: the synthetic
+//! through a chat session is `model::vqa`'s; scoring is `scoring::score`'s. A leaf: the synthetic
 //! scenes ([`crate::synth`]) write these files.
 //!
 //! # Question files

@@ -136,12 +136,20 @@ pub enum AskEvent {
         prompt_tokens: usize,
         cached_tokens: usize,
         dropped: usize,
+        /// Set when the model was trained on question forms (`model::known`) and this question
+        /// takes none of them: its answer is a guess, and the page says so beside it.
+        #[serde(skip_serializing_if = "Option::is_none")]
+        unknown_form: Option<String>,
     },
     /// New answer text.
     Token { text: String },
     /// The answer is complete.
     Done {
         text: String,
+        /// A list answer's items ("red cube blue cone": "red cube", "blue cone"), which the page
+        /// shows with separators; `None` for any other answer.
+        #[serde(skip_serializing_if = "Option::is_none")]
+        items: Option<Vec<String>>,
         tokens: usize,
         first_token_ms: f64,
         tokens_per_s: f64,
@@ -376,6 +384,7 @@ impl Engine {
             prompt_tokens: next.prompt_tokens(),
             cached_tokens: next.cached_tokens,
             dropped: next.dropped,
+            unknown_form: model::known::unknown_question_note(&session.vlm, &conversation.target, &job.question),
         };
         if job.events.blocking_send(start).is_err() {
             return Ok(());
@@ -406,6 +415,7 @@ impl Engine {
             total_ms: ms(job.arrived, end),
             stopped: g.stopped,
             cancelled: g.cancelled,
+            items: model::known::forms(&session.vlm).and_then(|_| model::data::synth::forms::list_items(&g.text)),
             text: g.text,
         });
         Ok(())
@@ -540,6 +550,10 @@ impl QuickState {
             Scope::View(c) => Ok(Target::View(*c)),
             Scope::Object { camera, id } => match self.resolve(session, camera, *id) {
                 Ok(Some(p)) => Ok(Target::Object(p)),
+                // an id no Gaussian holds is no object at all, not one out of sight
+                Ok(None) if !session.scene.splats.gaussian_classes().contains(id) => {
+                    Err(ApiError::field("id", format!("the scene has no object {id}")))
+                }
                 Ok(None) => Err(ApiError::field(
                     "id",
                     format!("object {id} ({}) is not visible from this camera", self.names.name(*id)),

@@ -19,11 +19,19 @@ pub struct ViewInfo {
     pub camera: ViewCamera,
 }
 
-/// An object the training views show.
+/// An object the training views show (a synthetic scene's table is ground, not an object).
 #[derive(Clone, Debug, Serialize)]
 pub struct ObjectInfo {
     pub id: u8,
     pub name: String,
+}
+
+/// A question a model trained on question forms knows (`model::known`).
+#[derive(Clone, Debug, Serialize)]
+pub struct KnownQuestion {
+    /// `view`, `object` or `scene`: the chat scope it is asked in.
+    pub level: String,
+    pub question: String,
 }
 
 /// `GET /api/scene`.
@@ -50,6 +58,10 @@ pub struct SceneInfo {
     /// Set when the built-in tabletop model chats about a scene that is not a tabletop: the page
     /// shows it as a banner and marks every answer.
     pub model_note: Option<String>,
+    /// For a model trained on question forms (the built-in one, any `train-vlm` model): each form
+    /// as a question about this scene, with its level; the page offers those of the chat's scope.
+    /// `None` for a model that takes any question.
+    pub question_forms: Option<Vec<KnownQuestion>>,
     pub backend: String,
     pub scene_views: usize,
     pub max_new_tokens: usize,
@@ -84,6 +96,7 @@ impl SceneInfo {
         let train = &s.cameras[..s.train_views];
         let objects = model::find::scene_objects(s)?
             .into_iter()
+            .filter(|o| names.searched(o.id))
             .map(|o| ObjectInfo { id: o.id, name: names.name(o.id) })
             .collect();
         let converses = s.vlm.converses();
@@ -108,6 +121,12 @@ impl SceneInfo {
             masks: s.scene.masks,
             model,
             model_note: s.model_note.clone(),
+            question_forms: model::known::examples(&s.vlm, &names.objects()).map(|forms| {
+                forms
+                    .into_iter()
+                    .map(|(level, question)| KnownQuestion { level: level.to_string(), question })
+                    .collect()
+            }),
             backend,
             scene_views: DEFAULT_SCENE_VIEWS.min(s.train_views),
             max_new_tokens,

@@ -63,6 +63,7 @@ const state = {
   selection: null, // {id, name, mask, bbox} from the last pick / select
   found: null, // the last search's reply (/api/find) and the camera it was made at
   hidden: [], // ids of the objects left out of the view (hide), in the order hidden
+  keepView: false, // a camera change that keeps the menu's camera (a jump to it)
   splatFormat: "ply", // or "spz" (Niantic's compressed splats), whichever the server makes smaller
   splatsUrl: null, // what the WebGL renderer shows
   converse: true, // questions follow their scope's conversation (the model holds one, or ?converse=1)
@@ -106,8 +107,10 @@ function setCamera(v) {
 function jump(i) {
   const v = state.scene.views[i];
   if (!v) return;
-  $("views").value = String(i);
+  state.keepView = true;
   setCamera(v.camera);
+  state.keepView = false;
+  $("views").value = String(i);
 }
 
 // ---------------------------------------------------------------- controls
@@ -170,6 +173,8 @@ function fly(dt) {
 // Called on every camera change; `settled` when the motion is over (a selection then follows
 // the camera and the server draws a full frame).
 function cameraMoved(settled) {
+  // the menu names a camera of the capture only while the view is that camera's
+  if (!state.keepView) $("views").value = "";
   state.camera.updateMatrixWorld(true);
   requestFrame(!settled);
   clearOverlay();
@@ -574,7 +579,25 @@ function setScope(scope) {
   for (const b of document.querySelectorAll("#scopes button")) b.classList.toggle("active", b.dataset.scope === scope);
   const what = { view: "this view", object: state.selection ? `the ${state.selection.name}` : "the object", scene: "the whole scene" };
   $("question").placeholder = `Ask about ${what[scope]}…`;
+  renderKnown();
   renderHistory();
+}
+
+// A model trained on question forms (the built-in one) offers them, as questions about this
+// scene's objects, for the scope's level: a click puts one in the question box.
+function renderKnown() {
+  const forms = state.scene && state.scene.question_forms;
+  $("known").hidden = !forms;
+  if (!forms) return;
+  const list = $("known-list");
+  list.replaceChildren();
+  for (const f of forms.filter((f) => f.level === state.scope)) {
+    const b = document.createElement("button");
+    b.type = "button";
+    b.textContent = f.question;
+    b.addEventListener("click", () => { $("question").value = f.question; $("question").focus(); });
+    list.append(b);
+  }
 }
 
 function note(scope, text) {
@@ -609,7 +632,12 @@ function turnElement(turn) {
 
 function updateTurn(turn) {
   const a = turn.el.querySelector(".a");
-  a.textContent = turn.error || turn.answer || turn.waiting || "";
+  // a list answer ("red cube blue cone") shows its items apart
+  const answer = turn.items ? turn.items.join(", ") : turn.answer;
+  a.textContent = turn.error || answer || turn.waiting || "";
+  // a question none of the model's forms takes: its answer is a guess, and says so
+  a.classList.toggle("guess", Boolean(turn.unknownForm) && !turn.error);
+  a.title = turn.unknownForm || "";
   a.classList.toggle("error", Boolean(turn.error));
   // the built-in tabletop model on a scene that is not a tabletop: every answer says so
   a.classList.toggle("tabletop-model", Boolean(state.scene && state.scene.model_note) && !turn.error);
@@ -670,6 +698,7 @@ async function ask(question) {
         turn.waiting = "thinking…";
         turn.tokensMs = ev.tokens_ms;
         turn.start = ev;
+        turn.unknownForm = ev.unknown_form || null;
         if (state.converse) state.conversations[scope] = { id: ev.conversation, key };
         if (ev.dropped > 0) {
           note(scope, `the oldest ${ev.dropped} exchange(s) were dropped to fit the model's context`);
@@ -686,6 +715,8 @@ async function ask(question) {
         if (ev.tokens > 1) parts.push(`${ev.tokens_per_s.toFixed(1)} tokens/s`);
         parts.push(`${ev.tokens} token${ev.tokens === 1 ? "" : "s"}`);
         turn.timing = parts.join(" · ");
+        if (turn.unknownForm) turn.timing = `${turn.unknownForm} · ${turn.timing}`;
+        turn.items = ev.items || null;
         turn.state = "done";
       } else if (name === "error") { turn.error = ev.error; turn.state = "error"; }
       updateTurn(turn);
@@ -758,6 +789,11 @@ async function main() {
   state.up.fromArray(s.up);
   state.camera = new THREE.PerspectiveCamera(50, 1, 0.01 * s.radius, 100 * s.radius);
   state.camera.up.copy(state.up);
+  const free = document.createElement("option");
+  free.value = "";
+  free.textContent = "(moved: no camera of the capture)";
+  free.disabled = true;
+  $("views").append(free);
   for (const v of s.views) {
     const o = document.createElement("option");
     o.value = String(v.index);
@@ -767,7 +803,14 @@ async function main() {
   $("views").addEventListener("change", (e) => jump(Number(e.target.value)));
   $("reset").addEventListener("click", () => jump(0));
   layout();
-  window.addEventListener("resize", () => { layout(); cameraMoved(true); });
+  // a new size keeps the camera (and the menu's name for it): the frame is drawn again, and the
+  // selection (its mask stretched with the view meanwhile, its label moved) asked for at the new size
+  window.addEventListener("resize", () => {
+    layout();
+    state.camera.updateMatrixWorld(true);
+    requestFrame(false);
+    if (state.selection) { drawSelection(); follow(); } else if (state.found) find();
+  });
   installControls();
   installChat();
   installFind();
@@ -831,8 +874,11 @@ window.chatsplat = {
   turns: () => state.histories[state.scope].filter((t) => !t.note).map((t) => ({
     question: t.question, answer: t.answer, error: t.error || null, state: t.state, timing: t.timing || null,
     conversation: t.start ? t.start.conversation : null, turn: t.start ? t.start.turn : null,
-    cached: t.start ? t.start.cached_tokens : null,
+    cached: t.start ? t.start.cached_tokens : null, unknown_form: t.unknownForm || null,
+    shown: t.el ? t.el.querySelector(".a").textContent : null,
   })),
+  // the questions the page offers for the current scope (a model trained on question forms)
+  known: () => [...document.querySelectorAll("#known-list button")].map((b) => b.textContent),
   notes: () => state.histories[state.scope].filter((t) => t.note).map((t) => t.note),
   serverFrameKind: () => $("server-frame").dataset.kind || null,
   // the objects hidden, and the splats the WebGL renderer shows (the URL, once loaded)

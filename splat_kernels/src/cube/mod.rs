@@ -31,6 +31,7 @@
 //! `layout` (the packed buffers' named offsets); this module launches them (host side); `fusion`
 //! (cargo feature `fusion`) runs the op on burn's fusion backend, outside fusion.
 
+pub mod adapter;
 #[cfg(feature = "fusion")]
 mod fusion;
 mod layout;
@@ -42,15 +43,15 @@ mod sort;
 use crate::camera::Camera;
 use crate::constants::{FloatAdd, GradReduce, RasterConfig, TILE_PIXELS, TileSort};
 use crate::ext::{SplatBackend, SplatBins, SplatFwdPrims, SplatPrims, SplatSaved};
+pub use adapter::{adapter_report, f16_on, native_float_add_on};
+use adapter::{cube_client, native_float_add};
 use burn::backend::ops::FloatTensorOps;
 use burn::backend::try_read_sync;
 use burn::backend::wgpu::{CubeBackend, CubeTensor};
 use burn::tensor::{DType, Shape, TensorData};
 use burn_cubecl::kernel::into_contiguous;
 use burn_cubecl::ops::numeric::{empty_device_dtype, zeros_client};
-use cubecl::features::AtomicUsage;
 use cubecl::features::Plane;
-use cubecl::ir::FloatKind;
 use cubecl::prelude::*;
 use layout::{CAM, CANARY_TRIPS, G2D, PROJ};
 use project::{project_bwd_kernel, project_kernel};
@@ -100,74 +101,19 @@ fn forced(var: &'static str, yes: &str, no: &str, cell: &'static std::sync::Once
     })
 }
 
-/// Whether the backward sums per plane ([`GradReduce`]).
+/// Whether the backward sums per plane ([`GradReduce`]); a forced plane path on an adapter
+/// without subgroup operations panics with its name ([`adapter::subgroups_or_refuse`]).
 fn use_plane(client: &Client, choice: GradReduce) -> bool {
     static CELL: std::sync::OnceLock<Option<bool>> = std::sync::OnceLock::new();
     match choice {
-        GradReduce::Auto => forced(GRAD_REDUCE_ENV, "plane", "atomic", &CELL)
-            .unwrap_or_else(|| client.properties().features.plane.contains(Plane::Ops)),
+        GradReduce::Auto => match forced(GRAD_REDUCE_ENV, "plane", "atomic", &CELL) {
+            Some(true) => adapter::subgroups_or_refuse(),
+            Some(false) => false,
+            None => client.properties().features.plane.contains(Plane::Ops),
+        },
         GradReduce::Atomic => false,
-        GradReduce::Plane => true,
+        GradReduce::Plane => adapter::subgroups_or_refuse(),
     }
-}
-
-/// Whether the adapter has a native atomic add on `f32` in storage buffers.
-pub fn native_float_add(client: &Client) -> bool {
-    let f32_atomic = Type::atomic(ElemType::Float(FloatKind::F32));
-    client.properties().atomic_type_usage(f32_atomic).contains(AtomicUsage::Add)
-}
-
-/// Whether `device` is a CubeCL (wgpu) adapter with a native atomic float add; `None` for a host
-/// device. What [`FloatAdd::Auto`] picks there, and whether [`FloatAdd::Native`] can run.
-pub fn native_float_add_on(device: &burn::tensor::Device) -> Option<bool> {
-    cube_client(device).map(|c| native_float_add(&c))
-}
-
-/// Whether `device` is a CubeCL (wgpu) adapter whose shaders take f16 (wgpu's `SHADER_F16`): what
-/// holding a model's weights in f16 there (`--half`) needs. `None` for a host device.
-pub fn f16_on(device: &burn::tensor::Device) -> Option<bool> {
-    cube_client(device).map(|c| f16_shaders(&c))
-}
-
-/// Whether the adapter's shaders take f16.
-fn f16_shaders(client: &Client) -> bool {
-    client.properties().supports_type(ElemType::Float(FloatKind::F16))
-}
-
-/// The CubeCL client behind `device` (through a one-element tensor made there); `None` for a host
-/// device.
-fn cube_client(device: &burn::tensor::Device) -> Option<Client> {
-    match device.clone().inner().as_dispatch() {
-        burn::backend::DispatchDevice::Cube(d) => {
-            Some(CubeBackend::float_from_data(TensorData::new(vec![0.0f32], [1]), d).client)
-        }
-        _ => None,
-    }
-}
-
-/// What the CubeCL (wgpu) adapter behind `device` offers the op and the port, on one line: its
-/// name, native float atomic add, plane (subgroup) operations and their size, cooperative-matrix
-/// (tensor core) configurations, the largest buffer binding and shared memory. `None` for a host
-/// device. Benchmarks print it above their figures, so each figure says which path ran.
-pub fn adapter_report(device: &burn::tensor::Device) -> Option<String> {
-    let client = cube_client(device)?;
-    let props = client.properties();
-    let hw = &props.hardware;
-    let plane = if props.features.plane.contains(Plane::Ops) {
-        format!("yes, {}-{} wide", hw.plane_size_min, hw.plane_size_max)
-    } else {
-        "no".to_string()
-    };
-    Some(format!(
-        "adapter `{}`: native f32 atomic add {}, plane ops {plane}, f16 in shaders {}, cooperative-matrix configs {}, \
-         largest binding {} MiB, shared memory {} KiB",
-        props.identity.name,
-        if native_float_add(&client) { "yes" } else { "no (compare-and-swap loop)" },
-        if f16_shaders(&client) { "yes" } else { "no" },
-        props.features.matmul.cmma.len(),
-        props.memory.max_page_size >> 20,
-        hw.max_shared_memory_size >> 10,
-    ))
 }
 
 /// Which paths the op takes on `device` under `config`, each `Auto` resolved as the kernels will

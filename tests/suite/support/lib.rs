@@ -1,7 +1,7 @@
 //! Shared helpers of the integration tests: seeded random scenes and comparisons.
 #![allow(deprecated)]
 
-use burn::tensor::{Device, DeviceKind, Tensor, TensorData};
+use burn::tensor::{Device, Tensor, TensorData};
 use splat_kernels::cpu::SplatInputsRef;
 use splat_kernels::{Camera, Gaussians};
 
@@ -182,21 +182,17 @@ pub fn prompt_tokens(stderr: &str) -> usize {
         .unwrap_or_else(|| panic!("no prompt token count in {stderr}"))
 }
 
-/// The wgpu device if an adapter works (lavapipe on CPU machines); `None` (and a SKIPPED line)
-/// otherwise, unless CHATSPLAT_REQUIRE_WGPU=1, which turns a missing adapter into a failure.
+/// The wgpu device where the splatting op can run on the adapter (lavapipe on CPU machines, any
+/// GPU); `None` (and a SKIPPED line saying why: no adapter, or one the op refuses, such as
+/// llvmpipe through OpenGL) otherwise, unless CHATSPLAT_REQUIRE_WGPU=1, which makes that a failure.
 pub fn wgpu_device() -> Option<Device> {
-    let device = Device::wgpu(DeviceKind::DefaultDevice);
-    let probe = std::panic::catch_unwind(|| {
-        let t = Tensor::<1>::from_floats([1.0, 2.0], &device);
-        t.into_data().to_vec::<f32>().ok()
-    });
-    match probe {
-        Ok(Some(v)) if v == [1.0, 2.0] => Some(device),
-        _ => {
+    match splat_kernels::cube::adapter::device() {
+        Ok(device) => Some(device),
+        Err(why) => {
             if std::env::var("CHATSPLAT_REQUIRE_WGPU").is_ok_and(|v| v == "1") {
-                panic!("CHATSPLAT_REQUIRE_WGPU=1 but no wgpu adapter works (install mesa-vulkan-drivers)");
+                panic!("CHATSPLAT_REQUIRE_WGPU=1 but {why}");
             }
-            eprintln!("SKIPPED: no wgpu adapter on this machine");
+            eprintln!("SKIPPED: {why}");
             None
         }
     }

@@ -126,7 +126,7 @@ fn train_stages(
         return Ok(log.iter().rev().find_map(|l| l.eval.clone()).unwrap_or_default());
     }
     let command_device = device;
-    let device = &cfg.backend.map_or_else(|| device.clone(), |b| b.device());
+    let device = &cfg.backend.map_or_else(|| Ok(device.clone()), |b| b.device())?;
     let mut base_dir = None;
     let mut t = match &cfg.base {
         None => {

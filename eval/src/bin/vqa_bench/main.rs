@@ -17,9 +17,7 @@ mod totals;
 
 use burn::tensor::Device;
 use clap::Parser;
-use eval::compare::{Answered, Source, answer_file, find_file};
 use eval::harness::{HeldOutSeeds, ModelArgs};
-use eval::progress::Progress;
 use model::Result;
 use model::chat::{ChatSession, DEFAULT_SCENE_VIEWS};
 use model::data::synth::{SynthOptions, write_dataset};
@@ -29,6 +27,8 @@ use model::run::{GeometryRun, LanguageRun};
 use model::splats::host;
 use model::vlm::{LlavaOnevision, RgbImage};
 use model::vqa::{FindOptions, Level, load_questions, scene_view, target_of};
+use scoring::compare::{Answered, Source, answer_file, find_file};
+use scoring::progress::Progress;
 use std::path::PathBuf;
 use std::time::Instant;
 use sweep::{GEOMETRY_SWEEP, Point, SWEEP, Variant, add_point};
@@ -121,7 +121,7 @@ fn bench(a: &Args) -> Result<()> {
     if !a.merge.is_empty() {
         return merge(a);
     }
-    let device: Device = a.model.device();
+    let device: Device = a.model.device()?;
     let vlm_dir = a.model.vlm_dir()?;
     let vlm = LlavaOnevision::load(&vlm_dir, &device)?;
     let side = a.resolution.unwrap_or(vlm.cfg.vision.image_size as u32);

@@ -2,11 +2,10 @@
 //! each scored on ChatSplat's answers, and the plot of exact match against views/s.
 
 use crate::Args;
-use crate::totals::Totals;
-use eval::compare::Tally;
-use eval::plot::{Chart, Series};
 use model::Result;
 use model::vqa::Level;
+use scoring::compare::Tally;
+use scoring::plot::{Chart, Series};
 
 /// One way to make a scene's field in the sweep, scored by ChatSplat's answers.
 #[derive(Clone, Copy, Debug, PartialEq)]
@@ -75,7 +74,7 @@ pub(crate) struct Point {
     pub(crate) name: String,
     pub(crate) axis: String,
     pub(crate) tally: Tally,
-    pub(crate) token_seconds: eval::compare::TokenSeconds,
+    pub(crate) token_seconds: scoring::compare::TokenSeconds,
     /// Language-stage seconds per iteration, summed over the scenes that trained one.
     pub(crate) train_seconds: f64,
     pub(crate) trained: usize,
@@ -120,14 +119,15 @@ pub(crate) fn add_point(points: &mut Vec<Point>, p: &Point) {
 
 /// Prints the sweep's table and writes its plot: ChatSplat's exact match against views/s, one
 /// series per axis through the configured field, the Pareto front, and the rendered-RGB baseline
-/// (`baseline`: its views/s and exact match, when the runs timed it).
+/// (`baseline`: its views/s and exact match, when the runs timed it); `label` says which runs,
+/// over `scenes` held-out scenes.
 pub(crate) fn sweep_report(
     points: &[Point],
     baseline: Option<(f64, f64)>,
-    t: &Totals,
+    (label, scenes): (&str, u64),
     out: &std::path::Path,
 ) -> Result<()> {
-    println!("\n## Speed against error on ChatSplat's answers ({})\n", t.label());
+    println!("\n## Speed against error on ChatSplat's answers ({label})\n");
     println!(
         "| field | Gaussians | field MB | view | object | scene | overall | count | colors | left_of | views/s \
          | objects/s | train s/iter |\n|---|---|---|---|---|---|---|---|---|---|---|---|---|"
@@ -155,7 +155,7 @@ pub(crate) fn sweep_report(
     }
     let xy = |p: &Point| (p.rate(Level::View), p.tally.overall());
     let all: Vec<(f64, f64)> = points.iter().map(xy).collect();
-    let front = eval::plot::pareto_front(&all);
+    let front = scoring::plot::pareto_front(&all);
     println!(
         "\nPareto front (views/s against exact match): {}",
         front.iter().map(|&i| points[i].name.as_str()).collect::<Vec<_>>().join(" -> ")
@@ -177,7 +177,7 @@ pub(crate) fn sweep_report(
         series.push(Series { label: "LLaVA-OV on rendered RGB".into(), points: vec![b], color: [120; 3] });
     }
     let chart = Chart {
-        title: format!("ChatSplat answers: speed against exact match ({} held-out scenes)", t.scenes()),
+        title: format!("ChatSplat answers: speed against exact match ({scenes} held-out scenes)"),
         x_label: "views per second (view tokens)".into(),
         y_label: "exact match (%)".into(),
         log_x: true,

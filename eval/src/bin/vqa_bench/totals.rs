@@ -1,11 +1,11 @@
 //! What a run adds up over its scenes, its bench.json, and the printed comparison.
 
 use crate::sweep::{Point, add_point, sweep_report};
-use eval::compare::{FindKinds, Source, Tally};
 use eval::harness::TokenFidelity;
 use model::Result;
 use model::find::FindTally;
 use model::vqa::Level;
+use scoring::compare::{FindKinds, Source, Tally};
 use std::collections::BTreeMap;
 
 /// What a run adds up over its scenes; `--merge` adds the bench.json of several runs.
@@ -148,7 +148,7 @@ pub(crate) fn report(t: &Totals, what: &str, settings: serde_json::Value, out: &
     }
     let baseline = rate(Source::RenderedRgb, Level::View).map(|r| (r, tally(Source::RenderedRgb).overall()));
     if !t.points.is_empty() {
-        sweep_report(&t.points, baseline, t, out)?;
+        sweep_report(&t.points, baseline, (&t.label(), t.scenes()), out)?;
     }
     let figures = serde_json::json!({
         "tallies": t.tallies

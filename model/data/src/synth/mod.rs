@@ -22,6 +22,7 @@
 //! 3D Gaussians, for `chatsplat render`) and [`questions`] (questions with answers true by
 //! construction).
 
+pub mod forms;
 pub mod gaussians;
 pub mod questions;
 pub mod raycast;

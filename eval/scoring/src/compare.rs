@@ -168,7 +168,8 @@ fn image_tokens(
     Ok(out)
 }
 
-/// Seconds spent making the token grids of the questions of each level, and how many questions.
+/// Seconds spent making the token grids of each level, and how many targets they were made for
+/// (questions about one target share its grids).
 pub type TokenSeconds = BTreeMap<Level, (f64, usize)>;
 
 /// What [`answer_file`] gives back.
@@ -177,7 +178,8 @@ pub struct Answered {
     pub tally: Tally,
     /// Per question, the answer given.
     pub answers: Vec<String>,
-    /// Time to make the token grids (images or field to tokens; not the answers), by level.
+    /// Time to make the token grids (images or field to tokens; not the answers), by level: once
+    /// per target.
     pub token_seconds: TokenSeconds,
 }
 
@@ -194,11 +196,21 @@ pub fn answer_file(
 ) -> Result<Answered> {
     let opts = greedy();
     let mut out = Answered { answers: Vec::with_capacity(file.questions.len()), ..Default::default() };
+    // questions about the same target (view, clicked object, scene views) share its token grids:
+    // each is made once, and timed once
+    let mut made: BTreeMap<TargetKey, Vec<burn::tensor::Tensor<2>>> = BTreeMap::new();
     for q in &file.questions {
         if q.level == Level::Find || q.follows.is_some() {
             // a phrase is scored by the objects found ([`find_file`]); a follow-up needs its
             // conversation (`chatsplat vqa` asks it): neither is a single-turn answer
             out.answers.push(String::new());
+            continue;
+        }
+        let key = target_key(q);
+        if let Some(tokens) = made.get(&key) {
+            let g = answer(vlm, tokens, &q.question, &opts, |_| {})?;
+            out.tally.add(q, offline_score(&g.text, q).exact);
+            out.answers.push(g.text);
             continue;
         }
         let t0 = std::time::Instant::now();
@@ -230,8 +242,19 @@ pub fn answer_file(
         let g = answer(vlm, &tokens, &q.question, &opts, |_| {})?;
         out.tally.add(q, offline_score(&g.text, q).exact);
         out.answers.push(g.text);
+        made.insert(key, tokens);
     }
     Ok(out)
+}
+
+/// What a question's token grids depend on: its level, its frame or frames, and its click (the
+/// click's coordinates as bits).
+type TargetKey = (Level, Option<usize>, Option<Vec<usize>>, Option<[u32; 2]>);
+
+fn target_key(q: &Question) -> TargetKey {
+    let click = q.object.filter(|_| q.level == Level::Object).map(|[x, y]| [x.to_bits(), y.to_bits()]);
+    let frames = q.views.clone().filter(|_| q.level == Level::Scene);
+    (q.level, q.view.filter(|_| q.level != Level::Scene), frames, click)
 }
 
 /// The objects ChatSplat's scene `session` finds for each `find` phrase of `file` against those
@@ -250,3 +273,85 @@ pub fn find_file(session: &ChatSession, file: &QuestionFile, opts: &FindOptions)
 
 /// Find tallies by phrase kind (`find_color`, `find_absent_name`, ...).
 pub type FindKinds = BTreeMap<String, FindTally>;
+
+/// Every single question of `file` answered from each of the three sources in turn (the scene
+/// `s` for (b) and (c), its dataset `ds` for (a) and the ground-truth masks), object crops with
+/// the teacher's margin.
+pub fn three_ways(s: &ChatSession, file: &QuestionFile, ds: &Dataset) -> Result<Vec<(Source, Answered)>> {
+    let margin = model::language::CROP_MARGIN;
+    Source::ALL.iter().map(|&source| Ok((source, answer_file(&s.vlm, file, ds, Some(s), source, margin)?))).collect()
+}
+
+/// Token grids made per second at `level` (`None` where none were).
+pub fn per_second(a: &Answered, level: Level) -> Option<f64> {
+    a.token_seconds.get(&level).filter(|(_, n)| *n > 0).map(|(t, n)| *n as f64 / t.max(1e-9))
+}
+
+/// The comparison as a Markdown table: exact match per level and overall, and how many view
+/// token grids (and object crops) each path makes per second, then ChatSplat's speed-up over
+/// rendering RGB through the vision tower.
+pub fn table(rows: &[(Source, Answered)]) -> String {
+    let pct = |t: &Tally, l: Level| t.level(l).map_or("-".into(), |v| format!("{v:.1}"));
+    let rate = |a: &Answered, l: Level| per_second(a, l).map_or("-".into(), |v| format!("{v:.1}"));
+    let mut out = String::from(
+        "| answers from | view | object | scene | overall | questions | views/s | objects/s |\n\
+         |---|---|---|---|---|---|---|---|\n",
+    );
+    for (source, a) in rows {
+        let asked: usize = a.tally.by_level.values().map(|(_, n)| n).sum();
+        out += &format!(
+            "| {} | {} | {} | {} | {:.1} | {asked} | {} | {} |\n",
+            source.label(),
+            pct(&a.tally, Level::View),
+            pct(&a.tally, Level::Object),
+            pct(&a.tally, Level::Scene),
+            a.tally.overall(),
+            rate(a, Level::View),
+            rate(a, Level::Object),
+        );
+    }
+    let of = |s: Source| rows.iter().find(|(x, _)| *x == s).map(|(_, a)| a);
+    if let (Some(b), Some(c)) = (of(Source::RenderedRgb), of(Source::ChatSplat))
+        && let (Some(rb), Some(rc)) = (per_second(b, Level::View), per_second(c, Level::View))
+    {
+        out += &format!(
+            "\nChatSplat makes a view's tokens {:.1}x as fast as rendering its RGB and running the vision tower \
+             (views/s: the image tokens only; the answers take the same LLM time on every path).",
+            rc / rb
+        );
+    }
+    out
+}
+
+/// The comparison as JSON: per source, exact match by level and overall, questions, token grids
+/// per second by level, and every single question's answer and whether it is right (`file`, read
+/// from `questions`, in its order).
+pub fn summary_json(rows: &[(Source, Answered)], (questions, file): (&Path, &QuestionFile)) -> serde_json::Value {
+    let sources: serde_json::Map<String, serde_json::Value> = rows
+        .iter()
+        .map(|(source, a)| {
+            let levels: serde_json::Map<String, serde_json::Value> = a
+                .tally
+                .by_level
+                .iter()
+                .map(|(l, (right, n))| {
+                    let per_s = per_second(a, *l);
+                    (l.to_string(), serde_json::json!({"right": right, "asked": n, "per_second": per_s}))
+                })
+                .collect();
+            let key = serde_json::to_value(source).ok().and_then(|v| v.as_str().map(String::from)).unwrap_or_default();
+            let answers: Vec<serde_json::Value> = file
+                .questions
+                .iter()
+                .zip(&a.answers)
+                .filter(|(q, _)| q.level != Level::Find && q.follows.is_none())
+                .map(|(q, text)| serde_json::json!({"id": q.id, "answer": text, "right": offline_score(text, q).exact}))
+                .collect();
+            let summary = serde_json::json!({
+                "label": source.label(), "exact_match": a.tally.overall(), "levels": levels, "answers": answers,
+            });
+            (key, summary)
+        })
+        .collect();
+    serde_json::json!({"questions": questions.display().to_string(), "comparison": sources})
+}

@@ -103,6 +103,7 @@ fn ask_scene(a: &Args, run: PathBuf) -> anyhow::Result<()> {
     let opts = a.sampling.options()?;
     let scene = SceneArgs { run, language: a.language.clone(), vlm: a.vlm.clone(), backend: a.backend };
     let s = scene.open()?;
+    s.check_max_new_tokens("--max-new-tokens", opts.max_new_tokens)?;
     let camera = *s.camera(a.view)?;
     let target = match (&a.object, a.scene) {
         (Some(_), true) => bail!("--object and --scene exclude each other"),

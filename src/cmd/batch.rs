@@ -86,15 +86,24 @@ impl JobDirs {
 /// The fingerprint of what makes a scene's results (16 hex digits): every file of its data folder
 /// (name, size and first 64 KiB), its question file, the model folder and the settings.
 fn job_fingerprint(plan: &Plan, s: &Job, vlm: &Path) -> anyhow::Result<String> {
-    fn files(dir: &Path, out: &mut Vec<PathBuf>) -> std::io::Result<()> {
-        for e in std::fs::read_dir(dir)? {
-            let p = e?.path();
-            if p.is_dir() { files(&p, out)? } else { out.push(p) }
+    // only folders and regular files (links followed): a named pipe, socket or device would block
+    // the read or never end, and is refused by name
+    fn files(dir: &Path, out: &mut Vec<PathBuf>) -> anyhow::Result<()> {
+        for e in std::fs::read_dir(dir).with_context(|| format!("{}: cannot list", dir.display()))? {
+            let p = e.with_context(|| format!("{}: cannot list", dir.display()))?.path();
+            let kind = std::fs::metadata(&p).with_context(|| format!("{}: cannot read", p.display()))?.file_type();
+            if kind.is_dir() {
+                files(&p, out)?
+            } else if kind.is_file() {
+                out.push(p)
+            } else {
+                bail!("{}: is not a regular file (a pipe, socket or device): a dataset holds files", p.display());
+            }
         }
         Ok(())
     }
     let mut all = Vec::new();
-    files(&s.data, &mut all).with_context(|| format!("{}: cannot list", s.data.display()))?;
+    files(&s.data, &mut all)?;
     all.sort();
     all.extend(s.questions.clone());
     let mut h = model::data::Fnv::default();
@@ -238,8 +247,8 @@ fn write_report(plan: &Plan) -> anyhow::Result<(usize, PathBuf)> {
         }
     }
     let report = serde_json::json!({"scenes": plan.scenes.len(), "done": done, "results": rows});
-    let path = plan.out.join("report.json");
-    let tmp = plan.out.join(format!("report.json.{}.tmp", std::process::id()));
+    let path = plan.out.join(train::manifest::REPORT);
+    let tmp = plan.out.join(format!("{}.{}.tmp", train::manifest::REPORT, std::process::id()));
     std::fs::write(&tmp, serde_json::to_string_pretty(&report)?)
         .with_context(|| format!("{}: cannot write", tmp.display()))?;
     std::fs::rename(&tmp, &path).with_context(|| format!("{}: cannot rename into place", path.display()))?;
@@ -329,7 +338,8 @@ fn set_aside(out: &Path, name: &str, was: &str) -> anyhow::Result<()> {
     let from = out.join(name);
     let to = (0..)
         .map(|k| {
-            out.join(if k == 0 { format!("{name}.superseded-{was}") } else { format!("{name}.superseded-{was}.{k}") })
+            let aside = format!("{name}{}{was}", train::manifest::SET_ASIDE);
+            out.join(if k == 0 { aside } else { format!("{aside}.{k}") })
         })
         .find(|p| !p.exists())
         .expect("a free name");

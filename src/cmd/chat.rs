@@ -69,6 +69,7 @@ impl State {
 
 pub fn run(a: Args) -> anyhow::Result<()> {
     let s = a.scene.open()?;
+    s.check_max_new_tokens("--max-new-tokens", a.max_new_tokens)?;
     eprintln!("{} views ({} training), {} Gaussians. {HELP}", s.cameras.len(), s.train_views, s.scene.field.len());
     let opts = model::vlm::GenerateOptions { max_new_tokens: a.max_new_tokens, ..Default::default() };
     // a model trained on single questions gets each question on its own

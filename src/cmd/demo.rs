@@ -53,17 +53,21 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     let vlm = super::vlm_dir(a.vlm.as_ref())?;
     let (data, run) = (a.out.join("data"), GeometryRun::new(a.out.join("run")));
     let lang = run.language();
+    // an earlier demo goes on (what it finished is kept); anything else there is refused
+    let inputs = [("the model directory", vlm.clone())];
+    model::guard::output_folder("--out", &a.out, model::guard::Kind::Demo, model::guard::Existing::GoOn, &inputs)?;
     model::io::create_dir(&a.out)?;
     // views the size the model reads (the built-in: no resampling between render and tower)
     let side = model::vlm::config::read_llava_config(&vlm)?.vision.image_size.min(MAX_SIDE) as u32;
+    let recipe = Recipe::short(a.iters, a.language_iters);
+    // the demo's settings, as files a user can give to `--config` (first: they mark the folder
+    // as a demo's)
+    model::io::write_json(&a.out.join("geometry_config.json"), &recipe.geometry)?;
+    model::io::write_json(&a.out.join("language_config.json"), &recipe.language)?;
     step(1, &format!("synthetic tabletop (32 views, {side}x{side})"));
     let scene = SynthOptions { views: 32, width: side, height: side, ..Default::default() };
     super::synth::write(&data, &scene)?;
 
-    let recipe = Recipe::short(a.iters, a.language_iters);
-    // the demo's settings, as files a user can give to `--config`
-    model::io::write_json(&a.out.join("geometry_config.json"), &recipe.geometry)?;
-    model::io::write_json(&a.out.join("language_config.json"), &recipe.language)?;
     let mut bars = Bars::with_heading(a.backend, |stage| match stage {
         Stage::Geometry => step(2, "geometry stage: 3DGS + identity field"),
         Stage::Teacher => step(3, "teacher tokens (SigLIP features of every training view and masked object)"),

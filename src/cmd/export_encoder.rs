@@ -20,7 +20,8 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     let geometry = GeometryRun::new(&a.run);
     let lang = a.language.as_ref().map(LanguageRun::new).unwrap_or_else(|| geometry.language());
     let inputs: Vec<_> = lang.own_files().into_iter().chain(geometry.own_files()).collect();
-    model::io::refuse_output_onto("--out", &a.out, &inputs)?;
+    let safetensors = |head: &[u8]| head.len() > 9 && head[8] == b'{';
+    model::guard::output_file("--out", &a.out, "a .safetensors file", safetensors, &inputs)?;
     export(&lang, &a.out)
 }
 

@@ -46,7 +46,13 @@ pub struct Args {
 
 pub fn run(a: Args) -> anyhow::Result<()> {
     let run = GeometryRun::new(&a.run);
-    model::io::refuse_output_onto("--out", &a.out, &run.own_files())?;
+    let mut inputs = run.own_files();
+    inputs.extend(run.language().own_files());
+    // a file already there is replaced only if it is a splat file (a run's checkpoint or config,
+    // whatever its name, is not)
+    let splat_file =
+        |head: &[u8]| head.starts_with(b"ply\n") || head.starts_with(b"ply\r\n") || head.starts_with(&[0x1f, 0x8b]);
+    model::guard::output_file("--out", &a.out, "a .ply or .spz file", splat_file, &inputs)?;
     let (m, state) = run.load_model(&burn::tensor::Device::ndarray())?;
     let (mut cloud, _) = m.to_cloud();
     let total = cloud.len();
@@ -54,11 +60,14 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         (Some(id), _) | (_, Some(id)) => {
             let classes = m.gaussian_classes();
             let of_id = classes.iter().filter(|&&c| c == id).count();
-            if of_id == 0 || id == 0 {
+            let flag = if a.object.is_some() { "--object" } else { "--without" };
+            if id == 0 {
+                bail!("{flag} 0: 0 is the background (the Gaussians of no object), not an object");
+            }
+            if of_id == 0 {
                 let mut objects: Vec<u8> = classes.iter().copied().filter(|&c| c != 0).collect();
                 objects.sort_unstable();
                 objects.dedup();
-                let flag = if a.object.is_some() { "--object" } else { "--without" };
                 bail!(
                     "{flag} {id}: {} holds no Gaussian of object {id} (its objects: {})",
                     a.run.display(),

@@ -4,6 +4,7 @@ use super::bars::Bars;
 use anyhow::bail;
 use model::Backend;
 use model::data::LoadOptions;
+use model::guard::Existing;
 use model::run::TeacherDir;
 use std::path::{Path, PathBuf};
 use train::pipeline::{Observer, Stage};
@@ -62,10 +63,12 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     }
     let out = TeacherDir::new(a.out.clone().unwrap_or_else(|| a.data.join("teacher")));
     let vlm_dir = super::vlm_dir(a.vlm.as_ref())?;
-    let mut inputs = vec![("the --data directory", a.data.clone()), ("the model directory", vlm_dir.clone())];
+    let mut inputs = vec![("the model directory", vlm_dir.clone())];
     inputs.extend(a.masks.iter().map(|m| ("the --masks directory", m.clone())));
     inputs.extend(a.run.iter().map(|r| ("the geometry run (--run)", r.clone())));
-    model::io::refuse_output_onto("--out", &out.dir, &inputs)?;
+    // the teacher goes inside the data by default (DATA/teacher); it may not be it or hold it
+    model::guard::refuse_onto_or_around("--out", &out.dir, &[("the --data directory", a.data.clone())])?;
+    model::guard::output_folder("--out", &out.dir, model::guard::Kind::Teacher, Existing::GoOn, &inputs)?;
     let shard = a.shard.as_deref().map(super::parse_shard).transpose()?.unwrap_or((0, 1));
     let opts = ExtractOptions {
         margin: a.margin,

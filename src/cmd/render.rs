@@ -86,7 +86,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     model::io::refuse_shared_outputs(&outputs)?;
     for (option, out) in &outputs {
         let inputs: Vec<_> = a.ply.iter().map(|p| ("the --ply file", p.clone())).collect();
-        model::io::refuse_output_onto(option, out, &inputs)?;
+        model::guard::output_file(option, out, "a PNG", |h| h.starts_with(b"\x89PNG"), &inputs)?;
     }
     let (cloud, source): (GaussianCloud, String) = match &a.ply {
         Some(path) => (model::spz::read_any(path)?, path.display().to_string()),

@@ -1,6 +1,7 @@
 //! `chatsplat synth`: the built-in synthetic tabletop as a dataset.
 
 use model::data::synth::{SynthOptions, write_dataset};
+use model::guard::{Existing, Kind};
 use scoring::progress::Progress;
 use std::path::{Path, PathBuf};
 
@@ -23,6 +24,8 @@ pub struct Args {
 
 pub fn run(a: Args) -> anyhow::Result<()> {
     let opts = SynthOptions { seed: a.seed, views: a.views, width: a.width, height: a.height, ..Default::default() };
+    // an earlier tabletop is written again; a capture, a run or files of the user's are not
+    model::guard::output_folder("--out", &a.out, Kind::Tabletop, Existing::GoOn, &[])?;
     write(&a.out, &opts)
 }
 

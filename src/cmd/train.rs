@@ -4,6 +4,7 @@ use super::bars::Bars;
 use anyhow::bail;
 use model::Backend;
 use model::data::{Background, LoadOptions};
+use model::guard::{Existing, Kind};
 use model::run::GeometryRun;
 use std::path::{Path, PathBuf};
 use train::geometry::{GeometryConfig, fit as train_geometry};
@@ -69,7 +70,14 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     super::check_config(a.config.as_deref(), cfg.validate())?;
     let mut inputs = vec![("the --data directory", a.data.clone())];
     inputs.extend(a.masks.iter().map(|m| ("the --masks directory", m.clone())));
-    model::io::refuse_output_onto("--out", &a.out, &inputs)?;
+    // a new run replaces nothing: a folder that holds a run (whose language run would stay
+    // beside the new geometry) or anything else is refused
+    let existing = if a.resume {
+        Existing::GoOn
+    } else {
+        Existing::Refuse { instead: "--resume goes on with it; a new run needs a new or empty --out" }
+    };
+    model::guard::output_folder("--out", &a.out, Kind::GeometryRun, existing, &inputs)?;
     let load = LoadOptions { downscale: a.downscale, background: bg, masks: a.masks.clone(), ..Default::default() };
     fit(&a.data, &load, &GeometryRun::new(&a.out), cfg, a.backend, a.resume)
 }

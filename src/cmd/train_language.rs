@@ -3,6 +3,7 @@
 use super::bars::Bars;
 use anyhow::bail;
 use model::Backend;
+use model::guard::{Existing, Kind};
 use model::run::{GeometryRun, LanguageRun, TeacherDir};
 use serde_json::json;
 use std::path::{Path, PathBuf};
@@ -59,8 +60,14 @@ pub fn run(a: Args, ranks: &crate::ranks::Ranks) -> anyhow::Result<()> {
     super::check_config(a.config.as_deref(), cfg.validate())?;
     let geometry = GeometryRun::new(&a.run);
     let out = a.out.as_ref().map(LanguageRun::new).unwrap_or_else(|| geometry.language());
-    let inputs = [("the geometry run (--run)", a.run.clone()), ("the --teacher directory", a.teacher.clone())];
-    model::io::refuse_output_onto("--out", &out.dir, &inputs)?;
+    let mut inputs = geometry.own_files();
+    inputs.push(("the --teacher directory", a.teacher.clone()));
+    let existing = if a.resume {
+        Existing::GoOn
+    } else {
+        Existing::Refuse { instead: "--resume goes on with it; a new language run needs a new or empty --out" }
+    };
+    model::guard::output_folder("--out", &out.dir, Kind::LanguageRun, existing, &inputs)?;
     if a.resume && out.config().is_file() {
         let saved = model::io::read_json::<LanguageTrainConfig>(&out.config())?;
         let options: Vec<_> = a

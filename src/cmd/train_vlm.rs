@@ -1,6 +1,7 @@
 //! `chatsplat train-vlm`: trains the tabletop LLaVA-OneVision from scratch.
 
 use model::Backend;
+use model::guard::{Existing, Kind};
 use scoring::progress::Progress;
 use std::path::PathBuf;
 use train::vlm::{EVAL_SEEDS, TRAIN_SEEDS, VlmTrainConfig, evaluate_model, train_from};
@@ -99,6 +100,44 @@ fn stages(
     (chain, train::vlm::stages_done(cfg, out, base_model, resume) + 1)
 }
 
+/// What `--out` may be, checked before anything is written: a new or empty folder, or with
+/// `--resume` one whose `train_config.json` is this configuration (a run of another one, a
+/// model folder, anything else is refused by name, and stays as it was).
+fn check_out(
+    out: &std::path::Path,
+    cfg: &VlmTrainConfig,
+    resume: bool,
+    inputs: &model::guard::Inputs,
+) -> anyhow::Result<()> {
+    let stored = out.join("train_config.json");
+    let model = out.join("config.json").is_file() || out.join("model.safetensors").is_file();
+    let existing = if resume {
+        Existing::GoOn
+    } else {
+        Existing::Refuse {
+            instead: "--resume goes on with a run of this configuration; a new model needs a new or empty --out",
+        }
+    };
+    model::guard::output_folder("--out", out, Kind::VlmRun, existing, inputs)?;
+    if stored.is_file() {
+        let was: VlmTrainConfig = model::io::read_config(&stored)?;
+        if was != *cfg {
+            anyhow::bail!(
+                "{}: --resume: this run was made with another configuration (its train_config.json differs from \
+                 --config's and the options'): resume it with its own, or train the new one into a new --out",
+                stored.display()
+            );
+        }
+    } else if model {
+        anyhow::bail!(
+            "{}: --resume: this folder holds a model but no train_config.json, so no train-vlm run of this \
+             configuration to go on with: give --base-model it to train from it, or a new --out",
+            out.display()
+        );
+    }
+    Ok(())
+}
+
 pub fn run(a: Args, ranks: &crate::ranks::Ranks) -> anyhow::Result<()> {
     if let Some(dir) = &a.evaluate {
         if ranks.collective().size() > 1 {
@@ -117,8 +156,9 @@ pub fn run(a: Args, ranks: &crate::ranks::Ranks) -> anyhow::Result<()> {
         cfg.seed = s;
     }
     super::check_config(a.config.as_deref(), cfg.validate())?;
-    let inputs: Vec<_> = a.base_model.iter().map(|b| ("the --base-model directory", b.clone())).collect();
-    model::io::refuse_output_onto("--out", &a.out, &inputs)?;
+    let mut inputs: Vec<_> = a.base_model.iter().map(|b| ("the --base-model directory", b.clone())).collect();
+    inputs.extend(a.config.iter().map(|c| ("the --config file", c.clone())));
+    check_out(&a.out, &cfg, a.resume, &inputs)?;
     let device = a.backend.device()?;
     let (stages, first) = stages(&cfg, &a.out, a.base_model.as_deref(), a.resume);
     let mut stage = first;

@@ -136,7 +136,12 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     let out = a.out.clone().unwrap_or_else(|| a.scene.language().vqa());
     let mut inputs = a.scene.own_files();
     inputs.push(("the --questions file", a.questions.clone()));
-    model::io::refuse_output_onto("--out", &out, &inputs)?;
+    // an earlier answers file (its first key "answers") is replaced; any other file is not
+    let answers_file = |head: &[u8]| {
+        let text: Vec<u8> = head.iter().copied().filter(|b| !b.is_ascii_whitespace()).collect();
+        text.starts_with(b"{\"answers\"")
+    };
+    model::guard::output_file("--out", &out, "an answers file of vqa", answers_file, &inputs)?;
     let names = ObjectNames::of_run(&geometry, &mut Vec::new());
     score(&a.scene.open()?, (&a.questions, &qf), &out, &a.scoring, names, grader.as_ref()).map(|_| ())
 }
@@ -154,6 +159,8 @@ pub fn score(
     grader: Option<&Grader>,
 ) -> anyhow::Result<Scores> {
     let threshold = check_threshold(a.find_threshold).map_err(|e| anyhow::anyhow!("--find-threshold: {e}"))?;
+    check_find_objects(s, (questions, qf), &names)?;
+    s.check_max_new_tokens("--max-new-tokens", a.max_new_tokens)?;
     let opts = model::vlm::GenerateOptions { max_new_tokens: a.max_new_tokens, ..Default::default() };
     let find = FindOptions { names, threshold };
     let bar = Progress::new("vqa", "questions");
@@ -257,6 +264,35 @@ pub fn score(
         eprintln!("warning: {} question(s) could not be asked (scored 0): {}", invalid.len(), invalid.join("; "));
     }
     Ok(scores)
+}
+
+/// The objects a question file's `find` entries name (`qf`, read from `path`) are the scene's:
+/// one a synthetic scene lists (its table is never searched: `names`), else one held by some
+/// Gaussian of `s`;
+/// else the file is refused, naming the question and the object, before anything is asked.
+fn check_find_objects(s: &ChatSession, (path, qf): (&Path, &QuestionFile), names: &ObjectNames) -> anyhow::Result<()> {
+    let finds: Vec<(usize, &model::vqa::Question)> =
+        qf.questions.iter().enumerate().filter(|(_, q)| q.level == Level::Find).collect();
+    if finds.is_empty() {
+        return Ok(());
+    }
+    let held: std::collections::BTreeSet<u8> = s.scene.splats.gaussian_classes().into_iter().collect();
+    for (i, q) in finds {
+        for &id in q.objects.iter().flatten() {
+            // a synthetic scene lists its objects (its table is ground, never searched); any other
+            // scene has the objects its Gaussians hold
+            let why = match names.lists(id) {
+                Some(true) => continue,
+                Some(false) if names.name(id) == "table" => {
+                    format!("object {id}, the table, which find never searches")
+                }
+                None if held.contains(&id) => continue,
+                _ => format!("object {id}, which the scene does not have"),
+            };
+            anyhow::bail!("{}: question {i} (id {:?}): \"objects\" names {why}", path.display(), q.id);
+        }
+    }
+    Ok(())
 }
 
 /// `| name | view | object | scene | overall | questions |` of a summary.

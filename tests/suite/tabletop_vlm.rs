@@ -131,9 +131,13 @@ fn a_stage_chain_trains_its_base_first_or_reads_it_from_a_model_trained_with_it(
     let weights = |d: &std::path::Path| std::fs::read(d.join("model.safetensors")).unwrap();
     assert!(weights(&whole) == weights(&again), "reading the base gives the chain's own result");
     assert!(weights(&whole) != weights(&whole.join("base")), "the stage trained on from its base");
-    // a model trained with none of the stages is refused before anything is trained
+    // a model trained with this very configuration, or with none of its stages, is refused
+    // before anything is trained
     let refused = temp_dir("vlm-stages-refused");
     let e = train_from(&stage, &refused, Some(&whole), &dev, &Solo, false, |_| {}).unwrap_err().to_string();
+    assert!(e.contains("train_config.json") && e.contains("this very configuration"), "{e}");
+    let other = VlmTrainConfig { seed: 5, ..stage.clone() };
+    let e = train_from(&other, &refused, Some(&whole), &dev, &Solo, false, |_| {}).unwrap_err().to_string();
     assert!(e.contains("train_config.json") && e.contains("none of this configuration's stages"), "{e}");
     assert!(!refused.join("base").exists(), "nothing trained: {e}");
     // edge supersampling out of range is refused, naming the key

@@ -85,6 +85,60 @@ fn at_line(path: &Path, text: &str, at: usize, message: impl std::fmt::Display) 
     Error::input(format!("{}:{line}: {message}", path.display()))
 }
 
+/// The batch's report in its output folder (`OUT/report.json`).
+pub const REPORT: &str = "report.json";
+
+/// What a scene's results folder set aside is named after (`OUT/<scene>.superseded-<job>`).
+pub const SET_ASIDE: &str = ".superseded-";
+
+/// Whether `a` is `b` or lies inside it, where both lead.
+fn within(a: &Path, b: &Path) -> bool {
+    model::io::resolved(a).starts_with(model::io::resolved(b))
+}
+
+/// A scene's data may not be, or lie inside, any scene's results folder (`OUT/<name>`, which a
+/// later run with other inputs sets aside: the data would move), and `out` may not be, or lie
+/// inside, a scene's data (every run would change that data, so each later run would train it
+/// again): refused before any scene runs.
+fn refuse_data_in_results(manifest: &Path, out: &Path, scenes: &[Job]) -> Result<()> {
+    // out holds results of this kind or things batch never touches (it writes only report.json
+    // and a folder per scene); a dataset, a run, a model as out is refused by name
+    if let Some(k) = model::guard::Kind::of(out).filter(|&k| k != model::guard::Kind::Batch) {
+        return Err(Error::invalid(
+            manifest,
+            format!("out {} holds {}, not a batch's results: choose another out", out.display(), k.name()),
+        ));
+    }
+    for s in scenes {
+        if within(out, &s.data) {
+            return Err(Error::invalid(
+                manifest,
+                format!(
+                    "out {} is, or lies inside, the data of scene `{}` ({}): its results would change its data; \
+                     choose an out outside every scene's data",
+                    out.display(),
+                    s.name,
+                    s.data.display()
+                ),
+            ));
+        }
+        if let Some(o) = scenes.iter().find(|o| within(&s.data, &out.join(&o.name))) {
+            return Err(Error::invalid(
+                manifest,
+                format!(
+                    "scene `{}`: its data {} lies inside {}, the results folder of scene `{}`, which a later run \
+                     may set aside: choose another out or another name",
+                    s.name,
+                    s.data.display(),
+                    out.join(&o.name).display(),
+                    o.name
+                ),
+            ));
+        }
+    }
+    Ok(())
+}
+
 /// Reads and checks the manifest at `path`: every error names the file (and the line where it
 /// has one).
 pub fn read(path: &Path) -> Result<Plan> {
@@ -120,6 +174,9 @@ pub fn read(path: &Path) -> Result<Plan> {
         if scenes.iter().any(|o| o.name == *name) {
             return Err(bad(s.name.span().start, "is listed twice".into()));
         }
+        if name == REPORT || name.contains(SET_ASIDE) {
+            return Err(bad(s.name.span().start, format!("names the batch's own `{REPORT}` or `*{SET_ASIDE}*` files")));
+        }
         let data = base.join(s.data.get_ref());
         if !data.is_dir() {
             return Err(bad(s.data.span().start, format!("data {} is not a directory", data.display())));
@@ -152,5 +209,6 @@ pub fn read(path: &Path) -> Result<Plan> {
     }
     let stem = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "batch".into());
     let out = m.out.as_ref().map(|o| base.join(o)).unwrap_or_else(|| base.join(format!("{stem}-out")));
+    refuse_data_in_results(path, &out, &scenes)?;
     Ok(Plan { out, vlm: m.vlm.as_ref().map(|v| base.join(v)), backend, tower_tail: m.tower_tail, scenes })
 }

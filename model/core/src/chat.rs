@@ -304,6 +304,22 @@ impl ChatSession {
 
     /// Prompt length in tokens of `question` about `images` token grids, or an error when the
     /// question is empty or the prompt does not fit the model's context (before any rendering).
+    /// An answer length (`option`, e.g. "--max-new-tokens") within 1 and what the model's context
+    /// leaves (`max_new_tokens_limit`): a longer one would drop every earlier turn of a
+    /// conversation to make room.
+    pub fn check_max_new_tokens(&self, option: &str, n: usize) -> Result<()> {
+        let context = self.vlm.cfg.text.max_positions;
+        let limit = crate::vlm::max_new_tokens_limit(context);
+        if !(1..=limit).contains(&n) {
+            return Err(Error::input(format!(
+                "{option} {n} is outside 1..={limit}: the model's context is {context} tokens, and an answer may \
+                 take at most a quarter of it ({} at most), leaving room for the images and earlier turns",
+                crate::vlm::MAX_NEW_TOKENS
+            )));
+        }
+        Ok(())
+    }
+
     pub fn check_question(&self, question: &str, images: usize) -> Result<usize> {
         if question.trim().is_empty() {
             return Err(Error::input("the question is empty"));

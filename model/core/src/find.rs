@@ -70,6 +70,12 @@ impl ObjectNames {
         self.objects.iter().flatten().map(|&id| self.name(id)).collect()
     }
 
+    /// Whether `id` is one of a synthetic scene's objects (its table is not); `None` where the
+    /// dataset does not list its objects.
+    pub fn lists(&self, id: u8) -> Option<bool> {
+        self.objects.as_ref().map(|o| o.contains(&id))
+    }
+
     /// Whether a search looks at instance `id`: every instance, except a synthetic scene's table
     /// (the ground its objects stand on, which its questions and the built-in model never name).
     pub fn searched(&self, id: u8) -> bool {

@@ -199,7 +199,7 @@ impl GeometryRun {
         self.dir.join("classifier.json")
     }
     /// The files that make the run (what its commands read), named: no output may be written
-    /// onto them ([`io::refuse_output_onto`]).
+    /// onto them ([`guard::refuse_overlap`](crate::guard::refuse_overlap)).
     pub fn own_files(&self) -> Vec<(&'static str, PathBuf)> {
         vec![
             ("the geometry run's checkpoint", self.checkpoint()),
@@ -314,7 +314,7 @@ impl LanguageRun {
         self.dir.join("compact.json")
     }
     /// The files that make the run (what its commands read), named: no output may be written
-    /// onto them ([`io::refuse_output_onto`]).
+    /// onto them ([`guard::refuse_overlap`](crate::guard::refuse_overlap)).
     pub fn own_files(&self) -> Vec<(&'static str, PathBuf)> {
         vec![
             ("the language run's checkpoint", self.checkpoint()),

@@ -81,12 +81,21 @@ pub fn read_json_object<T: DeserializeOwned>(path: &Path, shape: &str) -> Result
 
 /// Reads a config file a user wrote: a JSON object (not an array, which serde would map onto the
 /// fields by position), unknown keys refused by the type.
+/// A value that does not fit is refused naming its key (`soup.weights[1]`), line and column.
 pub fn read_config<T: DeserializeOwned>(path: &Path) -> Result<T> {
-    let value: serde_json::Value = read_json(path)?;
+    let text = std::fs::read_to_string(path).at(path, "cannot read")?;
+    let value: serde_json::Value = serde_json::from_str(&text)
+        .map_err(|e| Error::invalid(path, format!("invalid JSON at line {}, column {}: {e}", e.line(), e.column())))?;
     if !value.is_object() {
         return Err(Error::invalid(path, "a config must be a JSON object of settings, e.g. {\"iters\": 1000}"));
     }
-    serde_json::from_value(value).map_err(|e| Error::invalid(path, format!("config: {e}")))
+    let mut de = serde_json::Deserializer::from_str(&text);
+    serde_path_to_error::deserialize(&mut de).map_err(|e| {
+        let key = e.path().to_string();
+        // serde_json's message ends with the line and column
+        let e = e.into_inner();
+        Error::invalid(path, if key == "." { format!("config: {e}") } else { format!("config key `{key}`: {e}") })
+    })
 }
 
 /// f32 safetensors with optional metadata, atomically. A non-finite value is refused (naming the
@@ -160,21 +169,6 @@ pub fn resolved(path: &Path) -> PathBuf {
             }
             _ => return abs,
         }
-    }
-}
-
-/// The one rule every command keeps before it writes: an output (`option`, e.g. `--out`, at
-/// `out`) may not be anything the command reads (`inputs`: what each is and where, a run's own
-/// files among them). Paths are compared where they lead ([`resolved`]), so a link or `a/../b`
-/// is no way around it. Refused before anything is written.
-pub fn refuse_output_onto(option: &str, out: &Path, inputs: &[(&str, PathBuf)]) -> Result<()> {
-    let at = resolved(out);
-    match inputs.iter().find(|(_, p)| resolved(p) == at) {
-        Some((what, _)) => Err(Error::invalid(
-            out,
-            format!("{option} would overwrite {what}, which this command reads: choose another {option}"),
-        )),
-        None => Ok(()),
     }
 }
 

@@ -21,6 +21,7 @@
 
 pub mod cloud;
 pub mod error;
+pub mod guard;
 pub mod images;
 pub mod io;
 pub mod question_file;

@@ -170,6 +170,14 @@ pub fn load_questions(path: &Path) -> Result<QuestionFile> {
         if q.level == Level::Find && (q.view.is_some() || q.items.is_some()) {
             return fail("\"view\" and \"items\" do not apply to find-level questions");
         }
+        if let Some(ids) = &q.objects {
+            if ids.contains(&0) {
+                return fail("\"objects\" names 0, the background: objects are 1 and up");
+            }
+            if let Some(d) = ids.iter().enumerate().find_map(|(k, id)| ids[..k].contains(id).then_some(id)) {
+                return fail(&format!("\"objects\" names object {d} twice"));
+            }
+        }
         if let Some(first) = &q.follows {
             let Some(f) = file.questions[..i].iter().find(|p| p.id == *first) else {
                 return fail(&format!("\"follows\" names {first:?}, which is not an earlier question"));
@@ -186,9 +194,16 @@ pub fn load_questions(path: &Path) -> Result<QuestionFile> {
             if q.follows.is_none() {
                 return fail("\"spelled\" applies only to a question that \"follows\" another");
             }
-            if !file.questions.iter().any(|p| p.id == *twin && p.follows.is_none()) {
+            let Some(t) = file.questions.iter().find(|p| p.id == *twin && p.follows.is_none()) else {
                 return fail(&format!(
                     "\"spelled\" names {twin:?}, which is not a question of the file asked on its own"
+                ));
+            };
+            // the twin asks the same thing of the same target, the referent spelled out
+            if (t.level, t.view, t.object, &t.views) != (q.level, q.view, q.object, &q.views) {
+                return fail(&format!(
+                    "\"spelled\" names {twin:?}, a question about another target: a follow-up's twin asks \
+                    about the same level, view, click and views"
                 ));
             }
         }

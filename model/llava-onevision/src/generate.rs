@@ -8,6 +8,16 @@ use base::Rng;
 use burn::tensor::Tensor;
 use std::ops::ControlFlow;
 
+/// The most tokens one answer may ask for (`serve` bounds a request's `max_new_tokens` by it).
+pub const MAX_NEW_TOKENS: usize = 1024;
+
+/// How long an answer may be with a model of `max_positions` tokens of context: at most
+/// [`MAX_NEW_TOKENS`] and a quarter of the context, so a conversation keeps room for its images
+/// and its earlier turns.
+pub fn max_new_tokens_limit(max_positions: usize) -> usize {
+    MAX_NEW_TOKENS.min(max_positions / 4).max(1)
+}
+
 /// How to pick tokens.
 #[derive(Clone, Debug, PartialEq)]
 pub struct GenerateOptions {

@@ -29,7 +29,7 @@ pub mod weights;
 
 pub use config::{LlavaConfig, ProcessorConfig};
 pub use conversation::{Exchange, PromptCache};
-pub use generate::{GenerateOptions, Generation};
+pub use generate::{GenerateOptions, Generation, MAX_NEW_TOKENS, max_new_tokens_limit};
 pub use llava::LlavaOnevision;
 pub use preprocess::RgbImage;
 pub use tokenizer::{ChatTokenizer, PromptLayout, Turn, chat_template, chat_template_in};

@@ -150,6 +150,7 @@ struct Served {
 fn load(opts: &ServeOptions) -> Result<(Engine, Served)> {
     let run = GeometryRun::new(&opts.run);
     let session = ChatSession::open(&run, opts.language.as_deref(), &opts.vlm, &opts.backend.device()?)?;
+    session.check_max_new_tokens("--max-new-tokens", opts.max_new_tokens)?;
     let mut warnings = Vec::new();
     let names = ObjectNames::of_run(&run, &mut warnings);
     if !session.scene.masks {

@@ -46,7 +46,7 @@ pub const MAX_BODY: usize = 64 * 1024;
 /// Most views of a scene-level question.
 pub const MAX_SCENE_VIEWS: usize = 16;
 /// Most new tokens a request may ask for.
-pub const MAX_NEW_TOKENS: usize = 1024;
+pub use model::vlm::MAX_NEW_TOKENS;
 /// How long a pick or render may wait for the inference thread.
 const QUICK_TIMEOUT: Duration = Duration::from_secs(120);
 

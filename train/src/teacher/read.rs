@@ -57,6 +57,9 @@ impl TeacherSet {
         let index = dir.read_index()?;
         let mut views = Vec::with_capacity(index.views.len());
         let mut files = std::collections::HashMap::new();
+        // views whose token file the index records no hash of (indexes written before 2026-12-04,
+        // or edited): read, but said once, by name, since a changed file goes unnoticed there
+        let mut unhashed = Vec::new();
         for (i, v) in index.views.iter().enumerate() {
             if let Some(j) = files.insert(v.file.as_str(), i) {
                 return Err(Error::invalid(
@@ -66,6 +69,9 @@ impl TeacherSet {
             }
             let file = dir.dir.join(&v.file);
             let bytes = std::fs::read(&file).at(&file, "cannot read")?;
+            if v.hash.is_none() {
+                unhashed.push(i);
+            }
             if let Some(want) = &v.hash {
                 let got = content_hash(&bytes);
                 if got != *want {
@@ -106,6 +112,16 @@ impl TeacherSet {
                 ));
             }
             views.push(TeacherViewInfo { file, objects: header.objects });
+        }
+        if let Some(first) = unhashed.first() {
+            model::error::warn(format_args!(
+                "{}: {} of its {} views (view {first} first) record no hash of their token files, so a file changed \
+                 or replaced since `chatsplat extract` wrote it cannot be told; run `chatsplat extract` again to \
+                 record them",
+                dir.index().display(),
+                unhashed.len(),
+                index.views.len()
+            ));
         }
         Ok(Self { dir, index, views })
     }

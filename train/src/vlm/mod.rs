@@ -121,6 +121,16 @@ fn train_stages(
     progress: &mut dyn FnMut(&LogLine),
 ) -> Result<Accuracy> {
     cfg.validate()?;
+    if let Some(dir) = base_model {
+        let path = dir.join("train_config.json");
+        if io::read_config::<VlmTrainConfig>(&path).is_ok_and(|b| b == *cfg) {
+            return Err(Error::invalid(
+                &path,
+                "was trained with this very configuration: that model is this run's result already (nothing is \
+                 left to train from it)",
+            ));
+        }
+    }
     if resume && finished(cfg, out) {
         let log: Vec<LogLine> = io::read_json(&out.join("training_log.json"))?;
         return Ok(log.iter().rev().find_map(|l| l.eval.clone()).unwrap_or_default());

@@ -9,6 +9,7 @@ mod export_encoder;
 mod export_ply;
 mod extract;
 mod find;
+mod masks;
 mod render;
 mod resume;
 mod serve;
@@ -57,6 +58,10 @@ enum Command {
     /// every masked object, as f16 safetensors (resumable).
     #[command(allow_negative_numbers = true)]
     Extract(extract::Args),
+    /// Per-view instance masks from any segmenter (ids arbitrary per view) matched across views
+    /// through a geometry run's Gaussians: one id per object in every view, for `train --masks`.
+    #[command(allow_negative_numbers = true)]
+    Masks(masks::Args),
     /// Language stage: train the per-Gaussian language features, the encoder and the scaling
     /// adjustment against the teacher tokens (geometry frozen).
     #[command(allow_negative_numbers = true)]
@@ -120,6 +125,7 @@ impl Cli {
             Command::Train(_) => ("train", false),
             Command::ExportPly(_) => ("export-ply", false),
             Command::Extract(_) => ("extract", false),
+            Command::Masks(_) => ("masks", false),
             Command::TrainLanguage(_) => ("train-language", true),
             Command::ExportEncoder(_) => ("export-encoder", false),
             Command::TrainVlm(_) => ("train-vlm", true),
@@ -142,6 +148,7 @@ pub fn run(cli: Cli, ranks: &crate::ranks::Ranks) -> anyhow::Result<()> {
         Command::Train(a) => train::run(a),
         Command::ExportPly(a) => export_ply::run(a),
         Command::Extract(a) => extract::run(a),
+        Command::Masks(a) => masks::run(a),
         Command::TrainLanguage(a) => train_language::run(a, ranks),
         Command::ExportEncoder(a) => export_encoder::run(a),
         Command::TrainVlm(a) => train_vlm::run(a, ranks),

@@ -1,6 +1,6 @@
 //! The splatting op on burn's fusion backend (the `fusion` feature of splat_kernels, where the
 //! dispatch backend's CubeCL variant is `Fusion<CubeBackend>` and the op runs outside fusion):
-//! `cargo test --workspace --features splat_kernels/fusion --test fusion`, run by `.ci/run` on lavapipe.
+//! `cargo test --workspace --features splat_kernels/fusion --test fusion` (lavapipe; by hand, .ci/run lints it).
 //!
 //! The op sits between element-wise work that fusion defers and joins (activations before it, a
 //! loss after it), as in training; forward and gradients must equal burn-ndarray's, step after

@@ -27,6 +27,9 @@ mod parsers_fuzz;
 // Geometry, the synthetic scenes and their questions, the VLM, the language stage.
 mod geometry;
 
+// Per-view masks from any segmenter matched across views through the Gaussians.
+mod masks;
+
 mod synth;
 
 mod vlm;

@@ -13,6 +13,7 @@ pub mod geometry;
 pub mod guard;
 pub mod language;
 pub mod manifest;
+pub mod masks;
 pub use language::compact;
 pub mod pipeline;
 pub mod schedule;

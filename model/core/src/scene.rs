@@ -5,13 +5,12 @@
 use crate::error::{Error, Result};
 use crate::language::{LanguageConfig, LanguageField, ObjectCrop, mask_out};
 use crate::run::{GeometryRun, GeometryState, LanguageRun, OpenedLanguage};
-use crate::splats::{SplatModel, ViewRender, host};
+use crate::splats::{SplatModel, ViewRender};
 use crate::vlm::LlavaOnevision;
 use burn::tensor::{Device, Int, Tensor, TensorData};
 use splat_kernels::api::{SplatOptions, splat};
 use splat_kernels::blend::BlendWeights;
 use splat_kernels::blend_ext::blend;
-use splat_kernels::cpu::SplatInputsRef;
 use splat_kernels::{Camera, Gaussians};
 use std::sync::Arc;
 
@@ -100,22 +99,7 @@ impl LanguageScene {
     /// with them is [`render_map`](Self::render_map) for any features, at a fraction of the cost
     /// (`splat_kernels::blend`; what the language stage replays at every step).
     pub fn blend_weights(&self, cam: &Camera) -> Result<BlendWeights> {
-        cam.validate()?;
-        let m = &self.splats;
-        let n = m.len();
-        let (means, log_scales) = (host(m.means.val()), host(m.log_scales.val()));
-        let (quats, opacity_logits) = (host(m.quats.val()), host(m.opacity_logits.val()));
-        let screen_offsets = vec![0f32; 2 * n];
-        let inp = SplatInputsRef {
-            means: &means,
-            log_scales: &log_scales,
-            quats: &quats,
-            opacity_logits: &opacity_logits,
-            features: &[],
-            background: &[],
-            screen_offsets: &screen_offsets,
-        };
-        Ok(BlendWeights::of(&inp, cam, &SplatOptions::default().config))
+        self.splats.blend_weights(cam)
     }
 
     /// `features` `[N, C]` blended with kept `weights` over a zero background: `[H, W, C]`.

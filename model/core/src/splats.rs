@@ -380,6 +380,26 @@ impl SplatModel {
         Ok(host(splat(&g, cam, bg, &opts)?.features.clamp(0.0, 1.0)))
     }
 
+    /// Every Gaussian's blend weight at every pixel seen from `cam` (`splat_kernels::blend`): what
+    /// a pixel is made of, Gaussian by Gaussian, without rendering any feature.
+    pub fn blend_weights(&self, cam: &Camera) -> Result<splat_kernels::blend::BlendWeights> {
+        cam.validate()?;
+        let n = self.len();
+        let (means, log_scales) = (host(self.means.val()), host(self.log_scales.val()));
+        let (quats, opacity_logits) = (host(self.quats.val()), host(self.opacity_logits.val()));
+        let screen_offsets = vec![0f32; 2 * n];
+        let inp = splat_kernels::cpu::SplatInputsRef {
+            means: &means,
+            log_scales: &log_scales,
+            quats: &quats,
+            opacity_logits: &opacity_logits,
+            features: &[],
+            background: &[],
+            screen_offsets: &screen_offsets,
+        };
+        Ok(splat_kernels::blend::BlendWeights::of(&inp, cam, &SplatOptions::default().config))
+    }
+
     /// The identity class of each Gaussian (`[N]`, 0 = background): the classifier applied to the
     /// Gaussian's own identity feature, as it is applied to the rendered features of a pixel.
     pub fn gaussian_classes(&self) -> Vec<u8> {

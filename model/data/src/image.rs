@@ -279,14 +279,33 @@ pub(crate) fn read_ids8_full(path: &Path, w: u32, h: u32) -> Result<Vec<u8>> {
     Ok(ids)
 }
 
-/// An instance-id PNG of any size: its width, height and `[h, w]` 8-bit ids (0 = background).
+/// An instance-id PNG of any size: its width, height and `[h, w]` 8-bit ids (0 = background):
+/// [`read_ids16_any`], an id above 255 refused naming its pixel (the identity field's ids are
+/// 8-bit), so that no id is silently cut to a byte.
+pub(crate) fn read_ids8_any(path: &Path) -> Result<(u32, u32, Vec<u8>)> {
+    let (w, h, ids) = read_ids16_any(path)?;
+    if let Some(p) = ids.iter().position(|&v| v > 255) {
+        return Err(err(
+            path,
+            format!(
+                "holds instance id {} at pixel ({}, {}): ids above 255 are not supported (chatsplat keeps 8-bit \
+                 ids; renumber the objects 1..=255)",
+                ids[p],
+                p % w as usize,
+                p / w as usize
+            ),
+        ));
+    }
+    Ok((w, h, ids.into_iter().map(|v| v as u8).collect()))
+}
+
+/// An instance-id PNG of any size: its width, height and `[h, w]` 16-bit ids (0 = background).
 ///
 /// The id is the pixel's value in a one-channel PNG: grayscale of any bit depth (8 or 16 bits
 /// as tools write them) or a palette PNG's index (DEVA / Gaussian Grouping). An RGB(A) mask is
 /// read only where its three channels agree (a gray mask saved as colour); a colour-coded mask
-/// is refused, and so is an id above 255 (ids are 8-bit), each naming a pixel, so that no id is
-/// silently cut to a byte or read from one channel.
-pub(crate) fn read_ids8_any(path: &Path) -> Result<(u32, u32, Vec<u8>)> {
+/// is refused naming a pixel, so that no id is read from one channel.
+pub fn read_ids16_any(path: &Path) -> Result<(u32, u32, Vec<u16>)> {
     let fail = |e: &dyn std::fmt::Display| err(path, format!("cannot read PNG: {e}"));
     let file = std::fs::File::open(path).map_err(|e| fail(&e))?;
     let mut dec = png::Decoder::new(BufReader::new(file));
@@ -326,16 +345,7 @@ pub(crate) fn read_ids8_any(path: &Path) -> Result<(u32, u32, Vec<u8>)> {
                     ),
                 ));
             }
-            if v > 255 {
-                return Err(err(
-                    path,
-                    format!(
-                        "holds instance id {v} at pixel ({x}, {y}): ids above 255 are not supported (chatsplat keeps \
-                         8-bit ids; renumber the objects 1..=255)"
-                    ),
-                ));
-            }
-            ids.push(v as u8);
+            ids.push(v);
         }
     }
     Ok((info.width, info.height, ids))

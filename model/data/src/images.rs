@@ -24,6 +24,16 @@ pub fn write_gray16(path: &Path, width: u32, height: u32, values: &[u16]) -> Res
     write_png(path, width, height, &bytes, png::ColorType::Grayscale, png::BitDepth::Sixteen)
 }
 
+/// Writes instance ids as a grayscale PNG: 8-bit when every id fits a byte, else 16-bit.
+pub fn write_ids(path: &Path, width: u32, height: u32, ids: &[u16]) -> Result<()> {
+    if ids.iter().all(|&i| i <= 255) {
+        let bytes: Vec<u8> = ids.iter().map(|&i| i as u8).collect();
+        write_gray8(path, width, height, &bytes)
+    } else {
+        write_gray16(path, width, height, ids)
+    }
+}
+
 /// Writes an 8-bit RGB PNG from `[H, W, 3]` bytes, atomically.
 pub fn write_rgb8(path: &Path, width: u32, height: u32, bytes: &[u8]) -> Result<()> {
     assert_eq!(bytes.len(), (width * height * 3) as usize);

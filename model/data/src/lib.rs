@@ -28,6 +28,9 @@ pub mod question_file;
 
 pub mod colmap;
 pub(crate) mod image;
+/// An instance-id PNG of any segmenter (8- or 16-bit grayscale, a palette's index, or gray saved
+/// as RGB): its width, height and `[h, w]` ids (0 = none).
+pub use image::read_ids16_any;
 pub mod llff;
 pub mod nerfstudio;
 pub mod replica;

@@ -55,7 +55,10 @@ fn writers(m: &Made) -> Vec<Writer> {
     let language = run.join("language");
     let (b, r, t, mo, c) = (base.clone(), run.clone(), teacher.clone(), model.clone(), cfg.clone());
     let (p, qs) = (ply.clone(), questions.clone());
-    let (r2, r3, r4) = (run.clone(), run.clone(), run.clone());
+    let (r2, r3, r4, r6) = (run.clone(), run.clone(), run.clone(), run.clone());
+    let per_view = dir.join("table-per-view");
+    std::fs::create_dir_all(&per_view).unwrap();
+    let pv = per_view.clone();
     vec![
         Writer {
             name: "train",
@@ -107,6 +110,15 @@ fn writers(m: &Made) -> Vec<Writer> {
             }),
             inputs: vec![(questions.clone(), true), (checkpoint.clone(), true)],
             output: Output::File,
+        },
+        Writer {
+            name: "masks",
+            args: Box::new({
+                let b = base.clone();
+                move |o| os(&[&"masks", &"--data", &b, &"--run", &r6, &"--per-view", &pv, &"--out", &o])
+            }),
+            inputs: vec![(base.clone(), true), (per_view.clone(), true), (checkpoint.clone(), true)],
+            output: Output::Folder(None),
         },
         Writer {
             name: "train-vlm",

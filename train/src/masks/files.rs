@@ -1,0 +1,145 @@
+//! `chatsplat masks` on files: a geometry run's views, the per-view label PNGs of any segmenter
+//! (`DIR/<image stem>.png`, 8- or 16-bit, ids arbitrary per view), matched, written as a masks
+//! folder the loaders read (`OUT/<image stem>.png`, 16-bit only where ids pass 255) with
+//! `OUT/masks.json`.
+
+use super::{LabelMap, MatchOptions, Matched, match_masks, render_labels};
+use model::error::{Error, Result};
+use model::run::GeometryRun;
+use serde::Serialize;
+use splat_kernels::Camera;
+use std::path::{Path, PathBuf};
+
+/// What `masks.json` records.
+#[derive(Clone, Debug, Serialize)]
+pub struct Summary {
+    pub objects: Vec<ObjectEntry>,
+    pub views: usize,
+    /// Views whose per-view mask file was missing (matched as showing no object).
+    pub views_without_masks: Vec<String>,
+    pub per_view_ms: f64,
+    pub options: Options,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct ObjectEntry {
+    pub id: u16,
+    pub gaussians: usize,
+    pub confidence: f32,
+    /// The images whose mask shows it.
+    pub views: Vec<String>,
+}
+
+#[derive(Clone, Debug, Serialize)]
+pub struct Options {
+    pub min_weight: f32,
+    pub mutual: f32,
+    pub min_views: usize,
+    pub min_gaussians: usize,
+}
+
+/// The stem of an image name (`images/r_0.png` -> `r_0`).
+pub fn stem(image: &str) -> String {
+    Path::new(image).file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| image.to_string())
+}
+
+/// `cam` for an image `k` times its size.
+fn scaled(cam: &Camera, w: u32, h: u32) -> Camera {
+    let (sx, sy) = (w as f32 / cam.width as f32, h as f32 / cam.height as f32);
+    Camera { fx: cam.fx * sx, fy: cam.fy * sy, cx: cam.cx * sx, cy: cam.cy * sy, width: w, height: h, ..*cam }
+}
+
+/// Reads `dir/<stem>.png` at the camera's size (a mask `k` times larger sampled every `k`
+/// pixels); a missing file is a view with no mask (`None`).
+fn read_view(dir: &Path, name: &str, cam: &Camera) -> Result<Option<LabelMap>> {
+    let path = dir.join(format!("{}.png", stem(name)));
+    if !path.exists() {
+        return Ok(None);
+    }
+    let (w, h, ids) = model::data::read_ids16_any(&path)?;
+    let (cw, ch) = (cam.width, cam.height);
+    if w % cw != 0 || h % ch != 0 || w / cw != h / ch {
+        return Err(Error::invalid(&path, format!("is {w}x{h}, not the view's {cw}x{ch} or a whole multiple of it")));
+    }
+    let k = (w / cw) as usize;
+    let ids = (0..ch as usize)
+        .flat_map(|y| (0..cw as usize).map(move |x| (y * k, x * k)))
+        .map(|(y, x)| ids[y * w as usize + x]);
+    Ok(Some(LabelMap { width: cw as usize, height: ch as usize, ids: ids.collect() }))
+}
+
+/// Matches the per-view masks in `per_view` over the views of `run`; returns the result, the
+/// image names, the views without a mask file and the milliseconds per view.
+pub fn match_run(
+    run: &GeometryRun,
+    per_view: &Path,
+    opts: &MatchOptions,
+) -> Result<(Matched, Vec<String>, Vec<String>, f64)> {
+    let (model, _) = run.load_model(&burn::tensor::Device::ndarray())?;
+    let cams = run.read_cameras()?;
+    let (names, cameras) = (cams.image_names(), cams.all());
+    let t0 = std::time::Instant::now();
+    let mut masks = Vec::new();
+    let mut missing = Vec::new();
+    for (name, cam) in names.iter().zip(&cameras) {
+        masks.push(match read_view(per_view, name, cam)? {
+            Some(m) => m,
+            None => {
+                missing.push(name.clone());
+                LabelMap {
+                    width: cam.width as usize,
+                    height: cam.height as usize,
+                    ids: vec![0; (cam.width * cam.height) as usize],
+                }
+            }
+        });
+    }
+    if missing.len() == names.len() {
+        return Err(Error::invalid(per_view, "holds no <image stem>.png of any of the run's views"));
+    }
+    let weights = cameras.iter().map(|c| model.blend_weights(c)).collect::<Result<Vec<_>>>()?;
+    let matched = match_masks(&weights, &masks, opts);
+    let ms = t0.elapsed().as_secs_f64() * 1000.0 / names.len().max(1) as f64;
+    Ok((matched, names, missing, ms))
+}
+
+/// Writes `OUT/<stem>.png` for every view at `size(view)` (the image's full size) and
+/// `OUT/masks.json`; returns the summary.
+#[allow(clippy::too_many_arguments)]
+pub fn write(
+    out: &Path,
+    run: &GeometryRun,
+    matched: &Matched,
+    names: &[String],
+    missing: Vec<String>,
+    per_view_ms: f64,
+    opts: &MatchOptions,
+    full_size: impl Fn(usize) -> (u32, u32),
+) -> Result<Summary> {
+    let (model, _) = run.load_model(&burn::tensor::Device::ndarray())?;
+    let cameras = run.read_cameras()?.all();
+    model::io::create_dir(out)?;
+    for (v, cam) in cameras.iter().enumerate() {
+        let (w, h) = full_size(v);
+        let big = scaled(cam, w, h);
+        let labels = render_labels(&model.blend_weights(&big)?, &matched.gaussian_labels);
+        let path: PathBuf = out.join(format!("{}.png", stem(&names[v])));
+        model::images::write_ids(&path, w, h, &labels.ids)?;
+    }
+    let objects = matched
+        .objects
+        .iter()
+        .map(|o| ObjectEntry {
+            id: o.id,
+            gaussians: o.gaussians,
+            confidence: o.confidence,
+            views: o.views.iter().map(|&v| names[v].clone()).collect(),
+        })
+        .collect();
+    let o = opts;
+    let options =
+        Options { min_weight: o.min_weight, mutual: o.mutual, min_views: o.min_views, min_gaussians: o.min_gaussians };
+    let summary = Summary { objects, views: names.len(), views_without_masks: missing, per_view_ms, options };
+    model::io::write_json(&out.join("masks.json"), &summary)?;
+    Ok(summary)
+}

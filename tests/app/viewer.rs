@@ -769,6 +769,13 @@ fn the_page_draws_the_scene_picks_in_red_and_answers_at_every_level() {
     b.call("Emulation.setDeviceMetricsOverride", metrics(1100, 700)).unwrap();
     b.wait_for("window.chatsplat.idle", Duration::from_secs(60)).unwrap();
     assert_eq!(b.eval(label).unwrap(), o.name(), "the label after the size came back");
+    // the layout settles after the resize event (idle may already be true): wait for the canvas
+    // to take its first place again, then check it
+    let settled = format!(
+        "(() => {{ const r = window.chatsplat.canvasRect(), w = {rect:?}; \
+         return r.every((v, i) => Math.abs(v - w[i]) < 1); }})()"
+    );
+    let _ = b.wait_for(&settled, Duration::from_secs(30));
     let back = canvas_rect(&mut b);
     assert!(back.iter().zip(rect).all(|(a, b)| (a - b).abs() < 1.0), "the canvas moved: {back:?} {rect:?}");
     // the menu still names the camera of the capture the view is at

@@ -196,8 +196,9 @@ fn refuse_replacing_other(option: &str, out: &Path, kind: &str, is_own: impl Fn(
     }
     use std::io::Read as _;
     let mut head = Vec::new();
-    let read = std::fs::File::open(out).and_then(|f| f.take(64).read_to_end(&mut head));
-    if read.is_err() || !meta.is_file() || !is_own(&head) {
+    // only a regular file is opened (a FIFO would block the open)
+    let read = meta.is_file() && std::fs::File::open(out).and_then(|f| f.take(64).read_to_end(&mut head)).is_ok();
+    if !read || !is_own(&head) {
         return Err(Error::invalid(
             out,
             format!(

@@ -163,7 +163,11 @@ impl Browser {
                 return Ok(v);
             }
             if t0.elapsed() > timeout {
-                return Err(format!("waited {timeout:?} for {expr}; page errors: {:?}", self.page_errors));
+                // the viewer says why it is not idle
+                let why = self
+                    .eval("(() => { try { return window.chatsplat.debug(); } catch (e) { return null; } })()")
+                    .unwrap_or(Value::Null);
+                return Err(format!("waited {timeout:?} for {expr}; page errors: {:?}; page: {why}", self.page_errors));
             }
             std::thread::sleep(Duration::from_millis(100));
         }

@@ -39,16 +39,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     inputs.push(("the --data directory", a.data.clone()));
     inputs.push(("the --per-view directory", a.per_view.clone()));
     model::guard::output_folder("--out", &a.out, Kind::Masks, Existing::GoOn, &inputs)?;
-    let state = run.read_state()?;
-    let trained_on = state.data.dir.resolve(&run.dir);
-    if model::io::resolved(&trained_on) != model::io::resolved(&a.data) {
-        anyhow::bail!(
-            "{}: the run was trained on {}, not on --data {}",
-            run.state().display(),
-            trained_on.display(),
-            a.data.display()
-        );
-    }
+    check_trained_on(&run, &a.data)?;
     let opts = MatchOptions { mutual: a.mutual, min_views: a.min_views, ..Default::default() };
     let (matched, names, missing, ms) = files::match_run(&run, &a.per_view, &opts)?;
     // the images' full sizes (what `train --masks` checks a mask against), by file name; the
@@ -89,4 +80,19 @@ pub fn run(a: Args) -> anyhow::Result<()> {
         a.out.display()
     );
     Ok(())
+}
+
+/// Refuses a `--data` that is not the capture `run` was trained on; returns the run's state.
+pub fn check_trained_on(run: &GeometryRun, data: &std::path::Path) -> anyhow::Result<model::run::GeometryState> {
+    let state = run.read_state()?;
+    let trained_on = state.data.dir.resolve(&run.dir);
+    if model::io::resolved(&trained_on) != model::io::resolved(data) {
+        anyhow::bail!(
+            "{}: the run was trained on {}, not on --data {}",
+            run.state().display(),
+            trained_on.display(),
+            data.display()
+        );
+    }
+    Ok(state)
 }

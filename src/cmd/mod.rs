@@ -9,6 +9,7 @@ mod export_encoder;
 mod export_ply;
 mod extract;
 mod find;
+mod identity;
 mod masks;
 mod render;
 mod resume;
@@ -62,6 +63,10 @@ enum Command {
     /// through a geometry run's Gaussians: one id per object in every view, for `train --masks`.
     #[command(allow_negative_numbers = true)]
     Masks(masks::Args),
+    /// Identity field for a run trained without masks, from masks whose ids agree across views
+    /// (`chatsplat masks --out`): a new run with the same Gaussians, objects to click and chat about.
+    #[command(allow_negative_numbers = true)]
+    Identity(identity::Args),
     /// Language stage: train the per-Gaussian language features, the encoder and the scaling
     /// adjustment against the teacher tokens (geometry frozen).
     #[command(allow_negative_numbers = true)]
@@ -126,6 +131,7 @@ impl Cli {
             Command::ExportPly(_) => ("export-ply", false),
             Command::Extract(_) => ("extract", false),
             Command::Masks(_) => ("masks", false),
+            Command::Identity(_) => ("identity", false),
             Command::TrainLanguage(_) => ("train-language", true),
             Command::ExportEncoder(_) => ("export-encoder", false),
             Command::TrainVlm(_) => ("train-vlm", true),
@@ -149,6 +155,7 @@ pub fn run(cli: Cli, ranks: &crate::ranks::Ranks) -> anyhow::Result<()> {
         Command::ExportPly(a) => export_ply::run(a),
         Command::Extract(a) => extract::run(a),
         Command::Masks(a) => masks::run(a),
+        Command::Identity(a) => identity::run(a),
         Command::TrainLanguage(a) => train_language::run(a, ranks),
         Command::ExportEncoder(a) => export_encoder::run(a),
         Command::TrainVlm(a) => train_vlm::run(a, ranks),

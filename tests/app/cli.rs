@@ -216,3 +216,155 @@ fn language_commands_reject_bad_input_by_name() {
     let err = String::from_utf8_lossy(&st.stderr);
     assert!(!st.status.success() && err.contains(&q.display().to_string()) && err.contains("line"), "{err}");
 }
+
+/// Issue 84's flow on a capture without masks: `train` -> `masks` (per-view masks whose ids are
+/// arbitrary per view) -> `identity` -> `extract` -> `train-language` -> object chat and `find`.
+#[test]
+fn a_capture_without_masks_gets_objects_through_masks_and_identity() {
+    use train::masks::{LabelMap, corrupt};
+    let root = tmp("flow");
+    let (data, per_view, masks) = (root.join("capture"), root.join("per-view"), root.join("masks"));
+    let (run, objects, teacher) = (root.join("run"), root.join("run-objects"), root.join("teacher"));
+    let ok = |c: &mut Command| {
+        let o = c.output().unwrap();
+        let (out, err) = (String::from_utf8_lossy(&o.stdout), String::from_utf8_lossy(&o.stderr));
+        assert!(o.status.success(), "{c:?}\n{out}\n{err}");
+        format!("{out}{err}")
+    };
+    ok(chatsplat()
+        .args(["synth", "--seed", "11", "--views", "10", "--width", "64", "--height", "56", "--out"])
+        .arg(&data));
+    // the segmenter's masks: the true ones with their ids shuffled per view, one view without a
+    // file; then the capture loses its own masks
+    let mut truth = Vec::new();
+    let mut stems = Vec::new();
+    for e in std::fs::read_dir(data.join("masks")).unwrap() {
+        let p = e.unwrap().path();
+        let (w, h, ids) = model::data::read_ids16_any(&p).unwrap();
+        truth.push(LabelMap { width: w as usize, height: h as usize, ids });
+        stems.push(p.file_name().unwrap().to_owned());
+    }
+    let none = corrupt::Errors { edge_px: 1, missing: 0.0, merged: 0.0, split: 0.0, fragments: 0 };
+    std::fs::create_dir_all(&per_view).unwrap();
+    for (m, name) in corrupt::corrupt(&truth, &none, 3).iter().zip(&stems).skip(1) {
+        model::images::write_ids(&per_view.join(name), m.width as u32, m.height as u32, &m.ids).unwrap();
+    }
+    // a capture without labels: no masks, no scene.json naming objects, no questions
+    std::fs::remove_dir_all(data.join("masks")).unwrap();
+    for f in ["scene.json", "questions.json"] {
+        let _ = std::fs::remove_file(data.join(f));
+    }
+    let transforms = data.join("transforms.json");
+    let mut t: serde_json::Value = serde_json::from_slice(&std::fs::read(&transforms).unwrap()).unwrap();
+    t["frames"].as_array_mut().unwrap().iter_mut().for_each(|f| {
+        f.as_object_mut().unwrap().remove("instance_mask_path");
+    });
+    std::fs::write(&transforms, serde_json::to_vec_pretty(&t).unwrap()).unwrap();
+    let true_objects = truth.iter().flat_map(|m| m.labels()).collect::<std::collections::BTreeSet<_>>().len();
+
+    let config = root.join("geometry.json");
+    std::fs::write(
+        &config,
+        r#"{"iters": 300, "init_per_view": 400, "densify_from": 50, "densify_every": 50, "densify_until": 1000,
+            "opacity_reset_every": 0, "checkpoint_every": 0, "max_gaussians": 6000}"#,
+    )
+    .unwrap();
+    ok(chatsplat().arg("train").arg("--data").arg(&data).arg("--out").arg(&run).arg("--config").arg(&config));
+    let said = ok(chatsplat()
+        .arg("masks")
+        .args(["--data".as_ref(), data.as_os_str(), "--run".as_ref(), run.as_os_str()])
+        .arg("--per-view")
+        .arg(&per_view)
+        .arg("--out")
+        .arg(&masks));
+    let summary: serde_json::Value = serde_json::from_slice(&std::fs::read(masks.join("masks.json")).unwrap()).unwrap();
+    let found = summary["objects"].as_array().unwrap().len();
+    assert!(found >= true_objects.min(2) && found <= true_objects, "{found} of {true_objects} objects: {said}");
+    assert_eq!(summary["views_without_masks"].as_array().unwrap().len(), 1, "{summary}");
+
+    // identity on the frozen geometry: a new run, the old one untouched, the same Gaussians
+    let before = std::fs::read(run.join("checkpoint.safetensors")).unwrap();
+    let said = ok(chatsplat()
+        .arg("identity")
+        .arg("--data")
+        .arg(&data)
+        .arg("--run")
+        .arg(&run)
+        .arg("--masks")
+        .arg(&masks)
+        .arg("--out")
+        .arg(&objects)
+        .args(["--iters", "40"]));
+    assert_eq!(std::fs::read(run.join("checkpoint.safetensors")).unwrap(), before, "the old run changed");
+    let tensor = |dir: &std::path::Path, name: &str| {
+        let bytes = std::fs::read(dir.join("checkpoint.safetensors")).unwrap();
+        let st = safetensors::SafeTensors::deserialize(&bytes).unwrap();
+        (st.tensor(name).unwrap().data().to_vec(), st.tensor(name).unwrap().shape().to_vec())
+    };
+    for name in ["means", "log_scales", "opacity_logits", "sh_dc"] {
+        assert!(tensor(&run, name) == tensor(&objects, name), "{name} changed");
+    }
+    assert_eq!(tensor(&objects, "classifier_w").1, vec![16, found + 1], "one class per object and the background");
+    let miou: f32 = said
+        .split("identity mIoU ")
+        .nth(1)
+        .and_then(|s| s.split_whitespace().next()?.parse().ok())
+        .unwrap_or_else(|| panic!("no mIoU in {said}"));
+    assert!(miou > 0.5, "{said}");
+    // a second identity onto the same --out is refused, and changes nothing
+    let st = chatsplat()
+        .arg("identity")
+        .arg("--data")
+        .arg(&data)
+        .arg("--run")
+        .arg(&run)
+        .arg("--masks")
+        .arg(&masks)
+        .arg("--out")
+        .arg(&objects)
+        .output()
+        .unwrap();
+    assert!(!st.status.success() && String::from_utf8_lossy(&st.stderr).contains("--out"));
+
+    // the language stage on the run with objects (the built-in model): object chat at a click
+    // on a matched object, and find, name matched objects
+    ok(chatsplat()
+        .arg("extract")
+        .arg("--data")
+        .arg(&data)
+        .arg("--masks")
+        .arg(&masks)
+        .arg("--run")
+        .arg(&objects)
+        .args(["--novel-views", "0", "--out"])
+        .arg(&teacher));
+    ok(chatsplat().arg("train-language").arg("--run").arg(&objects).arg("--teacher").arg(&teacher).args([
+        "--iters",
+        "3",
+        "--no-compact",
+    ]));
+    // view 0 is the run's first camera; a pixel well inside one of its matched masks
+    let cams: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(objects.join("cameras.json")).unwrap()).unwrap();
+    let first = std::path::Path::new(cams["train"][0]["image"].as_str().unwrap()).file_stem().unwrap().to_owned();
+    let (w, h, ids) = model::data::read_ids16_any(&masks.join(first).with_extension("png")).unwrap();
+    let (w, h) = (w as usize, h as usize);
+    let inside = |p: usize| {
+        let (x, y) = (p % w, p / w);
+        let around = |k: usize| ids[(y + k / 5 - 2) * w + x + k % 5 - 2];
+        ids[p] != 0 && x > 1 && y > 1 && x + 2 < w && y + 2 < h && (0..25).all(|k| around(k) == ids[p])
+    };
+    let p = (0..w * h).find(|&p| inside(p)).expect("an object well inside view 0");
+    let (x, y) = ((p % w).to_string(), (p / w).to_string());
+    let said = ok(chatsplat()
+        .arg("ask")
+        .arg("--run")
+        .arg(&objects)
+        .args(["--view", "0", "--object", &x, &y])
+        .arg("What is this?"));
+    assert!(said.contains(&format!("picked object {}", ids[p])), "{said}");
+    let said = ok(chatsplat().arg("find").arg("--run").arg(&objects).args(["--json", "--threshold", "0", "cone"]));
+    let listed: serde_json::Value = serde_json::from_str(said.lines().find(|l| l.starts_with('{')).unwrap()).unwrap();
+    let ids: Vec<u64> = listed["matches"].as_array().unwrap().iter().map(|m| m["id"].as_u64().unwrap()).collect();
+    assert!(!ids.is_empty() && ids.iter().all(|&i| i >= 1 && i <= found as u64), "{said}");
+}

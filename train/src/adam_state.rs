@@ -145,6 +145,11 @@ impl AdamStates {
         }
     }
 
+    /// Drops the state of `name` (its next step starts from zero moments).
+    pub fn forget(&mut self, name: &str) {
+        self.states.remove(name);
+    }
+
     /// The state of parameter `name`, if it has one yet.
     pub fn get(&self, name: &str) -> Option<&AdamState<2>> {
         self.states.get(name)

@@ -38,11 +38,15 @@ pub struct ObjectNames {
 }
 
 impl ObjectNames {
-    /// The names the run's dataset knows (none when it has no `scene.json`); a `scene.json`
-    /// that cannot be read is reported in `warnings`.
+    /// The names the run's dataset knows (none when it has no `scene.json`, or when the run's
+    /// ids come from other masks than the dataset's own, `--masks`: `scene.json` names its own
+    /// ids); a `scene.json` that cannot be read is reported in `warnings`.
     pub fn of_run(run: &GeometryRun, warnings: &mut Vec<String>) -> Self {
         use crate::data::synth::scene::SynthScene;
         let Ok(state) = run.read_state() else { return Self::default() };
+        if state.data.mask_dir.is_some() {
+            return Self::default();
+        }
         let path = state.data.dir.resolve(&run.dir).join("scene.json");
         if !path.exists() {
             return Self::default();

@@ -804,13 +804,20 @@ async function main() {
   $("reset").addEventListener("click", () => jump(0));
   layout();
   // a new size keeps the camera (and the menu's name for it): the frame is drawn again, and the
-  // selection (its mask stretched with the view meanwhile, its label moved) asked for at the new size
-  window.addEventListener("resize", () => {
+  // selection (its mask stretched with the view meanwhile, its label moved) asked for at the new size.
+  // The frame's own size is watched (after layout), not the window's resize event, which can come
+  // before the new layout (the canvas then kept the old size).
+  let laidOut = "";
+  new ResizeObserver(() => {
+    const f = $("frame").getBoundingClientRect(), key = `${f.width}x${f.height}`;
+    if (key === laidOut) return;
+    laidOut = key;
     layout();
+    if (!state.ready) return;
     state.camera.updateMatrixWorld(true);
     requestFrame(false);
     if (state.selection) { drawSelection(); follow(); } else if (state.found) find();
-  });
+  }).observe($("frame"));
   installControls();
   installChat();
   installFind();
@@ -866,6 +873,12 @@ window.chatsplat = {
   get idle() {
     return state.ready && performance.now() > draw.until && state.frames >= draw.minFrames && !draw.serverBusy && !draw.serverWanted;
   },
+  // why the page is not idle (for scripts that waited too long)
+  debug: () => ({
+    now: performance.now(), until: draw.until, frames: state.frames, minFrames: draw.minFrames,
+    serverBusy: draw.serverBusy, serverWanted: draw.serverWanted, dragging: drag.active, keys: [...keys],
+    size: state.size, visibility: document.visibilityState,
+  }),
   camera: () => apiCamera(),
   canvasRect: () => { const r = $("gl").getBoundingClientRect(); return [r.left, r.top, r.width, r.height]; },
   setCamera: (v) => setCamera(v),

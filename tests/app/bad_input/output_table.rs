@@ -121,6 +121,15 @@ fn writers(m: &Made) -> Vec<Writer> {
             output: Output::Folder(None),
         },
         Writer {
+            name: "identity",
+            args: Box::new({
+                let (b, r, pv) = (base.clone(), run.clone(), per_view.clone());
+                move |o| os(&[&"identity", &"--data", &b, &"--run", &r, &"--masks", &pv, &"--out", &o])
+            }),
+            inputs: vec![(base.clone(), true), (per_view.clone(), true), (run.clone(), true)],
+            output: Output::Folder(Some(run.clone())),
+        },
+        Writer {
             name: "train-vlm",
             args: Box::new(move |o| os(&[&"train-vlm", &"--config", &c, &"--out", &o])),
             inputs: vec![(cfg.clone(), true)],

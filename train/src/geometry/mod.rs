@@ -187,10 +187,23 @@ pub fn fit(
         }
     }
     let seconds_per_iter = start.elapsed().as_secs_f64() / (t.iter - first).max(1) as f64;
-    t.save(out, &data)?;
+    let eval = finish(&t, ds, out, &data, seconds_per_iter)?;
+    Ok(RunSummary { eval, gaussians: t.model.len(), seconds_per_iter, resumed_from })
+}
+
+/// The end of a run: the checkpoint, evaluation on the held-out views (the training views when
+/// none are held out), `renders/`, `point_cloud.ply`, `classifier.json` and `metrics.json`.
+pub fn finish(
+    t: &GeometryTrainer,
+    ds: &Dataset,
+    out: &GeometryRun,
+    data: &DataRef,
+    seconds_per_iter: f64,
+) -> Result<EvalStats> {
+    t.save(out, data)?;
     let eval_views = if ds.test.is_empty() { &ds.train } else { &ds.test };
     let eval = t.evaluate(eval_views)?;
-    write_renders(&t, eval_views, &out.renders())?;
+    write_renders(t, eval_views, &out.renders())?;
     let (cloud, cls) = t.model.to_cloud();
     model::ply::write(&out.point_cloud(), &cloud)?;
     let k = t.model.num_classes();
@@ -207,7 +220,7 @@ pub fn fit(
         memory_bytes_params: t.model.row_bytes() * 3,
     };
     io::write_json(&out.metrics(), &metrics)?;
-    Ok(RunSummary { eval, gaussians: t.model.len(), seconds_per_iter, resumed_from })
+    Ok(eval)
 }
 
 /// Writes the run's `cameras.json`: the cameras of the training and held-out views, what chat

@@ -22,6 +22,8 @@ pub mod corrupt;
 pub mod files;
 pub mod greedy;
 pub mod group;
+pub mod identity;
+pub mod identity_run;
 pub mod ownership;
 pub mod score;
 

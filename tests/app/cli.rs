@@ -284,17 +284,13 @@ fn a_capture_without_masks_gets_objects_through_masks_and_identity() {
 
     // identity on the frozen geometry: a new run, the old one untouched, the same Gaussians
     let before = std::fs::read(run.join("checkpoint.safetensors")).unwrap();
-    let said = ok(chatsplat()
-        .arg("identity")
-        .arg("--data")
-        .arg(&data)
-        .arg("--run")
-        .arg(&run)
-        .arg("--masks")
-        .arg(&masks)
-        .arg("--out")
-        .arg(&objects)
-        .args(["--iters", "40"]));
+    let identity = || {
+        let mut c = chatsplat();
+        c.arg("identity").arg("--data").arg(&data).arg("--run").arg(&run);
+        c.arg("--masks").arg(&masks).arg("--out").arg(&objects);
+        c
+    };
+    let said = ok(identity().args(["--iters", "40"]));
     assert_eq!(std::fs::read(run.join("checkpoint.safetensors")).unwrap(), before, "the old run changed");
     let tensor = |dir: &std::path::Path, name: &str| {
         let bytes = std::fs::read(dir.join("checkpoint.safetensors")).unwrap();
@@ -312,18 +308,7 @@ fn a_capture_without_masks_gets_objects_through_masks_and_identity() {
         .unwrap_or_else(|| panic!("no mIoU in {said}"));
     assert!(miou > 0.5, "{said}");
     // a second identity onto the same --out is refused, and changes nothing
-    let st = chatsplat()
-        .arg("identity")
-        .arg("--data")
-        .arg(&data)
-        .arg("--run")
-        .arg(&run)
-        .arg("--masks")
-        .arg(&masks)
-        .arg("--out")
-        .arg(&objects)
-        .output()
-        .unwrap();
+    let st = identity().output().unwrap();
     assert!(!st.status.success() && String::from_utf8_lossy(&st.stderr).contains("--out"));
 
     // the language stage on the run with objects (the built-in model): object chat at a click

@@ -12,8 +12,7 @@ use train::masks::ownership::ViewOwners;
 use train::masks::{LabelMap, MatchOptions, corrupt, greedy, identity, match_masks, render_labels, score};
 
 fn truth_of(v: &model::data::View) -> LabelMap {
-    let (w, h) = (v.camera.width as usize, v.camera.height as usize);
-    LabelMap { width: w, height: h, ids: v.instance_ids.as_ref().unwrap().iter().map(|&i| i as u16).collect() }
+    LabelMap::of_view(v).expect("synthetic masks")
 }
 
 #[test]

@@ -102,15 +102,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         model::data::synth::write_dataset(&dir, &opts, |_, _| {})?;
         let ds = load(&dir, &LoadOptions { holdout_every: 0, ..Default::default() })?;
         std::fs::remove_dir_all(&dir)?;
-        let truth: Vec<LabelMap> = ds
-            .train
-            .iter()
-            .map(|v| LabelMap {
-                width: v.camera.width as usize,
-                height: v.camera.height as usize,
-                ids: v.instance_ids.as_ref().expect("synthetic masks").iter().map(|&i| i as u16).collect(),
-            })
-            .collect();
+        let truth: Vec<LabelMap> = ds.train.iter().map(|v| LabelMap::of_view(v).expect("synthetic masks")).collect();
         let mut bare = ds.clone();
         bare.train.iter_mut().for_each(|v| v.instance_ids = None);
         let cfg = GeometryConfig {

@@ -97,8 +97,6 @@ pub fn from_labels(model: &SplatModel, labels: &[u16], seed: u64) -> SplatModel 
 /// What [`refine`] did.
 pub struct Refined {
     pub model: SplatModel,
-    /// Adam's moments of the identity and classifier (the rest had none).
-    pub states: AdamStates,
     /// Cross-entropy of every step.
     pub losses: Vec<f32>,
 }
@@ -169,5 +167,5 @@ pub fn refine(
             ..model.tensors()
         });
     }
-    Ok(Refined { model, states, losses })
+    Ok(Refined { model, losses })
 }

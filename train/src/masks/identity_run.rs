@@ -70,14 +70,7 @@ pub fn identity_run(
         return Err(Error::invalid(masks, "gives none of the training views a mask: there is no identity to fit"));
     }
     let weights = views.iter().map(|v| t.model.blend_weights(&v.camera)).collect::<Result<Vec<_>>>()?;
-    let maps: Vec<LabelMap> = views
-        .iter()
-        .map(|v| LabelMap {
-            width: v.camera.width as usize,
-            height: v.camera.height as usize,
-            ids: v.instance_ids.as_ref().expect("a mask").iter().map(|&i| i as u16).collect(),
-        })
-        .collect();
+    let maps: Vec<LabelMap> = views.iter().filter_map(|v| LabelMap::of_view(v)).collect();
     let labels = vote_labels(&weights, &maps, opts.min_weight);
     drop(weights);
     let voted = from_labels(&t.model, &labels, t.cfg.seed);

@@ -38,6 +38,13 @@ pub struct LabelMap {
 }
 
 impl LabelMap {
+    /// The instance mask of `view` (`None` when it has none).
+    pub fn of_view(view: &model::data::View) -> Option<Self> {
+        let ids = view.instance_ids.as_ref()?;
+        let (width, height) = (view.camera.width as usize, view.camera.height as usize);
+        Some(Self { width, height, ids: ids.iter().map(|&i| i as u16).collect() })
+    }
+
     /// The distinct non-zero ids, ascending.
     pub fn labels(&self) -> Vec<u16> {
         let mut l: Vec<u16> = self.ids.iter().copied().filter(|&i| i != 0).collect();

@@ -82,7 +82,7 @@ fn corrupted_masks_are_matched_into_one_id_per_object_whatever_the_view_order() 
         // cross-entropy on the identity alone
         let views_ids: Vec<(splat_kernels::Camera, Vec<u8>)> =
             ds.train.iter().zip(&m.views).map(|(v, l)| (v.camera, l.ids.iter().map(|&i| i as u8).collect())).collect();
-        let labels = identity::vote_labels(&weights, &m.views, 0.5);
+        let labels = identity::vote_labels(&weights, &m.views);
         let agree = labels.iter().zip(&m.gaussian_labels).filter(|(a, b)| a == b).count() as f32 / labels.len() as f32;
         let voted = identity::from_labels(&t.model, &labels, 7);
         let rendered = |model: &model::splats::SplatModel| -> Vec<LabelMap> {
@@ -115,16 +115,17 @@ fn corrupted_masks_are_matched_into_one_id_per_object_whatever_the_view_order() 
         assert!(agree > 0.9, "the vote on the matched masks disagrees with the matching: {agree}");
         assert!(by_vote.miou > 0.8 && by_ce.miou >= by_vote.miou - 0.02, "{by_vote:?} -> {by_ce:?}");
         assert!(last < first, "cross-entropy {first} -> {last}");
-        report.push((clean, before, after, reversed, m.gaussian_labels == r.gaussian_labels));
+        report.push((clean, before, after, reversed, baseline, m.gaussian_labels == r.gaussian_labels));
     }
-    // measured 2026-12-07 (64x56 views, 300 iterations): ids shuffled 0.715 / 0.961 with 5 of 5
-    // and 2 of 2 objects; corrupted 0.063 / 0.091 -> 0.468 / 0.934 (3 of 5, 2 of 2 objects)
-    for (clean, before, after, reversed, same) in report {
+    // measured 2026-12-07 (64x56 views, 300 iterations): ids shuffled 0.912 / 0.964 with 5 of 5
+    // and 2 of 2 objects; corrupted 0.063 / 0.091 -> 0.843 / 0.955 (5 of 5, 2 of 2 objects);
+    // greedy 0.358 / 0.931
+    for (clean, before, after, reversed, greedy, same) in report {
         assert_eq!(clean.predicted_objects, clean.true_objects, "{clean:?}");
-        assert!(clean.miou > 0.65, "{clean:?}");
+        assert!(clean.miou > 0.85, "{clean:?}");
         assert!(same, "the view order changed a Gaussian's object");
         assert!((after.miou - reversed.miou).abs() < 0.01, "{after:?} vs {reversed:?}");
-        assert!(after.predicted_objects <= after.true_objects, "splits or fragments made objects: {after:?}");
-        assert!(after.miou > before.miou + 0.3, "{before:?} -> {after:?}");
+        assert_eq!(after.predicted_objects, after.true_objects, "objects lost or made: {after:?}");
+        assert!(after.miou > 0.78 && after.miou > greedy.miou, "{before:?} -> {after:?}; greedy {greedy:?}");
     }
 }

@@ -12,7 +12,9 @@
 
 use burn::tensor::Device;
 use clap::Parser;
+use model::data::Dataset;
 use model::data::nerfstudio::{LoadOptions, load};
+use model::run::GeometryRun;
 use std::path::PathBuf;
 use std::time::Instant;
 use train::geometry::{GeometryConfig, GeometryTrainer, view_at};
@@ -40,17 +42,29 @@ struct Args {
     /// fragments; unnamed keys keep the issue's defaults: 2, 0.1, 0.1, 0.2, 2).
     #[arg(long, default_value = "")]
     errors: String,
+    /// An unmasked pixel's vote for the background against a mask's 1 (the matching's default).
+    #[arg(long, default_value_t = MatchOptions::default().unmasked)]
+    unmasked: f32,
+    /// The share of views where two candidates' Gaussians share a mask for them to be one object.
+    #[arg(long, default_value_t = MatchOptions::default().together)]
+    together: f64,
     /// Write the per-scene rows as JSON here.
     #[arg(long)]
     json: Option<PathBuf>,
+    /// Keep each scene and its geometry run here, and reuse them when the same scene, size and
+    /// iterations come again (only the matching is then timed anew).
+    #[arg(long)]
+    cache: Option<PathBuf>,
 }
 
 #[derive(serde::Serialize)]
 struct Row {
     seed: u64,
     true_objects: usize,
-    /// Matched from the true masks with their ids shuffled per view alone: what the render of
-    /// Gaussian labels allows at this size.
+    /// The true masks (ids consistent) given to the Gaussians and rendered back: what the geometry
+    /// allows at this size.
+    geometry_miou: f64,
+    /// Matched from the true masks with their ids shuffled per view alone.
     ceiling_miou: f64,
     corrupted_miou: f64,
     matched_miou: f64,
@@ -81,17 +95,15 @@ fn errors(spec: &str) -> Result<corrupt::Errors, String> {
     Ok(e)
 }
 
-fn main() -> Result<(), Box<dyn std::error::Error>> {
-    let a = Args::parse();
-    let errs = errors(&a.errors)?;
-    let dev = Device::ndarray();
-    let mut rows = Vec::new();
-    println!(
-        "{:>5} {:>4} {:>8} {:>9} {:>13} {:>9} {:>13} {:>9} {:>9} {:>9}",
-        "seed", "objs", "ceiling", "corrupt", "matched", "reversed", "greedy", "w ms/v", "m ms/v", "g ms/v"
-    );
-    for seed in a.first_seed..a.first_seed + a.scenes as u64 {
-        let dir = std::env::temp_dir().join(format!("masks-bench-{seed}-{}", std::process::id()));
+/// Scene `seed` and a geometry run trained on it without masks: from `--cache` when it holds them.
+fn scene(a: &Args, seed: u64, dev: &Device) -> Result<(Dataset, GeometryTrainer), Box<dyn std::error::Error>> {
+    let name = format!("seed{seed}-{}x{}-v{}", a.width, a.height, a.views);
+    let (dir, keep) = match &a.cache {
+        Some(c) => (c.join(&name), true),
+        None => (std::env::temp_dir().join(format!("masks-bench-{name}-{}", std::process::id())), false),
+    };
+    let data = dir.join("data");
+    if !data.join("scene.json").is_file() {
         let opts = model::data::synth::SynthOptions {
             seed,
             views: a.views,
@@ -99,43 +111,73 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             height: a.height,
             ..Default::default()
         };
-        model::data::synth::write_dataset(&dir, &opts, |_, _| {})?;
-        let ds = load(&dir, &LoadOptions { holdout_every: 0, ..Default::default() })?;
-        std::fs::remove_dir_all(&dir)?;
-        let truth: Vec<LabelMap> = ds.train.iter().map(|v| LabelMap::of_view(v).expect("synthetic masks")).collect();
-        let mut bare = ds.clone();
-        bare.train.iter_mut().for_each(|v| v.instance_ids = None);
-        let cfg = GeometryConfig {
-            iters: a.iters,
-            init_per_view: 400,
-            densify_from: 50,
-            densify_every: 50,
-            densify_until: a.iters * 2 / 3,
-            opacity_reset_every: 0,
-            checkpoint_every: 0,
-            max_gaussians: 12000,
-            ..Default::default()
-        };
-        let mut t = GeometryTrainer::new(&bare, cfg, &dev)?;
-        while t.iter < a.iters {
-            let v = &bare.train[view_at(t.iter, bare.train.len(), t.cfg.seed)];
-            t.step(v)?;
+        model::data::synth::write_dataset(&data, &opts, |_, _| {})?;
+    }
+    let load_opts = LoadOptions { holdout_every: 0, ..Default::default() };
+    let ds = load(&data, &load_opts)?;
+    let run = GeometryRun::new(dir.join(format!("run-{}", a.iters)));
+    if keep && run.state().is_file() {
+        let (t, _) = GeometryTrainer::load(&run, dev)?;
+        if t.iter == a.iters {
+            return Ok((ds, t));
         }
+    }
+    let mut bare = ds.clone();
+    bare.train.iter_mut().for_each(|v| v.instance_ids = None);
+    let cfg = GeometryConfig {
+        iters: a.iters,
+        init_per_view: 400,
+        densify_from: 50,
+        densify_every: 50,
+        densify_until: a.iters * 2 / 3,
+        opacity_reset_every: 0,
+        checkpoint_every: 0,
+        max_gaussians: 12000,
+        ..Default::default()
+    };
+    let mut t = GeometryTrainer::new(&bare, cfg, dev)?;
+    while t.iter < a.iters {
+        let v = &bare.train[view_at(t.iter, bare.train.len(), t.cfg.seed)];
+        t.step(v)?;
+    }
+    if keep {
+        t.save(&run, &train::geometry::data_ref(&bare, &data, &load_opts, &run))?;
+    } else {
+        std::fs::remove_dir_all(&dir)?;
+    }
+    Ok((ds, t))
+}
+
+fn main() -> Result<(), Box<dyn std::error::Error>> {
+    let a = Args::parse();
+    let errs = errors(&a.errors)?;
+    let dev = Device::ndarray();
+    let mopts = MatchOptions { unmasked: a.unmasked, together: a.together, ..Default::default() };
+    let mut rows = Vec::new();
+    println!(
+        "{:>5} {:>4} {:>8} {:>8} {:>9} {:>13} {:>9} {:>13} {:>9} {:>9} {:>9}",
+        "seed", "objs", "geometry", "ceiling", "corrupt", "matched", "reversed", "greedy", "w ms/v", "m ms/v", "g ms/v"
+    );
+    for seed in a.first_seed..a.first_seed + a.scenes as u64 {
+        let (ds, t) = scene(&a, seed, &dev)?;
+        let truth: Vec<LabelMap> = ds.train.iter().map(|v| LabelMap::of_view(v).expect("synthetic masks")).collect();
         let nv = ds.train.len() as f64;
         let t0 = Instant::now();
         let weights = ds.train.iter().map(|v| t.model.blend_weights(&v.camera)).collect::<model::Result<Vec<_>>>()?;
         let weights_ms = t0.elapsed().as_secs_f64() * 1e3 / nv;
+        let true_shares = train::masks::soft::Shares::from_maps(&weights, &truth, 1.0);
+        let geometry = score::consistency(&truth, &weights.iter().map(|w| true_shares.render(w)).collect::<Vec<_>>());
         let none = corrupt::Errors { edge_px: 0, missing: 0.0, merged: 0.0, split: 0.0, fragments: 0 };
         let shuffled = corrupt::corrupt(&truth, &none, seed);
-        let ceiling = score::consistency(&truth, &match_masks(&weights, &shuffled, &MatchOptions::default()).views);
+        let ceiling = score::consistency(&truth, &match_masks(&weights, &shuffled, &mopts).views);
         let noisy = corrupt::corrupt(&truth, &errs, seed);
         let before = score::consistency(&truth, &noisy);
         let t0 = Instant::now();
-        let m = match_masks(&weights, &noisy, &MatchOptions::default());
+        let m = match_masks(&weights, &noisy, &mopts);
         let match_ms = t0.elapsed().as_secs_f64() * 1e3 / nv;
         let after = score::consistency(&truth, &m.views);
         let (rw, rn): (Vec<_>, Vec<_>) = weights.iter().cloned().zip(noisy.iter().cloned()).rev().unzip();
-        let back: Vec<LabelMap> = match_masks(&rw, &rn, &MatchOptions::default()).views.into_iter().rev().collect();
+        let back: Vec<LabelMap> = match_masks(&rw, &rn, &mopts).views.into_iter().rev().collect();
         let reversed = score::consistency(&truth, &back);
         let t0 = Instant::now();
         let owners: Vec<ViewOwners> = weights.iter().zip(&noisy).map(|(w, n)| ViewOwners::of(w, n, 0.5)).collect();
@@ -146,6 +188,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let row = Row {
             seed,
             true_objects: after.true_objects,
+            geometry_miou: geometry.miou,
             ceiling_miou: ceiling.miou,
             corrupted_miou: before.miou,
             matched_miou: after.miou,
@@ -158,9 +201,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             greedy_ms_per_view: greedy_ms,
         };
         println!(
-            "{:>5} {:>4} {:>8.3} {:>9.3} {:>7.3} ({:>2}) {:>9.4} {:>7.3} ({:>2}) {:>9.1} {:>9.1} {:>9.1}",
+            "{:>5} {:>4} {:>8.3} {:>8.3} {:>9.3} {:>7.3} ({:>2}) {:>9.4} {:>7.3} ({:>2}) {:>9.1} {:>9.1} {:>9.1}",
             row.seed,
             row.true_objects,
+            row.geometry_miou,
             row.ceiling_miou,
             row.corrupted_miou,
             row.matched_miou,
@@ -179,10 +223,11 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let exact = rows.iter().filter(|r| r.matched_objects == r.true_objects).count();
     let greedy_exact = rows.iter().filter(|r| r.greedy_objects == r.true_objects).count();
     println!(
-        "mean over {} scenes: ceiling {:.3}; corrupted {:.3} -> matched {:.3} (object count exact on {}/{}), \
+        "mean over {} scenes: geometry {:.3}, ceiling {:.3}; corrupted {:.3} -> matched {:.3} (object count exact on {}/{}), \
          greedy {:.3} (exact on {}/{}); largest change with the views reversed {:.4}; ms per view: weights \
          {:.1}, matching {:.1}, greedy {:.1}",
         rows.len(),
+        mean(&|r| r.geometry_miou),
         mean(&|r| r.ceiling_miou),
         mean(&|r| r.corrupted_miou),
         mean(&|r| r.matched_miou),

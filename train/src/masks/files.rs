@@ -3,7 +3,7 @@
 //! folder the loaders read (`OUT/<image stem>.png`, 16-bit only where ids pass 255) with
 //! `OUT/masks.json`.
 
-use super::{LabelMap, MatchOptions, Matched, match_masks, render_labels};
+use super::{LabelMap, MatchOptions, Matched, match_masks};
 use model::error::{Error, Result};
 use model::run::GeometryRun;
 use serde::Serialize;
@@ -36,6 +36,8 @@ pub struct Options {
     pub mutual: f32,
     pub min_views: usize,
     pub min_gaussians: usize,
+    pub together: f64,
+    pub unmasked: f32,
 }
 
 /// The stem of an image name (`images/r_0.png` -> `r_0`).
@@ -122,7 +124,7 @@ pub fn write(
     for (v, cam) in cameras.iter().enumerate() {
         let (w, h) = full_size(v);
         let big = scaled(cam, w, h);
-        let labels = render_labels(&model.blend_weights(&big)?, &matched.gaussian_labels);
+        let labels = matched.shares.render(&model.blend_weights(&big)?);
         let path: PathBuf = out.join(format!("{}.png", stem(&names[v])));
         model::images::write_ids(&path, w, h, &labels.ids)?;
     }
@@ -137,8 +139,14 @@ pub fn write(
         })
         .collect();
     let o = opts;
-    let options =
-        Options { min_weight: o.min_weight, mutual: o.mutual, min_views: o.min_views, min_gaussians: o.min_gaussians };
+    let options = Options {
+        min_weight: o.min_weight,
+        mutual: o.mutual,
+        min_views: o.min_views,
+        min_gaussians: o.min_gaussians,
+        together: o.together,
+        unmasked: o.unmasked,
+    };
     let summary = Summary { objects, views: names.len(), views_without_masks: missing, per_view_ms, options };
     model::io::write_json(&out.join("masks.json"), &summary)?;
     Ok(summary)

@@ -1,24 +1,8 @@
-//! Masks of different views joined into objects by the Gaussians they share, then every Gaussian
-//! labelled by its views' votes.
+//! Masks of different views joined into candidate objects by the Gaussians they share.
 
 use super::MatchOptions;
 use super::ownership::{Owner, ViewOwners};
 use std::collections::HashMap;
-
-/// An object of the grouping, before its views are rendered.
-#[derive(Clone, Debug, PartialEq)]
-pub struct Grouped {
-    pub id: u16,
-    pub gaussians: usize,
-    pub confidence: f32,
-}
-
-/// Every Gaussian's object (0 = background) and the objects.
-#[derive(Clone, Debug)]
-pub struct Grouping {
-    pub labels: Vec<u16>,
-    pub objects: Vec<Grouped>,
-}
 
 fn find(parent: &mut [usize], mut a: usize) -> usize {
     while parent[a] != a {
@@ -28,8 +12,9 @@ fn find(parent: &mut [usize], mut a: usize) -> usize {
     a
 }
 
-/// Groups the masks of `views` (owners of `n` Gaussians each).
-pub fn group(views: &[ViewOwners], n: usize, opts: &MatchOptions) -> Grouping {
+/// Joins the masks of `views` (owners of `n` Gaussians each) that overlap mutually into candidate
+/// objects.
+pub fn join(views: &[ViewOwners], n: usize, opts: &MatchOptions) -> Joined {
     let nv = views.len();
     // masks numbered over all views: view v's mask k is base[v] + k
     let mut base = vec![0usize; nv + 1];
@@ -81,63 +66,41 @@ pub fn group(views: &[ViewOwners], n: usize, opts: &MatchOptions) -> Grouping {
     for a in 0..masks {
         group_views.entry(root[a]).or_default().push(view_of[a]);
     }
-    let kept = |r: usize| {
-        let mut vs = group_views[&r].clone();
-        vs.sort_unstable();
-        vs.dedup();
-        vs.len() >= opts.min_views
-    };
-    let kept: HashMap<usize, bool> = group_views.keys().map(|&r| (r, kept(r))).collect();
-    // the order-free key of a group: the first Gaussian any of its masks owns
-    let mut key: HashMap<usize, usize> = HashMap::new();
+    // the key of a group: the first Gaussian any of its masks owns (free of the views' order),
+    // then its root (two groups whose masks own the same first Gaussian in different views)
+    let mut key: HashMap<usize, (usize, usize)> = HashMap::new();
     for a in 0..masks {
-        let k = key.entry(root[a]).or_insert(usize::MAX);
-        *k = (*k).min(first[a]);
+        let k = key.entry(root[a]).or_insert((usize::MAX, root[a]));
+        k.0 = k.0.min(first[a]);
     }
-    // every Gaussian votes in each view that sees it: the background, or its mask's group
-    // (a mask in no kept group, a part or a merge, does not vote)
-    let mut label_key = vec![usize::MAX; n];
-    let mut agree = vec![0f32; n];
-    let mut votes: Vec<(usize, u32)> = Vec::new();
-    for g in 0..n {
-        votes.clear();
-        for (v, o) in views.iter().enumerate() {
-            let k = match o.owner[g] {
-                Owner::Background => usize::MAX,
-                Owner::Mask(m) if kept[&root[base[v] + m as usize]] => key[&root[base[v] + m as usize]],
-                _ => continue,
-            };
-            match votes.iter_mut().find(|(x, _)| *x == k) {
-                Some((_, c)) => *c += 1,
-                None => votes.push((k, 1)),
-            }
-        }
-        let total: u32 = votes.iter().map(|v| v.1).sum();
-        // most votes; ties to the background, then to the smaller key
-        if let Some(&(k, c)) = votes.iter().max_by_key(|&&(k, c)| (c, k == usize::MAX, std::cmp::Reverse(k))) {
-            label_key[g] = k;
-            agree[g] = c as f32 / total as f32;
-        }
-    }
-    // objects: groups that won enough Gaussians, numbered by size (then key)
-    let mut sizes: HashMap<usize, (usize, f32)> = HashMap::new();
-    for g in 0..n {
-        if label_key[g] != usize::MAX {
-            let e = sizes.entry(label_key[g]).or_default();
-            e.0 += 1;
-            e.1 += agree[g];
-        }
-    }
-    let mut order: Vec<(usize, usize, f32)> =
-        sizes.into_iter().filter(|&(_, (c, _))| c >= opts.min_gaussians).map(|(k, (c, a))| (k, c, a)).collect();
-    order.sort_unstable_by_key(|&(k, c, _)| (std::cmp::Reverse(c), k));
-    order.truncate(u16::MAX as usize);
-    let id_of: HashMap<usize, u16> = order.iter().enumerate().map(|(i, &(k, _, _))| (k, i as u16 + 1)).collect();
-    let labels = label_key.iter().map(|k| id_of.get(k).copied().unwrap_or(0)).collect();
-    let objects = order
+    let mut kept: Vec<(usize, usize)> = group_views
         .iter()
-        .enumerate()
-        .map(|(i, &(_, c, a))| Grouped { id: i as u16 + 1, gaussians: c, confidence: a / c as f32 })
+        .filter(|(_, vs)| {
+            let mut vs = (*vs).clone();
+            vs.sort_unstable();
+            vs.dedup();
+            vs.len() >= opts.min_views
+        })
+        .map(|(&r, _)| key[&r])
         .collect();
-    Grouping { labels, objects }
+    kept.sort_unstable();
+    kept.truncate(u16::MAX as usize - 1);
+    let object = (0..nv)
+        .map(|v| {
+            (0..views[v].labels.len())
+                .map(|k| kept.binary_search(&key[&root[base[v] + k]]).ok().map(|i| i as u32))
+                .collect()
+        })
+        .collect();
+    Joined { object, candidates: kept.len() }
+}
+
+/// Which candidate object each mask of each view joined.
+#[derive(Clone, Debug, PartialEq)]
+pub struct Joined {
+    /// `object[v][k]`: view `v`'s mask `k` (an index into its labels) belongs to candidate
+    /// `object[v][k]`, or to none (a part, a merge, a fragment: no mask of another view matched it).
+    pub object: Vec<Vec<Option<u32>>>,
+    /// Candidates, numbered by the first Gaussian any of their masks owns.
+    pub candidates: usize,
 }

@@ -2,8 +2,8 @@
 //! from masks whose ids agree across views (`chatsplat masks`'s, or any tool's), its Gaussians
 //! untouched.
 //!
-//! 1. [`vote_labels`]: each Gaussian takes the id the views that see it clearly vote for most
-//!    (the same ownership as matching: the mask holding more than half of its blend weight).
+//! 1. [`vote_labels`]: each Gaussian takes the id whose pixels get most of its blend weight over
+//!    the views (the shares of matching, every pixel counting alike).
 //! 2. [`from_labels`]: identity features and a classifier sized to the scene (`1 +` the largest
 //!    id) that classify each Gaussian as its vote, a code per id (one-hot up to 16 ids, seeded
 //!    unit vectors past it).
@@ -12,7 +12,6 @@
 //!    several objects blend are classified as the masks draw them.
 
 use super::LabelMap;
-use super::ownership::{Owner, ViewOwners};
 use crate::adam_state::AdamStates;
 use burn::optim::AdamConfig;
 use burn::tensor::{Device, Int, Tensor, TensorData, activation};
@@ -23,29 +22,10 @@ use splat_kernels::Camera;
 use splat_kernels::api::{SplatOptions, splat};
 use splat_kernels::blend::BlendWeights;
 
-/// Each Gaussian's id (`[N]`, 0 = background): the most votes of the views that see it clearly
-/// (ties to the smaller id); a Gaussian no view sees clearly is background.
-pub fn vote_labels(weights: &[BlendWeights], masks: &[LabelMap], min_weight: f32) -> Vec<u16> {
-    let n = weights.first().map_or(0, |w| w.gaussians);
-    let owners: Vec<ViewOwners> = weights.iter().zip(masks).map(|(w, m)| ViewOwners::of(w, m, min_weight)).collect();
-    let mut votes: Vec<(u16, u32)> = Vec::new();
-    (0..n)
-        .map(|g| {
-            votes.clear();
-            for o in &owners {
-                let id = match o.owner[g] {
-                    Owner::Background => 0,
-                    Owner::Mask(k) => o.labels[k as usize],
-                    Owner::Unseen | Owner::Ambiguous => continue,
-                };
-                match votes.iter_mut().find(|(i, _)| *i == id) {
-                    Some((_, c)) => *c += 1,
-                    None => votes.push((id, 1)),
-                }
-            }
-            votes.iter().max_by_key(|&&(i, c)| (c, std::cmp::Reverse(i))).map_or(0, |&(i, _)| i)
-        })
-        .collect()
+/// Each Gaussian's id (`[N]`, 0 = background): the id whose pixels get most of its blend weight
+/// over the views ([`super::soft::Shares`]); a Gaussian no view sees is background.
+pub fn vote_labels(weights: &[BlendWeights], masks: &[LabelMap]) -> Vec<u16> {
+    super::soft::Shares::from_maps(weights, masks, 1.0).argmax()
 }
 
 /// The code of each of `classes` ids: one-hot while they fit the 16 channels, else unit vectors

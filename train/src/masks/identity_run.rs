@@ -16,8 +16,6 @@ use std::path::Path;
 pub struct IdentityOptions {
     /// Cross-entropy steps after the vote (0: the vote alone).
     pub iters: usize,
-    /// A Gaussian votes in a view where its blend weights sum to at least this.
-    pub min_weight: f32,
     /// Adam's learning rates of the identity features and of the classifier (the codes start
     /// at length 4: larger steps than the geometry stage's, which starts from noise).
     pub lrs: (f64, f64),
@@ -25,7 +23,7 @@ pub struct IdentityOptions {
 
 impl Default for IdentityOptions {
     fn default() -> Self {
-        Self { iters: 300, min_weight: 0.5, lrs: (0.02, 0.01) }
+        Self { iters: 300, lrs: (0.02, 0.01) }
     }
 }
 
@@ -71,7 +69,7 @@ pub fn identity_run(
     }
     let weights = views.iter().map(|v| t.model.blend_weights(&v.camera)).collect::<Result<Vec<_>>>()?;
     let maps: Vec<LabelMap> = views.iter().filter_map(|v| LabelMap::of_view(v)).collect();
-    let labels = vote_labels(&weights, &maps, opts.min_weight);
+    let labels = vote_labels(&weights, &maps);
     drop(weights);
     let voted = from_labels(&t.model, &labels, t.cfg.seed);
     let targets: Vec<_> = views.iter().map(|v| (v.camera, v.instance_ids.clone().expect("a mask"))).collect();

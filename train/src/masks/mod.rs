@@ -2,22 +2,29 @@
 //! the scene's own Gaussians (issue 84).
 //!
 //! A segmenter's ids are arbitrary per view, its masks split objects, merge neighbours, miss
-//! views and add fragments. What a geometry run adds is, for every pixel, the blend weight of
-//! each Gaussian that makes it ([`splat_kernels::blend::BlendWeights`]). So:
+//! views, add fragments and move edges. What a geometry run adds is, for every pixel, the blend
+//! weight of each Gaussian that makes it ([`splat_kernels::blend::BlendWeights`]). So:
 //!
 //! 1. [`ownership`]: in each view, each Gaussian belongs to the mask (or the unmasked rest) that
-//!    holds most of its blend weight there, when one holds more than half of it.
-//! 2. [`group`]: two masks of different views are the same object when each owns most of the
-//!    other's Gaussians that its view sees (a mutual overlap, which a part of an object or two
-//!    objects merged into one mask never has with a whole one); such pairs joined give the
-//!    objects. Each Gaussian then takes the object its views vote for most (background
-//!    included), so a split, a merge or a missing mask in a few views is outvoted, not copied.
-//! 3. The per-view masks out are the objects rendered: each pixel the label whose Gaussians hold
-//!    most of its weight.
+//!    holds more than half of its blend weight there.
+//! 2. [`group::join`]: two masks of different views are one candidate object when each owns most
+//!    of the other's Gaussians that its view sees (a mutual overlap, which a part of an object or
+//!    two objects merged into one mask never has with a whole one).
+//! 3. [`soft`]: every pixel gives its candidate (or the background, at a lower weight: a
+//!    segmenter's silence is weaker than its mask) to its Gaussians in proportion to their blend
+//!    weights; masks no other view matched say nothing yet.
+//! 4. [`consolidate`]: candidates whose Gaussians share a mask in most views where both are seen
+//!    are one object (moved edges break the strict join of step 2 into pieces).
+//! 5. Masks that matched no candidate take the object most of their Gaussians carry, when it is
+//!    most of them (parts, shrunk or grown masks); the rest (merges) give each pixel the object
+//!    rendered there. The shares are gathered again.
+//! 6. The per-view masks out are the shares rendered: each pixel the object holding most of its
+//!    weight, so a merge, a missing mask or a moved edge in one view is outvoted by the others.
 //!
-//! Nothing depends on the order of the views (edges are joined by union-find and labels
-//! renumbered by size), and ids are 16-bit.
+//! Nothing depends on the order of the views (masks joined by union-find, candidates keyed by
+//! their first Gaussian, objects numbered by size), and ids are 16-bit.
 
+pub mod consolidate;
 pub mod corrupt;
 pub mod files;
 pub mod greedy;
@@ -26,6 +33,7 @@ pub mod identity;
 pub mod identity_run;
 pub mod ownership;
 pub mod score;
+pub mod soft;
 
 use splat_kernels::blend::BlendWeights;
 
@@ -43,6 +51,11 @@ impl LabelMap {
         let ids = view.instance_ids.as_ref()?;
         let (width, height) = (view.camera.width as usize, view.camera.height as usize);
         Some(Self { width, height, ids: ids.iter().map(|&i| i as u16).collect() })
+    }
+
+    /// The same size, every id `f(id)`.
+    pub fn map(&self, f: impl Fn(u16) -> u16) -> Self {
+        Self { width: self.width, height: self.height, ids: self.ids.iter().map(|&i| f(i)).collect() }
     }
 
     /// The distinct non-zero ids, ascending.
@@ -67,11 +80,16 @@ pub struct MatchOptions {
     pub min_views: usize,
     /// ... and holds at least this many Gaussians.
     pub min_gaussians: usize,
+    /// Two candidates are one object when their Gaussians share a mask in at least this share of
+    /// the views that see both.
+    pub together: f64,
+    /// The weight of an unmasked pixel's vote for the background, against 1 for a mask's.
+    pub unmasked: f32,
 }
 
 impl Default for MatchOptions {
     fn default() -> Self {
-        Self { min_weight: 0.5, mutual: 0.6, min_views: 2, min_gaussians: 8 }
+        Self { min_weight: 0.5, mutual: 0.6, min_views: 2, min_gaussians: 8, together: 0.4, unmasked: 0.35 }
     }
 }
 
@@ -87,10 +105,12 @@ pub struct Object {
     pub confidence: f32,
 }
 
-/// The result: an object id per Gaussian (0 = background), the objects, and every view's mask.
+/// The result: each Gaussian's shares of the objects and its largest (0 = background), the
+/// objects, and every view's mask.
 #[derive(Clone, Debug)]
 pub struct Matched {
     pub gaussian_labels: Vec<u16>,
+    pub shares: soft::Shares,
     pub objects: Vec<Object>,
     pub views: Vec<LabelMap>,
 }
@@ -108,39 +128,98 @@ pub fn match_masks(weights: &[BlendWeights], masks: &[LabelMap], opts: &MatchOpt
     let gaussians = weights.first().map_or(0, |w| w.gaussians);
     let owners: Vec<ownership::ViewOwners> =
         weights.iter().zip(masks).map(|(w, m)| ownership::ViewOwners::of(w, m, opts.min_weight)).collect();
-    let grouping = group::group(&owners, gaussians, opts);
-    let views: Vec<LabelMap> = weights.iter().map(|w| render_labels(w, &grouping.labels)).collect();
-    let objects = grouping
-        .objects
+    let joined = group::join(&owners, gaussians, opts);
+    // every pixel: 0 unmasked, 1 + its mask's candidate, or SKIP (its mask joined none)
+    let first: Vec<LabelMap> = masks
         .iter()
-        .map(|o| Object {
-            id: o.id,
-            gaussians: o.gaussians,
-            views: (0..views.len()).filter(|&v| views[v].ids.contains(&o.id)).collect(),
-            confidence: o.confidence,
+        .zip(&owners)
+        .zip(&joined.object)
+        .map(|((m, o), object)| {
+            m.map(|id| match id {
+                0 => 0,
+                id => object[o.index(id)].map_or(soft::SKIP, |c| c as u16 + 1),
+            })
         })
         .collect();
-    Matched { gaussian_labels: grouping.labels, objects, views }
+    let shares = soft::Shares::from_maps(weights, &first, opts.unmasked);
+    let into = consolidate::consolidate(&owners, &shares.argmax(), joined.candidates, opts.together);
+    let maps: Vec<LabelMap> =
+        first.iter().map(|m| m.map(|l| if l == soft::SKIP { l } else { into[l as usize] })).collect();
+    let shares = soft::Shares::from_maps(weights, &maps, opts.unmasked);
+    let labels = shares.argmax();
+    let filled: Vec<LabelMap> = (0..masks.len())
+        .map(|v| {
+            let o = &owners[v];
+            let whole = whole_objects(o, &labels);
+            let rendered = shares.render(&weights[v]);
+            let ids = maps[v].ids.iter().zip(&rendered.ids).zip(&masks[v].ids).map(|((&l, &r), &id)| match l {
+                soft::SKIP => whole[o.index(id)].or((r != 0).then_some(r)).unwrap_or(soft::SKIP),
+                l => l,
+            });
+            LabelMap { ids: ids.collect(), ..maps[v].clone() }
+        })
+        .collect();
+    let mut shares = soft::Shares::from_maps(weights, &filled, opts.unmasked);
+    // objects: candidates that won enough Gaussians, numbered by size (then candidate)
+    let mut won = vec![(0usize, 0f32); joined.candidates + 1];
+    for (g, list) in shares.of.iter().enumerate() {
+        let l = shares.best_of(g);
+        if l != 0 {
+            won[l as usize].0 += 1;
+            won[l as usize].1 += list.iter().find(|x| x.0 == l).map_or(0.0, |x| x.1);
+        }
+    }
+    let mut order: Vec<usize> = (1..won.len()).filter(|&c| won[c].0 >= opts.min_gaussians).collect();
+    order.sort_unstable_by_key(|&c| (std::cmp::Reverse(won[c].0), c));
+    let mut id_of = vec![0u16; won.len()];
+    for (i, &c) in order.iter().enumerate() {
+        id_of[c] = i as u16 + 1;
+    }
+    shares.relabel(|l| id_of[l as usize]);
+    let views: Vec<LabelMap> = weights.iter().map(|w| shares.render(w)).collect();
+    let objects = order
+        .iter()
+        .enumerate()
+        .map(|(i, &c)| {
+            let id = i as u16 + 1;
+            Object {
+                id,
+                gaussians: won[c].0,
+                views: (0..views.len()).filter(|&v| views[v].ids.contains(&id)).collect(),
+                confidence: won[c].1 / won[c].0 as f32,
+            }
+        })
+        .collect();
+    Matched { gaussian_labels: shares.argmax(), shares, objects, views }
+}
+
+/// For each mask of a view (owners `o`): the object most of the Gaussians it owns carry
+/// (`labels`), when they are at least half of them.
+fn whole_objects(o: &ownership::ViewOwners, labels: &[u16]) -> Vec<Option<u16>> {
+    let mut count: Vec<Vec<(u16, usize)>> = vec![Vec::new(); o.labels.len()];
+    for (g, own) in o.owner.iter().enumerate() {
+        if let ownership::Owner::Mask(k) = own {
+            let c = &mut count[*k as usize];
+            match c.iter_mut().find(|(l, _)| *l == labels[g]) {
+                Some((_, n)) => *n += 1,
+                None => c.push((labels[g], 1)),
+            }
+        }
+    }
+    count
+        .iter()
+        .map(|c| {
+            let n: usize = c.iter().map(|x| x.1).sum();
+            let best = c.iter().filter(|x| x.0 != 0).max_by_key(|x| (x.1, std::cmp::Reverse(x.0)))?;
+            (2 * best.1 >= n).then_some(best.0)
+        })
+        .collect()
 }
 
 /// Each pixel of the view of `w` labelled with the label whose Gaussians hold most of its weight
-/// (the final transmittance counting for the background, 0).
+/// (the final transmittance counting for the background, 0): hard labels, as the greedy baseline
+/// gives them.
 pub fn render_labels(w: &BlendWeights, labels: &[u16]) -> LabelMap {
-    let mut ids = vec![0u16; w.width * w.height];
-    let mut acc: Vec<(u16, f32)> = Vec::new();
-    for (p, id) in ids.iter_mut().enumerate() {
-        acc.clear();
-        acc.push((0, w.final_t[p]));
-        for e in w.offsets[p]..w.offsets[p + 1] {
-            let l = labels[w.gids[e] as usize];
-            match acc.iter_mut().find(|(k, _)| *k == l) {
-                Some((_, s)) => *s += w.weights[e],
-                None => acc.push((l, w.weights[e])),
-            }
-        }
-        // the largest weight; ties to the smaller label
-        *id =
-            acc.iter().fold((0u16, f32::MIN), |b, &(l, s)| if s > b.1 || (s == b.1 && l < b.0) { (l, s) } else { b }).0;
-    }
-    LabelMap { width: w.width, height: w.height, ids }
+    let shares = soft::Shares { of: labels.iter().map(|&l| vec![(l, 1.0)]).collect() };
+    shares.render(w)
 }

@@ -70,6 +70,14 @@ impl ViewOwners {
         Self { labels, owner }
     }
 
+    /// The index of mask id `id` (non-zero, one of the view's).
+    ///
+    /// # Panics
+    /// When the view has no mask `id`.
+    pub fn index(&self, id: u16) -> usize {
+        self.labels.binary_search(&id).expect("a mask id of the view")
+    }
+
     /// Whether the view sees Gaussian `g` clearly (a mask or the background owns it).
     pub fn sees(&self, g: usize) -> bool {
         matches!(self.owner[g], Owner::Background | Owner::Mask(_))

@@ -223,9 +223,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let exact = rows.iter().filter(|r| r.matched_objects == r.true_objects).count();
     let greedy_exact = rows.iter().filter(|r| r.greedy_objects == r.true_objects).count();
     println!(
-        "mean over {} scenes: geometry {:.3}, ceiling {:.3}; corrupted {:.3} -> matched {:.3} (object count exact on {}/{}), \
-         greedy {:.3} (exact on {}/{}); largest change with the views reversed {:.4}; ms per view: weights \
-         {:.1}, matching {:.1}, greedy {:.1}",
+        "mean over {} scenes: geometry {:.3}, ceiling {:.3}; corrupted {:.3} -> matched {:.3} (object count \
+         exact on {}/{}), greedy {:.3} (exact on {}/{}); largest change with the views reversed {:.4}; ms per \
+         view: weights {:.1}, matching {:.1}, greedy {:.1}",
         rows.len(),
         mean(&|r| r.geometry_miou),
         mean(&|r| r.ceiling_miou),

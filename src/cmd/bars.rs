@@ -39,6 +39,7 @@ impl Observer for Bars {
         (self.heading)(stage);
         let (label, unit) = match stage {
             Stage::Geometry => ("train", "it"),
+            Stage::Objects => ("identity", "it"),
             Stage::Teacher => ("extract", "views"),
             Stage::Language => ("language", "it"),
         };
@@ -79,6 +80,35 @@ impl Observer for Bars {
             s.eval.miou.map(|m| format!(", identity mIoU {m:.3}")).unwrap_or_default(),
             s.seconds_per_iter,
             self.backend,
+            out.dir.display()
+        );
+    }
+
+    fn identity(&mut self, iter: usize, iters: usize, loss: f32) {
+        if let Some(bar) = &self.bar
+            && (self.last.elapsed().as_millis() > 250 || iter == iters)
+        {
+            bar.update_with(iter, iters, &format!("cross-entropy {loss:.4}"));
+            self.last = Instant::now();
+        }
+    }
+
+    fn objects_done(
+        &mut self,
+        m: &train::masks::files::Summary,
+        i: &train::masks::identity_run::IdentitySummary,
+        out: &GeometryRun,
+    ) {
+        println!(
+            "per-view masks matched: {} objects over {} views ({:.0} ms per view); identity: {} of {} Gaussians in \
+             objects, cross-entropy {:.4} -> {:.4} -> {}",
+            m.objects.len(),
+            m.views,
+            m.per_view_ms,
+            i.object_gaussians,
+            i.gaussians,
+            i.first_loss,
+            i.last_loss,
             out.dir.display()
         );
     }

@@ -1,7 +1,8 @@
 //! `chatsplat batch`: many scenes as the jobs of a cluster scheduler. A manifest (TOML) lists the
 //! scenes; a worker takes its shard (`--shard I/N`, or the index a Kubernetes Indexed Job or a
-//! Slurm array gives it) and runs the pipeline for each of its scenes: geometry -> teacher tokens
-//! -> language field -> VQA (when the scene has questions). Idempotent: a scene whose summary
+//! Slurm array gives it) and runs the pipeline for each of its scenes: geometry -> (per-view masks
+//! matched and the identity fitted, when the scene gives `per_view_masks`) -> teacher tokens ->
+//! language field -> VQA (when the scene has questions). Idempotent: a scene whose summary
 //! carries the fingerprint of its inputs and settings is skipped (other data or settings train it
 //! again, the earlier results kept aside), an interrupted one resumes from its checkpoints, and a
 //! scene that fails is recorded (`OUT/<scene>/failed.json`) while the shard goes on. Writes
@@ -22,7 +23,7 @@ use train::pipeline::{Recipe, TeacherModel, train_scene};
 pub struct Args {
     /// The manifest (TOML): optional `out`, `vlm`, `backend`, `geometry_iters`,
     /// `language_iters`, `tower_tail`, then one `[[scene]]` table per scene (`name`, `data`, optional
-    /// `questions` and per-scene iterations). Paths are relative to the manifest's folder.
+    /// `questions`, `per_view_masks` and per-scene iterations). Paths are relative to the manifest's folder.
     #[arg(long)]
     pub manifest: PathBuf,
     /// This worker's shard `I/N` (0 <= I < N): the scenes at positions I, I + N, I + 2N ... of
@@ -104,6 +105,9 @@ fn job_fingerprint(plan: &Plan, s: &Job, vlm: &Path) -> anyhow::Result<String> {
     }
     let mut all = Vec::new();
     files(&s.data, &mut all)?;
+    if let Some(p) = &s.per_view_masks {
+        files(p, &mut all)?;
+    }
     all.sort();
     all.extend(s.questions.clone());
     let mut h = model::data::Fnv::default();
@@ -163,6 +167,13 @@ fn run_scene(plan: &Plan, s: &Job, d: &JobDirs, shard: &str, job: &str) -> anyho
         run: d.run.clone(),
         teacher: d.teacher.clone(),
         language: lang.clone(),
+        // per-view masks: the geometry without them in `geometry`, the matched masks in `masks`,
+        // and `run` the same Gaussians with their identity
+        objects: s.per_view_masks.as_ref().map(|p| train::pipeline::PerViewMasks {
+            per_view: p.clone(),
+            bare: GeometryRun::new(d.dir.join("geometry")),
+            matched: d.dir.join("masks"),
+        }),
     };
     let mut bars = Bars::new(plan.backend);
     // resumable: finished stages are skipped, views already extracted kept

@@ -70,6 +70,8 @@ pub fn run(a: Args) -> anyhow::Result<()> {
 
     let mut bars = Bars::with_heading(a.backend, |stage| match stage {
         Stage::Geometry => step(2, "geometry stage: 3DGS + identity field"),
+        // the demo's capture has masks: no per-view masks to match
+        Stage::Objects => {}
         Stage::Teacher => step(3, "teacher tokens (SigLIP features of every training view and masked object)"),
         Stage::Language => step(4, "language field, encoder and scaling adjustment"),
     });

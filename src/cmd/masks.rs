@@ -41,25 +41,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     model::guard::output_folder("--out", &a.out, Kind::Masks, Existing::GoOn, &inputs)?;
     check_trained_on(&run, &a.data)?;
     let opts = MatchOptions { mutual: a.mutual, min_views: a.min_views, ..Default::default() };
-    let (matched, names, missing, ms) = files::match_run(&run, &a.per_view, &opts)?;
-    // the images' full sizes (what `train --masks` checks a mask against), by file name; the
-    // holdout split changes nothing here (train and test views together)
-    let full = model::data::load_any(&a.data, &model::data::LoadOptions { holdout_every: 0, ..Default::default() })?;
-    let size_of: std::collections::HashMap<String, (u32, u32)> = full
-        .train
-        .iter()
-        .chain(&full.test)
-        .filter_map(|v| {
-            Some((v.image_path.file_name()?.to_string_lossy().into_owned(), (v.camera.width, v.camera.height)))
-        })
-        .collect();
-    let sizes = names
-        .iter()
-        .map(|n| {
-            size_of.get(n).copied().ok_or_else(|| anyhow::anyhow!("{}: no image {n} of the run", a.data.display()))
-        })
-        .collect::<anyhow::Result<Vec<_>>>()?;
-    let s = files::write(&a.out, &run, &matched, &names, missing, ms, &opts, |v| sizes[v])?;
+    let s = files::match_capture(&a.data, &run, &a.per_view, &a.out, &opts)?;
     for o in &s.objects {
         eprintln!(
             "object {}: {} Gaussians, {} views, confidence {:.2}",

@@ -196,6 +196,40 @@ fn a_failed_scene_is_recorded_and_a_scene_on_other_data_runs_again() {
     assert_eq!(json(&aside.join("summary.json")), first);
 }
 
+/// Issue 84's flow in a batch: a capture without masks and a segmenter's per-view masks beside it
+/// -> geometry without masks -> matched masks -> identity -> teacher (object crops from the
+/// matched masks) -> language field.
+#[test]
+fn a_scene_given_per_view_masks_gets_its_objects() {
+    let dir = tmp("per-view");
+    std::fs::create_dir_all(&*dir).unwrap();
+    scenes(&dir, &[30_211]);
+    let true_objects = chatsplat_tests::unlabelled::strip_to_per_view(&dir.join("d30211"), &dir.join("sam"));
+    let manifest = dir.join("scenes.toml");
+    let text = "geometry_iters = 150\nlanguage_iters = 3\n\n[[scene]]\nname = \"one\"\ndata = \"d30211\"\n\
+                per_view_masks = \"sam\"\n";
+    std::fs::write(&manifest, text).unwrap();
+    let o = batch(&manifest, &[]).output().unwrap();
+    assert!(o.status.success(), "{}", show(&o));
+    let out = dir.join("scenes-out/one");
+    let s = summary(&dir.join("scenes-out"), "one");
+    for stage in ["geometry", "objects", "teacher", "language"] {
+        assert!(s["seconds"][stage].as_f64().is_some(), "{stage} missing in {s}");
+    }
+    let matched = json(&out.join("masks/masks.json"));
+    let found = matched["objects"].as_array().unwrap().len();
+    assert!(found >= 1 && found <= true_objects, "{found} of {true_objects} objects: {matched}");
+    // the run chat reads has an identity field of the matched objects; the geometry without masks
+    // beside it
+    let state = json(&out.join("run/state.json"));
+    assert!(!state["data"]["mask_dir"].is_null(), "the run names no masks: {state}");
+    let bytes = std::fs::read(out.join("run/checkpoint.safetensors")).unwrap();
+    let st = safetensors::SafeTensors::deserialize(&bytes).unwrap();
+    let shape = st.tensor("classifier_w").unwrap().shape().to_vec();
+    assert_eq!(shape, vec![16, found + 1], "one class per object and the background");
+    assert!(out.join("geometry/checkpoint.safetensors").is_file());
+}
+
 #[test]
 fn bad_manifests_and_shards_are_refused_naming_the_line() {
     let dir = tmp("bad");
@@ -219,6 +253,11 @@ fn bad_manifests_and_shards_are_refused_naming_the_line() {
         ("[[scene]]\nname = \"a\"\ndata = \"d\"\n", "x", vec!["--shard x", "I/N"]),
         // a global setting the model cannot meet: refused before the first scene
         ("tower_tail = 99\n[[scene]]\nname = \"a\"\ndata = \"d\"\n", "", vec!["tower_tail 99", "vision tower"]),
+        (
+            "[[scene]]\nname = \"a\"\ndata = \"d\"\nper_view_masks = \"sam\"\n",
+            "",
+            vec![":4:", "scene `a`", "per_view_masks", "sam is not a directory"],
+        ),
     ];
     for (k, (text, shard, want)) in cases.into_iter().enumerate() {
         let manifest = dir.join(format!("m{k}.toml"));

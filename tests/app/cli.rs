@@ -221,7 +221,6 @@ fn language_commands_reject_bad_input_by_name() {
 /// arbitrary per view) -> `identity` -> `extract` -> `train-language` -> object chat and `find`.
 #[test]
 fn a_capture_without_masks_gets_objects_through_masks_and_identity() {
-    use train::masks::{LabelMap, corrupt};
     let root = tmp("flow");
     let (data, per_view, masks) = (root.join("capture"), root.join("per-view"), root.join("masks"));
     let (run, objects, teacher) = (root.join("run"), root.join("run-objects"), root.join("teacher"));
@@ -236,31 +235,7 @@ fn a_capture_without_masks_gets_objects_through_masks_and_identity() {
         .arg(&data));
     // the segmenter's masks: the true ones with their ids shuffled per view, one view without a
     // file; then the capture loses its own masks
-    let mut truth = Vec::new();
-    let mut stems = Vec::new();
-    for e in std::fs::read_dir(data.join("masks")).unwrap() {
-        let p = e.unwrap().path();
-        let (w, h, ids) = model::data::read_ids16_any(&p).unwrap();
-        truth.push(LabelMap { width: w as usize, height: h as usize, ids });
-        stems.push(p.file_name().unwrap().to_owned());
-    }
-    let none = corrupt::Errors { edge_px: 1, missing: 0.0, merged: 0.0, split: 0.0, fragments: 0 };
-    std::fs::create_dir_all(&per_view).unwrap();
-    for (m, name) in corrupt::corrupt(&truth, &none, 3).iter().zip(&stems).skip(1) {
-        model::images::write_ids(&per_view.join(name), m.width as u32, m.height as u32, &m.ids).unwrap();
-    }
-    // a capture without labels: no masks, no scene.json naming objects, no questions
-    std::fs::remove_dir_all(data.join("masks")).unwrap();
-    for f in ["scene.json", "questions.json"] {
-        let _ = std::fs::remove_file(data.join(f));
-    }
-    let transforms = data.join("transforms.json");
-    let mut t: serde_json::Value = serde_json::from_slice(&std::fs::read(&transforms).unwrap()).unwrap();
-    t["frames"].as_array_mut().unwrap().iter_mut().for_each(|f| {
-        f.as_object_mut().unwrap().remove("instance_mask_path");
-    });
-    std::fs::write(&transforms, serde_json::to_vec_pretty(&t).unwrap()).unwrap();
-    let true_objects = truth.iter().flat_map(|m| m.labels()).collect::<std::collections::BTreeSet<_>>().len();
+    let true_objects = chatsplat_tests::unlabelled::strip_to_per_view(&data, &per_view);
 
     let config = root.join("geometry.json");
     std::fs::write(

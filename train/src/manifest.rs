@@ -48,6 +48,10 @@ struct SceneEntry {
     data: Spanned<PathBuf>,
     /// A question file (default: DATA/questions.json when there is one).
     questions: Option<Spanned<PathBuf>>,
+    /// Per-view masks of any segmenter (`<image stem>.png`, ids arbitrary per view) for a capture
+    /// without consistent masks: matched after the geometry stage (`chatsplat masks`), then the
+    /// identity fitted (`chatsplat identity`).
+    per_view_masks: Option<Spanned<PathBuf>>,
     geometry_iters: Option<usize>,
     language_iters: Option<usize>,
 }
@@ -60,6 +64,8 @@ pub struct Job {
     pub data: PathBuf,
     /// Its question file, when it has questions.
     pub questions: Option<PathBuf>,
+    /// Its per-view masks (a directory), when its objects come from them.
+    pub per_view_masks: Option<PathBuf>,
     pub geometry_iters: usize,
     pub language_iters: usize,
 }
@@ -205,7 +211,17 @@ pub fn read(path: &Path) -> Result<Plan> {
         if geometry_iters == 0 || language_iters == 0 {
             return Err(bad(s.name.span().start, "geometry_iters and language_iters must be at least 1".into()));
         }
-        scenes.push(Job { name: name.clone(), data, questions, geometry_iters, language_iters });
+        let per_view_masks = match &s.per_view_masks {
+            Some(m) => {
+                let p = base.join(m.get_ref());
+                if !p.is_dir() {
+                    return Err(bad(m.span().start, format!("per_view_masks {} is not a directory", p.display())));
+                }
+                Some(p)
+            }
+            None => None,
+        };
+        scenes.push(Job { name: name.clone(), data, questions, per_view_masks, geometry_iters, language_iters });
     }
     let stem = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "batch".into());
     let out = m.out.as_ref().map(|o| base.join(o)).unwrap_or_else(|| base.join(format!("{stem}-out")));

@@ -7,6 +7,8 @@
 
 use crate::geometry::{self, GeometryConfig, RunSummary};
 use crate::language::{LangProgress, LangSummary, LanguageTrainConfig};
+use crate::masks::identity_run::{IdentityOptions, IdentitySummary, identity_run};
+use crate::masks::{MatchOptions, files};
 use crate::teacher::{self, ExtractOptions, ExtractSummary, Plan};
 use burn::tensor::Device;
 use model::data::colmap::{self, SparsePoints};
@@ -23,6 +25,8 @@ pub struct Recipe {
     pub geometry: GeometryConfig,
     pub teacher: ExtractOptions,
     pub language: LanguageTrainConfig,
+    /// How a scene given per-view masks ([`SceneDirs::objects`]) gets its identity field.
+    pub identity: IdentityOptions,
 }
 
 impl Recipe {
@@ -33,6 +37,7 @@ impl Recipe {
             geometry: GeometryConfig::short(geometry_iters),
             teacher: ExtractOptions::default(),
             language: LanguageTrainConfig::short(language_iters),
+            identity: IdentityOptions::default(),
         }
     }
 }
@@ -45,6 +50,21 @@ pub struct SceneDirs {
     pub run: GeometryRun,
     pub teacher: TeacherDir,
     pub language: LanguageRun,
+    /// Per-view masks of any segmenter, for a capture without masks whose ids agree across views:
+    /// the geometry is trained without them, they are matched, and `run` is the geometry with an
+    /// identity field fitted from the matched masks (issue 84's flow).
+    pub objects: Option<PerViewMasks>,
+}
+
+/// Where a scene's per-view masks come from and what is made of them.
+#[derive(Clone, Debug)]
+pub struct PerViewMasks {
+    /// `<image stem>.png` per view, ids arbitrary per view (`chatsplat masks --per-view`).
+    pub per_view: PathBuf,
+    /// The geometry run trained without masks.
+    pub bare: GeometryRun,
+    /// The matched masks (`chatsplat masks --out`), read by the identity and teacher stages.
+    pub matched: PathBuf,
 }
 
 impl SceneDirs {
@@ -52,7 +72,8 @@ impl SceneDirs {
     /// `run/language`.
     pub fn beside(data: &Path, run: &Path) -> Self {
         let run = GeometryRun::new(run);
-        Self { data: data.to_path_buf(), teacher: TeacherDir::new(data.join("teacher")), language: run.language(), run }
+        let teacher = TeacherDir::new(data.join("teacher"));
+        Self { data: data.to_path_buf(), teacher, language: run.language(), run, objects: None }
     }
 }
 
@@ -68,6 +89,8 @@ pub enum TeacherModel<'a> {
 #[derive(Clone, Copy, Debug, PartialEq, Eq)]
 pub enum Stage {
     Geometry,
+    /// Per-view masks matched and the identity fitted ([`SceneDirs::objects`]).
+    Objects,
     Teacher,
     Language,
 }
@@ -76,6 +99,7 @@ impl Stage {
     pub fn name(self) -> &'static str {
         match self {
             Stage::Geometry => "geometry",
+            Stage::Objects => "objects",
             Stage::Teacher => "teacher",
             Stage::Language => "language",
         }
@@ -90,6 +114,9 @@ pub trait Observer {
     fn dataset(&mut self, _data: &Path, _ds: &Dataset) {}
     fn geometry(&mut self, _p: &geometry::Progress) {}
     fn geometry_done(&mut self, _s: &RunSummary, _out: &GeometryRun) {}
+    /// An identity step of the objects stage (`iter` of `iters`, its cross-entropy).
+    fn identity(&mut self, _iter: usize, _iters: usize, _loss: f32) {}
+    fn objects_done(&mut self, _m: &files::Summary, _i: &IdentitySummary, _out: &GeometryRun) {}
     /// The extraction's plan, before any image is encoded.
     fn teacher_plan(&mut self, _plan: &Plan, _opts: &ExtractOptions, _out: &TeacherDir) {}
     fn teacher(&mut self, _done: usize, _total: usize) {}
@@ -107,6 +134,7 @@ impl Observer for Quiet {}
 pub struct Trained {
     /// `None` for a stage that was already complete and skipped.
     pub geometry: Option<RunSummary>,
+    pub objects: Option<(files::Summary, IdentitySummary)>,
     pub teacher: Option<ExtractSummary>,
     pub language: Option<LangSummary>,
     /// Wall-clock seconds of each stage that ran (or was found complete).
@@ -138,20 +166,40 @@ pub fn train_scene(
     recipe.language.validate()?;
     let mut out = Trained::default();
     let t0 = Instant::now();
-    if !(resume && dirs.run.metrics().is_file()) {
-        let again = resume && dirs.run.checkpoint().is_file() && dirs.run.state().is_file();
-        obs.start(Stage::Geometry, if again { Some(dirs.run.read_state()?.iter) } else { None });
+    // with per-view masks, the geometry without them is a run of its own
+    let geometry_run = dirs.objects.as_ref().map_or(&dirs.run, |o| &o.bare);
+    if !(resume && geometry_run.metrics().is_file()) {
+        let again = resume && geometry_run.checkpoint().is_file() && geometry_run.state().is_file();
+        obs.start(Stage::Geometry, if again { Some(geometry_run.read_state()?.iter) } else { None });
         let load = LoadOptions::default();
         let (ds, points) = load_for_geometry(&dirs.data, &load)?;
         obs.dataset(&dirs.data, &ds);
         let cfg = recipe.geometry.clone();
         let s = model::catch_backend("training", || {
-            geometry::fit(&ds, points.as_ref(), &dirs.data, &load, &dirs.run, cfg, device, again, |p| obs.geometry(&p))
+            geometry::fit(&ds, points.as_ref(), &dirs.data, &load, geometry_run, cfg, device, again, |p| {
+                obs.geometry(&p)
+            })
         })??;
-        obs.geometry_done(&s, &dirs.run);
+        obs.geometry_done(&s, geometry_run);
         out.geometry = Some(s);
     }
     out.seconds.push((Stage::Geometry, t0.elapsed().as_secs_f64()));
+    if let Some(o) = dirs.objects.as_ref().filter(|_| !(resume && dirs.run.metrics().is_file())) {
+        let t0 = Instant::now();
+        obs.start(Stage::Objects, None);
+        let matched = files::match_capture(&dirs.data, &o.bare, &o.per_view, &o.matched, &MatchOptions::default())?;
+        let load = LoadOptions { masks: Some(o.matched.clone()), ..Default::default() };
+        let (ds, _) = load_for_geometry(&dirs.data, &load)?;
+        let s = model::catch_backend("the identity", || {
+            let iters = recipe.identity.iters;
+            identity_run(&o.bare, &ds, &dirs.data, &load, &dirs.run, &recipe.identity, device, |i, loss| {
+                obs.identity(i, iters, loss)
+            })
+        })??;
+        obs.objects_done(&matched, &s, &dirs.run);
+        out.objects = Some((matched, s));
+        out.seconds.push((Stage::Objects, t0.elapsed().as_secs_f64()));
+    }
     if resume && dirs.language.metrics().is_file() {
         return Ok(out);
     }
@@ -165,7 +213,12 @@ pub fn train_scene(
             &loaded
         }
     };
-    let opts = &recipe.teacher;
+    // the teacher's object crops come from the matched masks where the capture has none
+    let mut opts = recipe.teacher.clone();
+    if let Some(o) = &dirs.objects {
+        opts.load.masks = Some(o.matched.clone());
+    }
+    let opts = &opts;
     let t_encode = Instant::now();
     // the plan and the progress both report to the observer, one after the other
     let shared = std::cell::RefCell::new(&mut *obs);

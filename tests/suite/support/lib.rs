@@ -8,6 +8,7 @@ use splat_kernels::{Camera, Gaussians};
 pub use model::rng::Rng;
 
 pub mod fixture;
+pub mod unlabelled;
 
 // The browser driver, the HTTP client and scratch paths live with the benches that share them.
 pub use eval::scratch::{Scratch, temp_dir};

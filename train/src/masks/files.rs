@@ -151,3 +151,31 @@ pub fn write(
     model::io::write_json(&out.join("masks.json"), &summary)?;
     Ok(summary)
 }
+
+/// `chatsplat masks` whole: the per-view masks in `per_view` matched over the views of `run`
+/// (trained on the capture `data`), written to `out` at each image's full size.
+pub fn match_capture(
+    data: &Path,
+    run: &GeometryRun,
+    per_view: &Path,
+    out: &Path,
+    opts: &MatchOptions,
+) -> Result<Summary> {
+    let (matched, names, missing, ms) = match_run(run, per_view, opts)?;
+    // the images' full sizes (what `train --masks` checks a mask against), by file name; the
+    // holdout split changes nothing here (train and test views together)
+    let full = model::data::load_any(data, &model::data::LoadOptions { holdout_every: 0, ..Default::default() })?;
+    let size_of: std::collections::HashMap<String, (u32, u32)> = full
+        .train
+        .iter()
+        .chain(&full.test)
+        .filter_map(|v| {
+            Some((v.image_path.file_name()?.to_string_lossy().into_owned(), (v.camera.width, v.camera.height)))
+        })
+        .collect();
+    let sizes = names
+        .iter()
+        .map(|n| size_of.get(n).copied().ok_or_else(|| Error::invalid(data, format!("has no image {n} of the run"))))
+        .collect::<Result<Vec<_>>>()?;
+    write(out, run, &matched, &names, missing, ms, opts, |v| sizes[v])
+}

@@ -151,6 +151,7 @@ fn bench(a: &Args) -> Result<()> {
             geometry: GeometryConfig::short(a.geometry_iters),
             teacher: ExtractOptions { novel, tower_tail: a.tower_tail, ..Default::default() },
             language: language_config.clone(),
+            identity: Default::default(),
         };
         let mut bars = SeedBars { seed, bar: None };
         let trained = train_scene(TeacherModel::Loaded(&vlm), &dirs, &recipe, &device, false, &mut bars)?;

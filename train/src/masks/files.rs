@@ -6,6 +6,7 @@
 use super::{LabelMap, MatchOptions, Matched, match_masks};
 use model::error::{Error, Result};
 use model::run::GeometryRun;
+use model::splats::SplatModel;
 use serde::Serialize;
 use splat_kernels::Camera;
 use std::path::{Path, PathBuf};
@@ -70,20 +71,19 @@ fn read_view(dir: &Path, name: &str, cam: &Camera) -> Result<Option<LabelMap>> {
     Ok(Some(LabelMap { width: cw as usize, height: ch as usize, ids: ids.collect() }))
 }
 
-/// Matches the per-view masks in `per_view` over the views of `run`; returns the result, the
-/// image names, the views without a mask file and the milliseconds per view.
-pub fn match_run(
-    run: &GeometryRun,
+/// Matches the per-view masks in `per_view` over the views `names` / `cameras` of `model`;
+/// returns the result, the views without a mask file and the milliseconds per view.
+fn match_run(
+    model: &SplatModel,
+    names: &[String],
+    cameras: &[Camera],
     per_view: &Path,
     opts: &MatchOptions,
-) -> Result<(Matched, Vec<String>, Vec<String>, f64)> {
-    let (model, _) = run.load_model(&burn::tensor::Device::ndarray())?;
-    let cams = run.read_cameras()?;
-    let (names, cameras) = (cams.image_names(), cams.all());
+) -> Result<(Matched, Vec<String>, f64)> {
     let t0 = std::time::Instant::now();
     let mut masks = Vec::new();
     let mut missing = Vec::new();
-    for (name, cam) in names.iter().zip(&cameras) {
+    for (name, cam) in names.iter().zip(cameras) {
         masks.push(match read_view(per_view, name, cam)? {
             Some(m) => m,
             None => {
@@ -102,15 +102,16 @@ pub fn match_run(
     let weights = cameras.iter().map(|c| model.blend_weights(c)).collect::<Result<Vec<_>>>()?;
     let matched = match_masks(&weights, &masks, opts);
     let ms = t0.elapsed().as_secs_f64() * 1000.0 / names.len().max(1) as f64;
-    Ok((matched, names, missing, ms))
+    Ok((matched, missing, ms))
 }
 
 /// Writes `OUT/<stem>.png` for every view at `size(view)` (the image's full size) and
 /// `OUT/masks.json`; returns the summary.
 #[allow(clippy::too_many_arguments)]
-pub fn write(
+fn write(
     out: &Path,
-    run: &GeometryRun,
+    model: &SplatModel,
+    cameras: &[Camera],
     matched: &Matched,
     names: &[String],
     missing: Vec<String>,
@@ -118,8 +119,6 @@ pub fn write(
     opts: &MatchOptions,
     full_size: impl Fn(usize) -> (u32, u32),
 ) -> Result<Summary> {
-    let (model, _) = run.load_model(&burn::tensor::Device::ndarray())?;
-    let cameras = run.read_cameras()?.all();
     model::io::create_dir(out)?;
     for (v, cam) in cameras.iter().enumerate() {
         let (w, h) = full_size(v);
@@ -161,7 +160,10 @@ pub fn match_capture(
     out: &Path,
     opts: &MatchOptions,
 ) -> Result<Summary> {
-    let (matched, names, missing, ms) = match_run(run, per_view, opts)?;
+    let (model, _) = run.load_model(&burn::tensor::Device::ndarray())?;
+    let cams = run.read_cameras()?;
+    let (names, cameras) = (cams.image_names(), cams.all());
+    let (matched, missing, ms) = match_run(&model, &names, &cameras, per_view, opts)?;
     // the images' full sizes (what `train --masks` checks a mask against), by file name; the
     // holdout split changes nothing here (train and test views together)
     let full = model::data::load_any(data, &model::data::LoadOptions { holdout_every: 0, ..Default::default() })?;
@@ -177,5 +179,5 @@ pub fn match_capture(
         .iter()
         .map(|n| size_of.get(n).copied().ok_or_else(|| Error::invalid(data, format!("has no image {n} of the run"))))
         .collect::<Result<Vec<_>>>()?;
-    write(out, run, &matched, &names, missing, ms, opts, |v| sizes[v])
+    write(out, &model, &cameras, &matched, &names, missing, ms, opts, |v| sizes[v])
 }

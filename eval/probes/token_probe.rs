@@ -23,6 +23,7 @@ use burn::tensor::{Device, Tensor, TensorData};
 use clap::Parser;
 use eval::harness::ModelArgs;
 use eval::probe::{REGIONS, Region, count_answer, regions, token_l1, view_truth};
+use model::ObjectId;
 use model::Result;
 use model::chat::{ChatSession, Target, answer};
 use model::data::synth::raycast::render_view;
@@ -117,7 +118,7 @@ struct ProbeView {
     name: String,
     split: Split,
     rgb: Vec<f32>,
-    ids: Vec<u8>,
+    ids: Vec<ObjectId>,
     camera: Camera,
 }
 

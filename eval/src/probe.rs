@@ -2,6 +2,7 @@
 //! objects of a view (from the ground-truth instance mask), a view's true count and colour
 //! answers, reading a count answer, and the L1 of one token.
 
+use model::ObjectId;
 use model::data::synth::FIRST_OBJECT_ID;
 use model::data::synth::questions::{Kind, ViewFacts, view_questions};
 use model::data::synth::scene::SynthScene;
@@ -32,7 +33,7 @@ impl Region {
 }
 
 /// The region of every patch of a `w`x`h` instance mask `ids` cut in `p`-pixel patches, row-major.
-pub fn regions(ids: &[u8], w: usize, h: usize, p: usize) -> Vec<Region> {
+pub fn regions(ids: &[ObjectId], w: usize, h: usize, p: usize) -> Vec<Region> {
     let mut out = Vec::with_capacity((w / p) * (h / p));
     for py in 0..h / p {
         for px in 0..w / p {
@@ -62,7 +63,7 @@ pub fn regions(ids: &[u8], w: usize, h: usize, p: usize) -> Vec<Region> {
 /// The true answers of "How many objects are there?" and "What colors are there?" for a `w`x`h`
 /// view of `scene` with instance mask `ids`, by the question files' own rule
 /// ([`view_questions`]); `None` for a view the question files leave out as ambiguous.
-pub fn view_truth(scene: &SynthScene, ids: &[u8], w: usize, h: usize) -> Option<(usize, String)> {
+pub fn view_truth(scene: &SynthScene, ids: &[ObjectId], w: usize, h: usize) -> Option<(usize, String)> {
     let facts = ViewFacts::of(scene, ids, &vec![0.0; w * h], w, h);
     if facts.ambiguous {
         return None;
@@ -89,7 +90,7 @@ mod tests {
 
     #[test]
     fn each_patch_gets_its_region() {
-        let (bg, a, b) = (0u8, FIRST_OBJECT_ID, FIRST_OBJECT_ID + 1);
+        let (bg, a, b) = (0u16, FIRST_OBJECT_ID, FIRST_OBJECT_ID + 1);
         // an 8x2 mask in four 2x2 patches: table only, object a only, a beside table, a beside b
         #[rustfmt::skip]
         let ids = [

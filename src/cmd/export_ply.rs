@@ -3,6 +3,7 @@
 //! all but one object's (`--without ID`), by each Gaussian's identity class.
 
 use anyhow::bail;
+use model::ObjectId;
 use model::run::GeometryRun;
 use std::path::{Path, PathBuf};
 
@@ -38,10 +39,10 @@ pub struct Args {
     /// Only the Gaussians of this object (its identity class, as `ask --object` and the viewer
     /// number objects).
     #[arg(long, conflicts_with = "without")]
-    object: Option<u8>,
+    object: Option<ObjectId>,
     /// The scene without this object's Gaussians.
     #[arg(long)]
-    without: Option<u8>,
+    without: Option<ObjectId>,
 }
 
 pub fn run(a: Args) -> anyhow::Result<()> {
@@ -65,7 +66,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
                 bail!("{flag} 0: 0 is the background (the Gaussians of no object), not an object");
             }
             if of_id == 0 {
-                let mut objects: Vec<u8> = classes.iter().copied().filter(|&c| c != 0).collect();
+                let mut objects: Vec<ObjectId> = classes.iter().copied().filter(|&c| c != 0).collect();
                 objects.sort_unstable();
                 objects.dedup();
                 bail!(

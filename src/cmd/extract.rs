@@ -21,8 +21,8 @@ pub struct Args {
     /// Output directory (default: DATA/teacher).
     #[arg(long)]
     pub out: Option<PathBuf>,
-    /// Instance masks from another tool: DIR/<image stem>.png per image (8-bit ids, 0 =
-    /// background, the image's size), instead of the dataset's own; use the same as for `train`.
+    /// Instance masks from another tool: DIR/<image stem>.png per image (8- or 16-bit
+    /// ids, 0 = background, the image's size), instead of the dataset's own; use the same as for `train`.
     #[arg(long, value_name = "DIR")]
     pub masks: Option<PathBuf>,
     /// Integer image downscale before extraction.

@@ -28,11 +28,16 @@ pub struct Args {
     /// An object is kept when it was seen as one mask in at least this many views.
     #[arg(long, default_value_t = MatchOptions::default().min_views)]
     pub min_views: usize,
+    /// Two objects whose Gaussians share one mask in at least this share of the views that see
+    /// both are one object (the pieces of an object a segmenter split); higher keeps objects
+    /// apart that a segmenter often merges.
+    #[arg(long, default_value_t = MatchOptions::default().together)]
+    pub together: f64,
 }
 
 pub fn run(a: Args) -> anyhow::Result<()> {
-    if !(0.5..=1.0).contains(&a.mutual) || a.min_views == 0 {
-        anyhow::bail!("--mutual must be within 0.5..=1 and --min-views at least 1");
+    if !(0.5..=1.0).contains(&a.mutual) || a.min_views == 0 || !(0.0..=1.0).contains(&a.together) {
+        anyhow::bail!("--mutual must be within 0.5..=1, --together within 0..=1 and --min-views at least 1");
     }
     let run = GeometryRun::new(&a.run);
     let mut inputs = run.own_files();
@@ -40,7 +45,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
     inputs.push(("the --per-view directory", a.per_view.clone()));
     model::guard::output_folder("--out", &a.out, Kind::Masks, Existing::GoOn, &inputs)?;
     check_trained_on(&run, &a.data)?;
-    let opts = MatchOptions { mutual: a.mutual, min_views: a.min_views, ..Default::default() };
+    let opts = MatchOptions { mutual: a.mutual, min_views: a.min_views, together: a.together, ..Default::default() };
     let s = files::match_capture(&a.data, &run, &a.per_view, &a.out, &opts)?;
     for o in &s.objects {
         eprintln!(

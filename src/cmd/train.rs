@@ -27,8 +27,8 @@ pub struct Args {
     #[arg(long, default_value_t = 1)]
     pub downscale: u32,
     /// Instance masks from another tool (e.g. SAM + DEVA, Gaussian Grouping): DIR/<image
-    /// stem>.png per image, 8-bit ids (0 = background) the image's size, replacing the dataset's
-    /// own masks; they train the identity field that object-level chat needs.
+    /// stem>.png per image, 8- or 16-bit ids (0 = background, at most 4095) the image's size,
+    /// replacing the dataset's own masks; they train the identity field that object-level chat needs.
     #[arg(long, value_name = "DIR")]
     pub masks: Option<PathBuf>,
     /// Continue from the run directory's last checkpoint.

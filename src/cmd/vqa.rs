@@ -1,6 +1,7 @@
 //! `chatsplat vqa`: answer a question file about a trained scene and score the answers.
 
 use super::SceneArgs;
+use model::ObjectId;
 use model::chat::ChatSession;
 use model::find::{FindTally, ObjectNames, check_threshold};
 use model::vqa::{FindOptions, Level, QuestionFile, answer_all, load_questions};
@@ -65,9 +66,9 @@ struct Row {
     follows: Option<String>,
     /// Find level: the ids the phrase names and the ids found.
     #[serde(skip_serializing_if = "Option::is_none")]
-    objects: Option<Vec<u8>>,
+    objects: Option<Vec<ObjectId>>,
     #[serde(skip_serializing_if = "Option::is_none")]
-    found: Option<Vec<u8>>,
+    found: Option<Vec<ObjectId>>,
     grader: Option<f32>,
 }
 
@@ -276,7 +277,7 @@ fn check_find_objects(s: &ChatSession, (path, qf): (&Path, &QuestionFile), names
     if finds.is_empty() {
         return Ok(());
     }
-    let held: std::collections::BTreeSet<u8> = s.scene.splats.gaussian_classes().into_iter().collect();
+    let held: std::collections::BTreeSet<ObjectId> = s.scene.splats.gaussian_classes().into_iter().collect();
     for (i, q) in finds {
         for &id in q.objects.iter().flatten() {
             // a synthetic scene lists its objects (its table is ground, never searched); any other

@@ -354,7 +354,7 @@ fn broken_datasets(s: &mut Suite, dir: &Path, base: &Path) {
         ("mask-junk", write("masks/frame_0001.png", b"\x89PNG junk"), "frame_0001.png"),
         ("depth-junk", write("depth/frame_0002.png", b"junk"), "frame_0002.png"),
         // silent wrong results before: now refused, naming the file and the problem
-        ("mask-16bit-id", Box::new(|d: &Path| mask16(&d.join("masks/frame_0001.png"), 300)), "instance id 300"),
+        ("mask-16bit-id", Box::new(|d: &Path| mask16(&d.join("masks/frame_0001.png"), 5000)), "instance id 5000"),
         ("mask-colour", Box::new(|d: &Path| mask_rgb(&d.join("masks/frame_0002.png"))), "colour-coded mask"),
         (
             "mask-partial",

@@ -81,8 +81,10 @@ fn token_l1(out: &str) -> [f64; 4] {
 fn object_pixel(s: &ChatSession, cam: &splat_kernels::Camera) -> (usize, usize) {
     let ids = s.scene.splats.render_ids(cam).unwrap();
     let w = cam.width as usize;
-    let id = (model::data::synth::FIRST_OBJECT_ID..=u8::MAX)
-        .max_by_key(|&id| ids.iter().filter(|&&i| i == id).count())
+    let (id, _) = model::language::pixel_counts(&ids)
+        .into_iter()
+        .filter(|&(id, _)| id >= model::data::synth::FIRST_OBJECT_ID)
+        .max_by_key(|&(id, n)| (n, std::cmp::Reverse(id)))
         .unwrap();
     let at: Vec<usize> = (0..ids.len()).filter(|&p| ids[p] == id).collect();
     assert!(!at.is_empty(), "view 0 shows an object");

@@ -145,7 +145,7 @@ fn token_cameras_frame_what_the_teacher_saw() {
     let s = 384.0 / 60.0;
     assert!((u2 - (u - 40.0) * s).abs() < 1e-2 && (v2 - (v - 10.0) * s).abs() < 1e-2, "({u},{v}) -> ({u2},{v2})");
     // and the box helper matches the teacher's crop rule
-    let mut ids = vec![0u8; 20 * 10];
+    let mut ids = vec![0u16; 20 * 10];
     for y in 2..6 {
         for x in 5..15 {
             ids[y * 20 + x] = 3;

@@ -432,7 +432,7 @@ fn masks_given_with_the_masks_option_are_undistorted_like_the_captures_own() {
     let opts = LoadOptions { masks: Some(masks.to_path_buf()), holdout_every: 0, ..Default::default() };
     for ds in [load(&dir, &opts).unwrap(), model::data::load_any(&dir, &opts).unwrap()] {
         let given = ds.train[0].instance_ids.clone().unwrap();
-        let want: Vec<u8> = own.iter().map(|&i| if i == 7 { 9 } else { i }).collect();
+        let want: Vec<u16> = own.iter().map(|&i| if i == 7 { 9 } else { i }).collect();
         assert_eq!(given, want, "undistorted exactly as the capture's own mask");
     }
     std::fs::remove_file(masks.join("rgb.png")).unwrap();

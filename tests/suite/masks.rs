@@ -80,8 +80,8 @@ fn corrupted_masks_are_matched_into_one_id_per_object_whatever_the_view_order() 
         );
         // identity on the frozen geometry from the matched masks: each Gaussian's vote, then
         // cross-entropy on the identity alone
-        let views_ids: Vec<(splat_kernels::Camera, Vec<u8>)> =
-            ds.train.iter().zip(&m.views).map(|(v, l)| (v.camera, l.ids.iter().map(|&i| i as u8).collect())).collect();
+        let views_ids: Vec<(splat_kernels::Camera, Vec<u16>)> =
+            ds.train.iter().zip(&m.views).map(|(v, l)| (v.camera, l.ids.clone())).collect();
         let labels = identity::vote_labels(&weights, &m.views);
         let agree = labels.iter().zip(&m.gaussian_labels).filter(|(a, b)| a == b).count() as f32 / labels.len() as f32;
         let voted = identity::from_labels(&t.model, &labels, 7);
@@ -90,11 +90,19 @@ fn corrupted_masks_are_matched_into_one_id_per_object_whatever_the_view_order() 
                 .iter()
                 .map(|v| {
                     let ids = model.render_ids(&v.camera).unwrap();
-                    LabelMap { ids: ids.iter().map(|&i| i as u16).collect(), ..truth_of(v) }
+                    LabelMap { ids, ..truth_of(v) }
                 })
                 .collect()
         };
         let by_vote = score::consistency(&m.views, &rendered(&voted));
+        // ids past a byte: the same objects numbered from 300 render the same pixels (a class per
+        // id up to the largest; the ids between carry no Gaussian and never win)
+        let past = |i: u16| if i == 0 { 0 } else { i + 300 };
+        let wide = identity::from_labels(&t.model, &labels.iter().map(|&l| past(l)).collect::<Vec<_>>(), 7);
+        let shifted: Vec<LabelMap> = rendered(&voted).iter().map(|m| m.map(past)).collect();
+        let wide_views = rendered(&wide);
+        assert!(wide_views.iter().flat_map(|m| m.labels()).all(|l| l > 300), "an id wrapped or was lost");
+        assert_eq!(wide_views, shifted, "ids past 255 render other pixels than the same objects numbered from 1");
         let lrs = train::masks::identity_run::IdentityOptions::default().lrs;
         let refined = identity::refine(voted, &views_ids, 60, lrs, 7, |_, _| {}).unwrap();
         let by_ce = score::consistency(&m.views, &rendered(&refined.model));

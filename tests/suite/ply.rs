@@ -116,7 +116,7 @@ fn an_objects_gaussians_are_taken_out_by_their_identity_class() {
     let device = burn::tensor::Device::ndarray();
     let model = model::splats::SplatModel::from_cloud(&cloud, Some(&classifier), 3, &device);
     let classes = model.gaussian_classes();
-    assert_eq!(classes, (0..n).map(|i| (i % 3) as u8).collect::<Vec<_>>());
+    assert_eq!(classes, (0..n).map(|i| (i % 3) as u16).collect::<Vec<_>>());
     for keep_object in [true, false] {
         let keep: Vec<bool> = classes.iter().map(|&c| (c == 1) == keep_object).collect();
         let picked: Vec<usize> = (0..n).filter(|&i| keep[i]).collect();

@@ -61,7 +61,7 @@ fn scenes_vary_within_the_rules_and_are_deterministic() {
         backgrounds.insert(s.background.map(|c| (c * 100.0) as i32));
         let mut pairs = BTreeSet::new();
         for (k, o) in s.objects.iter().enumerate() {
-            assert_eq!(o.id, FIRST_OBJECT_ID + k as u8);
+            assert_eq!(o.id, FIRST_OBJECT_ID + k as u16);
             assert!(pairs.insert((o.color, o.shape)), "seed {seed}: two {}s", o.name());
             shapes.insert(o.shape);
             colors.insert(o.color);
@@ -85,13 +85,13 @@ fn scenes_vary_within_the_rules_and_are_deterministic() {
 /// The answer to a view question recomputed from the rendered ids and depth alone.
 fn recompute(
     scene: &SynthScene,
-    ids: &[u8],
+    ids: &[u16],
     depth: &[f32],
     w: usize,
     qa: &model::data::synth::questions::Qa,
 ) -> String {
     let area = ids.len() as f32;
-    let mut px: BTreeMap<u8, Vec<usize>> = BTreeMap::new();
+    let mut px: BTreeMap<u16, Vec<usize>> = BTreeMap::new();
     for (p, &i) in ids.iter().enumerate() {
         if i >= FIRST_OBJECT_ID {
             px.entry(i).or_default().push(p);
@@ -239,7 +239,7 @@ fn view_answers_are_true_by_construction() {
                 *per_kind.entry(qa.kind.as_str()).or_default() += 1;
             }
             let count = qas.iter().find(|q| q.kind == Kind::Count).unwrap();
-            let distinct: BTreeSet<u8> = v.ids.iter().copied().filter(|&i| i >= FIRST_OBJECT_ID).collect();
+            let distinct: BTreeSet<u16> = v.ids.iter().copied().filter(|&i| i >= FIRST_OBJECT_ID).collect();
             assert_eq!(count.answer, distinct.len().to_string(), "seed {seed}: the count is the objects in the mask");
         }
     }
@@ -336,7 +336,7 @@ fn dataset_is_deterministic_complete_and_geometrically_consistent() {
         for o in 0..w * h {
             seen[ids[o] as usize] += 1;
             assert_eq!(ids[o] == 0, depth[o] == 0, "depth present exactly where a surface is");
-            let Some(obj) = scene.object(ids[o]) else { continue };
+            let Some(obj) = scene.object(ids[o] as u16) else { continue };
             // Back-project and check the point lies on the object's surface.
             let (x, y) = ((o % w) as f32 + 0.5, (o / w) as f32 + 0.5);
             let z = depth[o] as f32 * synth::DEPTH_SCALE;
@@ -375,7 +375,7 @@ fn dataset_is_deterministic_complete_and_geometrically_consistent() {
             }
             Level::Find => {
                 // the objects named are exactly those whose name holds every word of the phrase
-                let named: Vec<u8> = scene
+                let named: Vec<u16> = scene
                     .objects
                     .iter()
                     .filter(|o| q.question.split(' ').all(|w| o.name().split(' ').any(|n| n == w)))
@@ -390,7 +390,7 @@ fn dataset_is_deterministic_complete_and_geometrically_consistent() {
             let [x, y] = q.object.unwrap();
             let (_, _, _, ids) = read_png8(&a.join(frames[q.view.unwrap()].replace("images/", "masks/"))).unwrap();
             let id = ids[y as usize * w + x as usize];
-            let o = scene.object(id).expect("the click lands on an object");
+            let o = scene.object(id as u16).expect("the click lands on an object");
             let qas = object_questions(o);
             let mut asked: Vec<(String, String)> =
                 qas.iter().map(|qa| (qa.question.clone(), qa.answer.clone())).collect();
@@ -474,7 +474,7 @@ fn gaussian_tabletop_covers_the_same_pixels_as_the_analytic_scene() {
 fn clicks_land_deep_inside_the_object() {
     // an 11x7 ring of id 5 (4 pixels wide on the left) around a hole of id 0; a 2-pixel bar of id 6
     let (w, h) = (11usize, 7usize);
-    let mut ids = vec![0u8; w * h];
+    let mut ids = vec![0u16; w * h];
     for y in 1..6 {
         for x in 1..10 {
             let ring = !(5..=7).contains(&x) || !(2..=4).contains(&y);
@@ -505,7 +505,7 @@ fn clicks_land_deep_inside_the_object() {
 }
 
 /// Whether the pixel and its four neighbours (all inside the image) carry the same id.
-fn interior(ids: &[u8], w: usize, x: usize, y: usize) -> bool {
+fn interior(ids: &[u16], w: usize, x: usize, y: usize) -> bool {
     let h = ids.len() / w;
     let id = ids[y * w + x];
     x > 0

@@ -374,7 +374,7 @@ fn object_images_keep_only_the_object_cropped_with_a_margin_and_squared() {
     let (w, h) = (40, 20);
     let data: Vec<u8> = (0..w * h * 3).map(|i| (i % 251) as u8 + 1).collect();
     let img = RgbImage::new(w, h, data);
-    let mut ids = vec![0u8; w * h];
+    let mut ids = vec![0u16; w * h];
     for y in 5..15 {
         for x in 10..30 {
             ids[y * w + x] = if (x + y) % 7 == 0 { 3 } else { 2 };

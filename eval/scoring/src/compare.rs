@@ -12,6 +12,7 @@
 //! All three feed the LLM the same layout: one token grid per image, projector, newline.
 
 use crate::score::{normalize, offline_score};
+use model::ObjectId;
 use model::chat::{ChatSession, DEFAULT_SCENE_VIEWS, answer};
 use model::data::Dataset;
 use model::error::{Error, Result};
@@ -261,10 +262,27 @@ fn target_key(q: &Question) -> TargetKey {
 /// the phrase names, by the phrase's kind, and the seconds the searches took (the first one
 /// builds the finder).
 pub fn find_file(session: &ChatSession, file: &QuestionFile, opts: &FindOptions) -> Result<(FindKinds, f64)> {
+    find_file_as(session, file, opts, &|id| id)
+}
+
+/// [`find_file`] for a scene whose object ids are not the question file's (masks matched across
+/// views number objects their own way): each id found is taken to the one the file names the
+/// same object by (`as_named`), an object found in two pieces counting once.
+pub fn find_file_as(
+    session: &ChatSession,
+    file: &QuestionFile,
+    opts: &FindOptions,
+    as_named: &dyn Fn(ObjectId) -> ObjectId,
+) -> Result<(FindKinds, f64)> {
     let (mut kinds, mut finder) = (FindKinds::new(), None);
     let t0 = std::time::Instant::now();
     for q in file.questions.iter().filter(|q| q.level == Level::Find) {
-        let found = find_objects(session, &mut finder, opts, &q.question)?;
+        let mut found: Vec<ObjectId> = Vec::new();
+        for id in find_objects(session, &mut finder, opts, &q.question)?.into_iter().map(as_named) {
+            if !found.contains(&id) {
+                found.push(id);
+            }
+        }
         let kind = q.kind.clone().unwrap_or_else(|| "-".into());
         kinds.entry(kind).or_default().add(q.objects.as_deref().unwrap_or_default(), &found);
     }

@@ -25,6 +25,13 @@ struct Args {
     /// The `chatsplat` binary (default: the one beside this bench; `cargo build --release` first).
     #[arg(long)]
     chatsplat: Option<PathBuf>,
+    /// Instead of the figures: open the page (headless Chromium), click the object `--object`
+    /// (default: the one covering most of the page's first view) and write the page as a PNG here.
+    #[arg(long, value_name = "PNG")]
+    screenshot: Option<PathBuf>,
+    /// The object `--screenshot` clicks, by id (`/api/scene` lists them).
+    #[arg(long, requires = "screenshot")]
+    object: Option<u64>,
 }
 
 eval::bench_main!("viewer-bench", bench);
@@ -117,6 +124,9 @@ fn bench(a: &Args) -> Result<()> {
         }
         Ok(ms)
     };
+    if let Some(path) = &a.screenshot {
+        return screenshot(&addr, path, a.object, &targets);
+    }
     let mut pick_ms = picks(&sized(&view0, 320, 240)?)?;
     let mut full_pick_ms = picks(&cam)?;
     let first_token = |body: Value| -> Result<f64> {
@@ -243,5 +253,53 @@ fn bench(a: &Args) -> Result<()> {
         }
         None => println!("| browser | not installed (apt-get install chromium-headless-shell) |"),
     }
+    Ok(())
+}
+
+/// `--screenshot`: the page at its first view, `object` (or the largest object there) clicked,
+/// its highlight drawn, written to `path`.
+fn screenshot(
+    addr: &str,
+    path: &std::path::Path,
+    object: Option<u64>,
+    targets: &dyn Fn(&Value) -> Result<Vec<(u64, u64, u64)>>,
+) -> Result<()> {
+    let exe = browser::find().ok_or_else(|| Error::input("--screenshot needs chromium-headless-shell"))?;
+    let err = |what: &'static str| move |e: String| Error::input(format!("the browser ({what}): {e}"));
+    let mut b = Browser::launch(&exe, 1100, 700).map_err(err("start"))?;
+    let ready = "window.chatsplat && window.chatsplat.ready && window.chatsplat.frames > 0";
+    b.goto(&format!("http://{addr}/"), ready, Duration::from_secs(300)).map_err(err("the page"))?;
+    b.wait_for("window.chatsplat.idle", Duration::from_secs(120)).map_err(err("idle"))?;
+    let rect = b.eval("window.chatsplat.canvasRect()").map_err(err("the canvas"))?;
+    let camera = b.eval("window.chatsplat.camera()").map_err(err("the camera"))?;
+    let at = targets(&camera)?;
+    let (id, x, y) = match object {
+        Some(id) => at
+            .into_iter()
+            .find(|t| t.0 == id)
+            .ok_or_else(|| Error::input(format!("object {id} is not in the page's view")))?,
+        None => {
+            // the largest: most pixels in its selection mask
+            let pixels = |id: u64| -> Result<f64> {
+                let r = post_json(addr, "/api/select", &json!({"camera": camera, "id": id}))?;
+                num(&r["object"]["pixels"], "a selection's pixels")
+            };
+            let mut best = (at[0], -1.0);
+            for t in at {
+                let n = pixels(t.0)?;
+                if n > best.1 {
+                    best = (t, n);
+                }
+            }
+            best.0
+        }
+    };
+    let (left, top) = (num(&rect[0], "the canvas")?, num(&rect[1], "the canvas")?);
+    b.click(left + x as f64 + 0.5, top + y as f64 + 0.5).map_err(err("the click"))?;
+    let sel = b.wait_for("window.chatsplat.selection", Duration::from_secs(60)).map_err(err("the pick"))?;
+    b.wait_for("window.chatsplat.idle", Duration::from_secs(120)).map_err(err("idle"))?;
+    std::fs::write(path, b.screenshot().map_err(err("the screenshot"))?.0)
+        .map_err(|e| Error::io(path, "writing", e))?;
+    println!("object {id} clicked at ({x}, {y}): {sel} -> {}", path.display());
     Ok(())
 }

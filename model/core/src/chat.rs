@@ -10,6 +10,7 @@
 //! answers and their keys and values: a follow-up is a new user turn after them, and only its own
 //! tokens are prefilled.
 
+use crate::ObjectId;
 use crate::error::{Error, Result};
 use crate::language::FrozenEncoder;
 use crate::run::{GeometryRun, LanguageRun};
@@ -31,12 +32,12 @@ pub use crate::question_file::SCENE_VIEWS as DEFAULT_SCENE_VIEWS;
 pub struct Picked {
     /// The camera the object was picked in (any pose and size).
     pub camera: Camera,
-    /// The object's instance id (1..=255; 0 is the background).
-    pub id: u8,
+    /// The object's instance id (0 is the background).
+    pub id: ObjectId,
     /// The object's crop box in the view, `[x0, y0, x1, y1)` (mask box + the teacher's margin).
     pub bbox: [usize; 4],
     /// The rendered identity of the whole view, `[H * W]` row-major: the object is where it is `id`.
-    pub ids: Vec<u8>,
+    pub ids: Vec<ObjectId>,
     tokens: Arc<OnceLock<Tensor<2>>>,
 }
 
@@ -266,13 +267,13 @@ impl ChatSession {
 
     /// Object `id` in the view from `camera` (a selection followed to a new camera): `None` when
     /// the object is not visible there.
-    pub fn select(&self, camera: &Camera, id: u8) -> Result<Option<Picked>> {
+    pub fn select(&self, camera: &Camera, id: ObjectId) -> Result<Option<Picked>> {
         self.scene.check_masks()?;
         let ids = self.scene.splats.render_ids(camera)?;
         Ok(self.picked(camera, id, ids))
     }
 
-    fn picked(&self, camera: &Camera, id: u8, ids: Vec<u8>) -> Option<Picked> {
+    fn picked(&self, camera: &Camera, id: ObjectId, ids: Vec<ObjectId>) -> Option<Picked> {
         let bbox = self.scene.object_box(camera, &ids, id)?;
         Some(Picked { camera: *camera, id, bbox, ids, tokens: Arc::default() })
     }

@@ -8,6 +8,7 @@
 //! object map, encoded once); each question's prompt about it is prefilled once and kept, so a
 //! query prefills only its own few tokens per object and question.
 
+use crate::ObjectId;
 use crate::chat::{ChatSession, Picked};
 use crate::error::{Error, Result};
 use crate::run::GeometryRun;
@@ -32,9 +33,9 @@ pub const LIST_FRACTION: f32 = 0.002;
 /// "red cube", id 1 the table), else "object N".
 #[derive(Clone, Debug, Default)]
 pub struct ObjectNames {
-    names: BTreeMap<u8, String>,
+    names: BTreeMap<ObjectId, String>,
     /// A synthetic scene's objects (not its table); `None` where the dataset does not say.
-    objects: Option<Vec<u8>>,
+    objects: Option<Vec<ObjectId>>,
 }
 
 impl ObjectNames {
@@ -53,7 +54,7 @@ impl ObjectNames {
         }
         match crate::io::read_json::<SynthScene>(&path) {
             Ok(scene) => {
-                let mut names: BTreeMap<u8, String> = scene.objects.iter().map(|o| (o.id, o.name())).collect();
+                let mut names: BTreeMap<ObjectId, String> = scene.objects.iter().map(|o| (o.id, o.name())).collect();
                 names.insert(crate::data::synth::TABLE_ID, "table".into());
                 Self { names, objects: Some(scene.objects.iter().map(|o| o.id).collect()) }
             }
@@ -64,7 +65,13 @@ impl ObjectNames {
         }
     }
 
-    pub fn name(&self, id: u8) -> String {
+    /// No names; a search looks at `objects` alone (e.g. a capture's objects less the ground it
+    /// stands on, known from elsewhere).
+    pub fn only(objects: Vec<ObjectId>) -> Self {
+        Self { names: BTreeMap::new(), objects: Some(objects) }
+    }
+
+    pub fn name(&self, id: ObjectId) -> String {
         self.names.get(&id).cloned().unwrap_or_else(|| format!("object {id}"))
     }
 
@@ -76,13 +83,13 @@ impl ObjectNames {
 
     /// Whether `id` is one of a synthetic scene's objects (its table is not); `None` where the
     /// dataset does not list its objects.
-    pub fn lists(&self, id: u8) -> Option<bool> {
+    pub fn lists(&self, id: ObjectId) -> Option<bool> {
         self.objects.as_ref().map(|o| o.contains(&id))
     }
 
     /// Whether a search looks at instance `id`: every instance, except a synthetic scene's table
     /// (the ground its objects stand on, which its questions and the built-in model never name).
-    pub fn searched(&self, id: u8) -> bool {
+    pub fn searched(&self, id: ObjectId) -> bool {
         self.objects.as_ref().is_none_or(|o| o.contains(&id))
     }
 }
@@ -90,7 +97,7 @@ impl ObjectNames {
 /// An object of the scene and the training view where it shows most.
 #[derive(Clone, Debug, PartialEq)]
 pub struct SceneObject {
-    pub id: u8,
+    pub id: ObjectId,
     pub view: usize,
     /// The fraction of that view it covers.
     pub fraction: f32,
@@ -112,30 +119,26 @@ pub fn scaled(cam: &Camera, side: u32) -> Camera {
 /// The objects the training views show (each covering at least [`LIST_FRACTION`] of one, in
 /// identity renders at [`LIST_SIDE`]), by id; none for a scene trained without masks.
 pub fn scene_objects(s: &ChatSession) -> Result<Vec<SceneObject>> {
-    let mut best: Vec<Option<SceneObject>> = vec![None; 256];
+    let mut best: BTreeMap<ObjectId, SceneObject> = BTreeMap::new();
     if !s.scene.masks {
         return Ok(Vec::new());
     }
     for (view, c) in s.cameras[..s.train_views].iter().enumerate() {
         let ids = s.scene.splats.render_ids(&scaled(c, LIST_SIDE))?;
-        let mut count = [0usize; 256];
-        for &i in &ids {
-            count[i as usize] += 1;
-        }
-        for (id, n) in count.into_iter().enumerate().skip(1) {
+        for (id, n) in crate::language::pixel_counts(&ids).into_iter().filter(|&(id, _)| id != 0) {
             let fraction = n as f32 / ids.len() as f32;
-            if best[id].as_ref().is_none_or(|b| fraction > b.fraction) {
-                best[id] = Some(SceneObject { id: id as u8, view, fraction });
+            if best.get(&id).is_none_or(|b| fraction > b.fraction) {
+                best.insert(id, SceneObject { id, view, fraction });
             }
         }
     }
-    Ok(best.into_iter().flatten().filter(|o| o.fraction >= LIST_FRACTION).collect())
+    Ok(best.into_values().filter(|o| o.fraction >= LIST_FRACTION).collect())
 }
 
 /// One object scored against a phrase.
 #[derive(Clone, Debug, PartialEq)]
 pub struct Scored {
-    pub id: u8,
+    pub id: ObjectId,
     /// 0-1: the phrase's probability per token as the best-fitting question's answer.
     pub score: f32,
     /// That question.
@@ -222,7 +225,7 @@ pub fn check_threshold(t: f32) -> Result<f32> {
 }
 
 /// The ids of the objects of `ranked` scoring at least `threshold` (the matches), best first.
-pub fn matches(ranked: &[Scored], threshold: f32) -> Vec<u8> {
+pub fn matches(ranked: &[Scored], threshold: f32) -> Vec<ObjectId> {
     ranked.iter().filter(|r| r.score >= threshold).map(|r| r.id).collect()
 }
 
@@ -244,7 +247,7 @@ pub struct FindTally {
 
 impl FindTally {
     /// Adds one phrase: the ids it names and the ids found (each set without repeats).
-    pub fn add(&mut self, named: &[u8], found: &[u8]) {
+    pub fn add(&mut self, named: &[ObjectId], found: &[ObjectId]) {
         let hit = found.iter().filter(|f| named.contains(f)).count();
         self.phrases += 1;
         self.true_pos += hit;

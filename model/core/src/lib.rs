@@ -26,6 +26,7 @@ pub mod backend;
 pub use base::rng;
 // Files and scene data (the `data` crate, model/data): re-exported under their old paths.
 pub use ::data;
+pub use ::data::ObjectId;
 pub use ::data::{cloud, error, guard, images, io, question_file};
 
 pub mod ply;

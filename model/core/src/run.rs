@@ -3,6 +3,7 @@
 //! stored relative to the file's directory (with the absolute path as a fallback), so a run can
 //! be moved with its data, or used from any working directory.
 
+use crate::ObjectId;
 use crate::error::{Error, Result};
 use crate::io;
 use crate::language::{LanguageConfig, LanguageField};
@@ -347,7 +348,7 @@ impl LanguageRun {
         self.dir.join("vqa.json")
     }
     /// A view with a picked object highlighted.
-    pub fn picked(&self, view: usize, id: u8) -> PathBuf {
+    pub fn picked(&self, view: usize, id: ObjectId) -> PathBuf {
         self.dir.join(format!("picked_view{view}_object{id}.png"))
     }
     /// A rendered view.
@@ -464,7 +465,7 @@ pub struct TeacherViewEntry {
     /// The view's image in the dataset (a novel view: its name, `novel_K`).
     pub image: String,
     /// Object ids with tokens in this view, ascending.
-    pub objects: Vec<u8>,
+    pub objects: Vec<ObjectId>,
     /// A novel view's camera: its image was rendered from the frozen geometry there
     /// ([`NovelSource`]), not photographed. `None`: a training photo of the dataset.
     #[serde(default, skip_serializing_if = "Option::is_none")]

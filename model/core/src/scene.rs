@@ -2,6 +2,7 @@
 //! into feature maps from the token cameras and encoded into tokens; objects picked from the
 //! rendered identity. Training (`train::language`) optimises the same [`LanguageScene`].
 
+use crate::ObjectId;
 use crate::error::{Error, Result};
 use crate::language::{LanguageConfig, LanguageField, ObjectCrop, mask_out};
 use crate::run::{GeometryRun, GeometryState, LanguageRun, OpenedLanguage};
@@ -179,7 +180,7 @@ impl LanguageScene {
 
     /// The object crop camera and its `[r, r]` 0/1 mask of object `id`: the rendered identity,
     /// restricted to the crop's box inside the view's frame (as the teacher's image was).
-    pub fn object_crop(&self, cam: &Camera, id: u8, bbox: [usize; 4]) -> Result<(Camera, Vec<f32>)> {
+    pub fn object_crop(&self, cam: &Camera, id: ObjectId, bbox: [usize; 4]) -> Result<(Camera, Vec<f32>)> {
         let oc = self.cfg.object_camera(cam, bbox);
         let ids = self.splats.render_ids(&oc)?;
         Ok((oc, crop_mask(cam, &oc, bbox, &ids, id)))
@@ -210,7 +211,7 @@ impl LanguageScene {
 
     /// The rendered identity of the view from `cam` (`[H * W]`) and the id under pixel `(x, y)`
     /// (0: the background). A pixel outside the image, or a scene without masks, is an error.
-    pub fn identity_at(&self, cam: &Camera, x: usize, y: usize) -> Result<(Vec<u8>, u8)> {
+    pub fn identity_at(&self, cam: &Camera, x: usize, y: usize) -> Result<(Vec<ObjectId>, ObjectId)> {
         let (w, h) = (cam.width as usize, cam.height as usize);
         if x >= w || y >= h {
             return Err(Error::input(format!("pixel ({x}, {y}) lies outside the {w}x{h} view")));
@@ -223,14 +224,14 @@ impl LanguageScene {
 
     /// The object under pixel `(x, y)` of `cam` and its crop box (from the rendered identity);
     /// `None` for the background (id 0). A pixel outside the image is an error.
-    pub fn pick(&self, cam: &Camera, x: usize, y: usize) -> Result<Option<(u8, [usize; 4])>> {
+    pub fn pick(&self, cam: &Camera, x: usize, y: usize) -> Result<Option<(ObjectId, [usize; 4])>> {
         let (ids, id) = self.identity_at(cam, x, y)?;
         Ok(self.object_box(cam, &ids, id).map(|b| (id, b)))
     }
 
     /// The crop box of object `id` in the identity `ids` of the view from `cam` (mask box + the
     /// teacher's margin); `None` for the background or an absent object.
-    pub fn object_box(&self, cam: &Camera, ids: &[u8], id: u8) -> Option<[usize; 4]> {
+    pub fn object_box(&self, cam: &Camera, ids: &[ObjectId], id: ObjectId) -> Option<[usize; 4]> {
         if id == 0 {
             return None;
         }
@@ -241,7 +242,7 @@ impl LanguageScene {
     /// `cam`, with the scene's field. The crop's identity and object features are rendered in one
     /// pass: the same map as [`object_crop`](Self::object_crop) + [`object_map`](Self::object_map),
     /// one render fewer.
-    pub fn object_map_in(&self, cam: &Camera, id: u8, bbox: [usize; 4]) -> Result<Tensor<3>> {
+    pub fn object_map_in(&self, cam: &Camera, id: ObjectId, bbox: [usize; 4]) -> Result<Tensor<3>> {
         let oc = self.cfg.object_camera(cam, bbox);
         let (ids, map) = self.splats.render_ids_with(&oc, self.field.object_features.val())?;
         Ok(cut_out(map, crop_mask(cam, &oc, bbox, &ids, id)))
@@ -249,7 +250,7 @@ impl LanguageScene {
 
     /// The masked object map `[r, r, Co]` of a click at `(x, y)` with the scene's field: `(id,
     /// map)`, `None` when the pixel shows no object ([`pick`](Self::pick) + [`object_map_in`](Self::object_map_in)).
-    pub fn object_map_at(&self, cam: &Camera, x: usize, y: usize) -> Result<Option<(u8, Tensor<3>)>> {
+    pub fn object_map_at(&self, cam: &Camera, x: usize, y: usize) -> Result<Option<(ObjectId, Tensor<3>)>> {
         let Some((id, bbox)) = self.pick(cam, x, y)? else { return Ok(None) };
         Ok(Some((id, self.object_map_in(cam, id, bbox)?)))
     }
@@ -294,7 +295,7 @@ pub fn top_contributors(contribution: &[f32], k: usize) -> Vec<usize> {
 
 /// Highlights object `id` in red over a rendered RGB view (the paper's picked-object display):
 /// `rgb` `[H, W, 3]`, `ids` `[H, W]`.
-pub fn highlight(rgb: &[f32], ids: &[u8], id: u8) -> Vec<f32> {
+pub fn highlight(rgb: &[f32], ids: &[ObjectId], id: ObjectId) -> Vec<f32> {
     let mut out = rgb.to_vec();
     for (p, &i) in ids.iter().enumerate() {
         let c = &mut out[3 * p..3 * p + 3];
@@ -334,7 +335,7 @@ pub fn spread_views(cams: &[Camera], k: usize) -> Vec<usize> {
 /// The `[r, r]` 0/1 mask of object `id` in crop camera `oc` of view `cam`: pixels whose rendered
 /// identity `ids` (`[r * r]`, seen from `oc`) is `id` and whose centre, back in view pixels, lies
 /// inside the crop of `bbox` (as the teacher's image was cut).
-fn crop_mask(cam: &Camera, oc: &Camera, bbox: [usize; 4], ids: &[u8], id: u8) -> Vec<f32> {
+fn crop_mask(cam: &Camera, oc: &Camera, bbox: [usize; 4], ids: &[ObjectId], id: ObjectId) -> Vec<f32> {
     let crop = ObjectCrop::from_box(bbox, cam.width as usize, cam.height as usize);
     let size = oc.width as usize;
     let mut mask = vec![0f32; size * size];

@@ -4,6 +4,7 @@
 //! per-Gaussian parameter is a rank-2 tensor `[N, width]`, so densification and optimizer-state
 //! bookkeeping treat them uniformly; [`SplatParams`] holds one value per parameter by name.
 
+use crate::ObjectId;
 use crate::cloud::{GaussianCloud, SH_C0};
 use crate::error::Result;
 use burn::module::{Module, Param};
@@ -143,7 +144,7 @@ impl<T> SplatParams<T> {
 /// A rendered view: RGB `[H, W, 3]`, the identity class of each pixel, alpha `[H, W]`.
 pub struct ViewRender {
     pub rgb: Vec<f32>,
-    pub ids: Vec<u8>,
+    pub ids: Vec<ObjectId>,
     pub alpha: Vec<f32>,
 }
 
@@ -344,14 +345,14 @@ impl SplatModel {
     /// The identity class of each pixel seen from `cam` (`[H * W]`, 0 = background): what
     /// [`render`](Self::render) gives as `ids`, from the identity channels alone (no SH colours, 16
     /// channels instead of 19; object masks need nothing else).
-    pub fn render_ids(&self, cam: &Camera) -> Result<Vec<u8>> {
+    pub fn render_ids(&self, cam: &Camera) -> Result<Vec<ObjectId>> {
         Ok(self.render_identity(cam, self.identity.val())?.0)
     }
 
     /// [`render_ids`](Self::render_ids) and, in the same pass (one projection and binning instead
     /// of two), per-Gaussian `extra` features `[N, C]` over a zero background: `(ids, [H, W, C])`,
     /// the same map as a render of `extra` alone (compositing is per channel).
-    pub fn render_ids_with(&self, cam: &Camera, extra: Tensor<2>) -> Result<(Vec<u8>, Tensor<3>)> {
+    pub fn render_ids_with(&self, cam: &Camera, extra: Tensor<2>) -> Result<(Vec<ObjectId>, Tensor<3>)> {
         let c = extra.dims()[1];
         let (ids, out) = self.render_identity(cam, Tensor::cat(vec![self.identity.val(), extra], 1))?;
         Ok((ids, out.narrow(2, IDENTITY_DIM, c)))
@@ -359,7 +360,7 @@ impl SplatModel {
 
     /// Renders `features` `[N, 16 + C]` (the identity first) over a zero background: the identity
     /// class of each pixel and the whole `[H, W, 16 + C]` map.
-    fn render_identity(&self, cam: &Camera, features: Tensor<2>) -> Result<(Vec<u8>, Tensor<3>)> {
+    fn render_identity(&self, cam: &Camera, features: Tensor<2>) -> Result<(Vec<ObjectId>, Tensor<3>)> {
         let dev = self.means.val().device();
         let width = features.dims()[1];
         let opts = SplatOptions { validate: false, ..Default::default() };
@@ -402,7 +403,7 @@ impl SplatModel {
 
     /// The identity class of each Gaussian (`[N]`, 0 = background): the classifier applied to the
     /// Gaussian's own identity feature, as it is applied to the rendered features of a pixel.
-    pub fn gaussian_classes(&self) -> Vec<u8> {
+    pub fn gaussian_classes(&self) -> Vec<ObjectId> {
         class_ids(self.identity.val().matmul(self.classifier_w.val()) + self.classifier_b.val())
     }
 
@@ -417,10 +418,10 @@ impl SplatModel {
     }
 }
 
-/// The most likely class of each row of `[P, K]` logits, as `u8` (classes past 255 clamp).
-fn class_ids(logits: Tensor<2>) -> Vec<u8> {
+/// The most likely class of each row of `[P, K]` logits.
+fn class_ids(logits: Tensor<2>) -> Vec<ObjectId> {
     let ids = logits.argmax(1).into_data().convert::<i64>().to_vec::<i64>().expect("i64 ids");
-    ids.into_iter().map(|i| i.clamp(0, 255) as u8).collect()
+    ids.into_iter().map(|i| i.clamp(0, ObjectId::MAX as i64) as ObjectId).collect()
 }
 
 /// Reads a tensor to the host as f32.

@@ -2,6 +2,7 @@
 //! question asks about (a view, a clicked object, several views) and the runner; a `find`
 //! question's phrase is searched for among the scene's objects ([`crate::find`]).
 
+use crate::ObjectId;
 use crate::chat::{ChatSession, Conversation, Target};
 use crate::error::{Error, Result};
 use crate::find::{Finder, ObjectNames};
@@ -17,9 +18,9 @@ pub struct Answer {
     /// The generated text, or why the question could not be asked (an invalid view or click).
     pub text: std::result::Result<String, String>,
     /// The object the click picked (object level).
-    pub picked: Option<u8>,
+    pub picked: Option<ObjectId>,
     /// Find level: the ids of the objects found, best first.
-    pub found: Option<Vec<u8>>,
+    pub found: Option<Vec<ObjectId>>,
 }
 
 /// How a question file's `find` questions are searched.
@@ -46,7 +47,7 @@ pub fn find_objects(
     finder: &mut Option<Finder>,
     opts: &FindOptions,
     phrase: &str,
-) -> Result<Vec<u8>> {
+) -> Result<Vec<ObjectId>> {
     let f = match finder {
         Some(f) => f,
         None => finder.insert(Finder::new(session, &opts.names)?),

@@ -30,7 +30,7 @@
 //!
 //! Views are sorted by image name, then every `holdout_every`-th is held out for testing.
 
-use super::image::{decode, err, read_ids8};
+use super::image::{decode, err, read_ids};
 use super::{Dataset, LoadOptions, View, check_options, split};
 use crate::error::Result;
 use glam::{DMat3, DMat4, DQuat, DVec3};
@@ -156,7 +156,7 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<(Dataset, SparsePoints)> {
         camera.cx = (intr.cx / s) as f32;
         camera.cy = (intr.cy / s) as f32;
         let mask = super::mask_dir(dir).join(Path::new(&im.name).with_extension("png"));
-        let instance_ids = super::own_mask(opts, mask, &mut missing_masks, |m| read_ids8(m, w, h, k))?;
+        let instance_ids = super::own_mask(opts, mask, &mut missing_masks, |m| read_ids(m, w, h, k))?;
         views.push(View { image_path: path, camera, rgb, instance_ids, depth: None });
     }
     super::check_own_masks(&super::mask_dir(dir), &missing_masks, views.len())?;

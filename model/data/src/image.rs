@@ -266,38 +266,42 @@ pub(crate) fn check_size(path: &Path, got: (u32, u32), image: (u32, u32)) -> Res
     }
 }
 
-/// An instance-id mask ([`read_ids8_any`]) the size `(w, h)` of its image, downscaled
+/// An instance-id mask ([`read_ids_any`]) the size `(w, h)` of its image, downscaled
 /// by nearest sample to `[h/k, w/k]`.
-pub(crate) fn read_ids8(path: &Path, w: u32, h: u32, k: u32) -> Result<Vec<u8>> {
-    Ok(subsample(&read_ids8_full(path, w, h)?, w, w / k, h / k, k))
+pub(crate) fn read_ids(path: &Path, w: u32, h: u32, k: u32) -> Result<Vec<u16>> {
+    Ok(subsample(&read_ids_full(path, w, h)?, w, w / k, h / k, k))
 }
 
-/// [`read_ids8`] at full resolution: `[h, w]` ids.
-pub(crate) fn read_ids8_full(path: &Path, w: u32, h: u32) -> Result<Vec<u8>> {
-    let (mw, mh, ids) = read_ids8_any(path)?;
+/// [`read_ids`] at full resolution: `[h, w]` ids.
+pub(crate) fn read_ids_full(path: &Path, w: u32, h: u32) -> Result<Vec<u16>> {
+    let (mw, mh, ids) = read_ids_any(path)?;
     check_size(path, (mw, mh), (w, h))?;
     Ok(ids)
 }
 
-/// An instance-id PNG of any size: its width, height and `[h, w]` 8-bit ids (0 = background):
-/// [`read_ids16_any`], an id above 255 refused naming its pixel (the identity field's ids are
-/// 8-bit), so that no id is silently cut to a byte.
-pub(crate) fn read_ids8_any(path: &Path) -> Result<(u32, u32, Vec<u8>)> {
+/// An instance-id PNG of any size as a dataset holds it: [`read_ids16_any`], an id above
+/// [`MAX_INSTANCE_ID`] refused naming its pixel (the identity classifier has a class per id up
+/// to the largest), so that no id is silently cut or wrapped.
+pub(crate) fn read_ids_any(path: &Path) -> Result<(u32, u32, Vec<u16>)> {
     let (w, h, ids) = read_ids16_any(path)?;
-    if let Some(p) = ids.iter().position(|&v| v > 255) {
+    if let Some(p) = ids.iter().position(|&v| v > MAX_INSTANCE_ID) {
         return Err(err(
             path,
             format!(
-                "holds instance id {} at pixel ({}, {}): ids above 255 are not supported (chatsplat keeps 8-bit \
-                 ids; renumber the objects 1..=255)",
+                "holds instance id {} at pixel ({}, {}): ids above {MAX_INSTANCE_ID} are not supported (the identity \
+                 classifier has a class per id up to the largest; renumber the objects 1..=N, as `chatsplat masks` \
+                 writes them)",
                 ids[p],
                 p % w as usize,
                 p / w as usize
             ),
         ));
     }
-    Ok((w, h, ids.into_iter().map(|v| v as u8).collect()))
+    Ok((w, h, ids))
 }
+
+/// The largest instance id a dataset's masks may hold (16-bit masks; ids need not be dense).
+pub const MAX_INSTANCE_ID: u16 = 4095;
 
 /// An instance-id PNG of any size: its width, height and `[h, w]` 16-bit ids (0 = background).
 ///

@@ -30,7 +30,10 @@ pub mod colmap;
 pub(crate) mod image;
 /// An instance-id PNG of any segmenter (8- or 16-bit grayscale, a palette's index, or gray saved
 /// as RGB): its width, height and `[h, w]` ids (0 = none).
-pub use image::read_ids16_any;
+pub use image::{MAX_INSTANCE_ID, read_ids16_any};
+
+/// An object's id in masks, identity renders, questions and the API (0 = background).
+pub type ObjectId = u16;
 pub mod llff;
 pub mod nerfstudio;
 pub mod replica;
@@ -68,8 +71,9 @@ pub struct LoadOptions {
     /// Without a test split on disk, every `holdout_every`-th view is held out (0: none): views
     /// `every-1, 2*every-1, ...` in the loader's view order.
     pub holdout_every: usize,
-    /// Instance masks from another tool (`--masks DIR`): `DIR/<image stem>.png` per image, 8-bit
-    /// ids (0 = background) the size of the image, replacing the format's own masks.
+    /// Instance masks from another tool (`--masks DIR`): `DIR/<image stem>.png` per image, 8- or
+    /// 16-bit ids (0 = background, at most [`MAX_INSTANCE_ID`]) the size of the image, replacing
+    /// the format's own masks.
     pub masks: Option<PathBuf>,
 }
 
@@ -87,7 +91,7 @@ pub struct View {
     /// `[H, W, 3]` in [0, 1].
     pub rgb: Vec<f32>,
     /// `[H, W]` instance ids, when the dataset has masks.
-    pub instance_ids: Option<Vec<u8>>,
+    pub instance_ids: Option<Vec<u16>>,
     /// `[H, W]` camera-space depth in scene units (0 = none), when the dataset has depth.
     pub depth: Option<Vec<f32>>,
 }
@@ -130,8 +134,12 @@ impl Dataset {
                 // fingerprints are as before)
                 if let Some(ids) = &v.instance_ids {
                     eat(b"ids");
-                    for i in ids.iter().step_by(7) {
-                        eat(&[*i]);
+                    for &i in ids.iter().step_by(7) {
+                        // one byte for the ids a byte holds: fingerprints of 8-bit masks as before
+                        match u8::try_from(i) {
+                            Ok(b) => eat(&[b]),
+                            Err(_) => eat(&i.to_le_bytes()),
+                        }
                     }
                 }
             }
@@ -177,8 +185,8 @@ pub(crate) fn own_mask(
     opts: &LoadOptions,
     path: PathBuf,
     missing: &mut Vec<PathBuf>,
-    read: impl FnOnce(&Path) -> Result<Vec<u8>>,
-) -> Result<Option<Vec<u8>>> {
+    read: impl FnOnce(&Path) -> Result<Vec<u16>>,
+) -> Result<Option<Vec<u16>>> {
     if opts.masks.is_some() {
         Ok(None)
     } else if path.is_file() {
@@ -230,7 +238,7 @@ pub(crate) fn apply_masks(views: &mut [View], opts: &LoadOptions) -> Result<()> 
     let k = opts.downscale.max(1);
     for v in views {
         let path = given_mask(opts, &v.image_path)?.expect("--masks is set");
-        let (mw, mh, ids) = image::read_ids8_any(&path)?;
+        let (mw, mh, ids) = image::read_ids_any(&path)?;
         let (w, h) = (v.camera.width, v.camera.height);
         if mw / k != w || mh / k != h {
             return Err(image::err(

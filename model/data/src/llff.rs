@@ -18,7 +18,7 @@
 //! another size than `(h, w)`; the principal point is the image centre. `near`/`far` are only
 //! validated (`0 < near < far`). Views keep the file-name order before the holdout split.
 
-use super::image::{decode, err, list_images, read_ids8};
+use super::image::{decode, err, list_images, read_ids};
 use super::{Dataset, LoadOptions, View, check_options, split};
 use crate::error::Result;
 use glam::{DMat4, DVec3};
@@ -86,7 +86,7 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
         let mut mask_name = path.file_stem().map(|s| s.to_os_string()).unwrap_or_default();
         mask_name.push(".png");
         let mask = masks.join(mask_name);
-        let instance_ids = super::own_mask(opts, mask, &mut missing_masks, |m| read_ids8(m, iw, ih, box_k))?;
+        let instance_ids = super::own_mask(opts, mask, &mut missing_masks, |m| read_ids(m, iw, ih, box_k))?;
         views.push(View { image_path: path, camera, rgb, instance_ids, depth: None });
     }
     super::check_own_masks(&masks, &missing_masks, views.len())?;

@@ -33,7 +33,7 @@
 //! `"OPENCV_FISHEYE"`, or a non-zero `k4`) and equirectangular cameras are refused with a clear
 //! message (undistort those images first).
 
-use super::image::{Remap, decode, err, read_depth16_full, read_ids8_full, subsample};
+use super::image::{Remap, decode, err, read_depth16_full, read_ids_full, subsample};
 pub use super::{Background, Dataset, LoadOptions, View};
 use super::{check_options, split};
 use crate::error::Result;
@@ -247,7 +247,7 @@ fn load_file(file: &Path, dir: &Path, opts: &LoadOptions, maps: &mut Maps) -> Re
         let from_mask_path = given.is_none() && f.get("instance_mask_path").is_none() && own.is_some();
         let instance_ids = match given.or(own) {
             Some(p) => {
-                let ids = read_ids8_full(&p, w, h)?;
+                let ids = read_ids_full(&p, w, h)?;
                 // nerfstudio's own `mask_path` is a 0/255 validity mask, not instance ids
                 if from_mask_path && !warned_binary && ids.contains(&255) && ids.iter().all(|&v| v == 0 || v == 255) {
                     crate::error::warn(format!(

@@ -34,6 +34,7 @@
 //! its `spelled` names the same question with its referent spelled out. Ids must be unique and the question and
 //! answer texts non-empty. Unknown keys are rejected (typos).
 
+use crate::ObjectId;
 use crate::error::{Error, Result};
 use serde::{Deserialize, Serialize};
 use std::collections::HashSet;
@@ -97,7 +98,7 @@ pub struct Question {
     pub items: Option<Vec<String>>,
     /// Find level: the instance ids of the objects the phrase names (empty: none).
     #[serde(default, skip_serializing_if = "Option::is_none")]
-    pub objects: Option<Vec<u8>>,
+    pub objects: Option<Vec<ObjectId>>,
     /// The id of an earlier question about the same target whose conversation this one goes on
     /// (asked after it and the model's answer).
     #[serde(default, skip_serializing_if = "Option::is_none")]

@@ -7,11 +7,12 @@
 //! * `dir/depth/depth_{i}.png` (optional directory): 16-bit camera-space depth in millimetres,
 //!   loaded in metres (`value / 1000`; 0 = no depth).
 //! * `dir/semantic_instance/semantic_instance_{i}.png` (optional directory): instance labels.
-//!   8-bit label images are used as they are. 16-bit ones are compacted to 8 bits over the whole
-//!   sequence: id 0 stays 0 (background / void), every other id gets the next free value 1, 2, ...
-//!   in order of first appearance (frames in order, pixels in raster order, at full
-//!   resolution, so the mapping does not depend on the downscale factor). More than 255 distinct
-//!   non-zero ids is an error, as is a sequence mixing 8- and 16-bit label images.
+//!   8-bit label images are used as they are. 16-bit ones (sparse ids) are made dense over the
+//!   whole sequence: id 0 stays 0 (background / void), every other id gets the next free value 1,
+//!   2, ... in order of first appearance (frames in order, pixels in raster order, at full
+//!   resolution, so the mapping does not depend on the downscale factor). More than
+//!   [`MAX_INSTANCE_ID`](crate::MAX_INSTANCE_ID) distinct non-zero ids is an error, as is a
+//!   sequence mixing 8- and 16-bit label images.
 //! * `dir/intrinsics.json` (optional): `{"fx", "fy", "cx", "cy"}` in pixels of the full-size
 //!   image, in [`Camera`]'s convention (the top-left pixel's centre is `(0.5, 0.5)`).
 //!
@@ -93,15 +94,15 @@ pub fn load(dir: &Path, opts: &LoadOptions) -> Result<Dataset> {
     split(views, opts.holdout_every)
 }
 
-/// Sequence-wide mapping of 16-bit instance ids to 8 bits (see the module docs).
+/// Sequence-wide mapping of 16-bit instance ids to dense ids 1..=N (see the module docs).
 #[derive(Default)]
 struct Compactor {
     sixteen: Option<bool>,
-    ids: HashMap<u16, u8>,
+    ids: HashMap<u16, u16>,
 }
 
 impl Compactor {
-    fn map(&mut self, path: &Path, values: &[u16], sixteen: bool) -> Result<Vec<u8>> {
+    fn map(&mut self, path: &Path, values: &[u16], sixteen: bool) -> Result<Vec<u16>> {
         match self.sixteen {
             Some(s) if s != sixteen => {
                 let bits = |s: bool| if s { 16 } else { 8 };
@@ -113,7 +114,7 @@ impl Compactor {
             _ => self.sixteen = Some(sixteen),
         }
         if !sixteen {
-            return Ok(values.iter().map(|&v| v as u8).collect());
+            return Ok(values.to_vec());
         }
         let mut out = Vec::with_capacity(values.len());
         for &v in values {
@@ -123,8 +124,15 @@ impl Compactor {
                 id
             } else {
                 let next = self.ids.len() + 1;
-                let id = u8::try_from(next).map_err(|_| {
-                    err(path, "more than 255 distinct non-zero instance ids in the sequence; they do not fit 8-bit ids")
+                let id = u16::try_from(next).ok().filter(|&id| id <= crate::MAX_INSTANCE_ID).ok_or_else(|| {
+                    err(
+                        path,
+                        format!(
+                            "more than {} distinct non-zero instance ids in the sequence (the identity classifier \
+                             has a class per id)",
+                            crate::MAX_INSTANCE_ID
+                        ),
+                    )
                 })?;
                 self.ids.insert(v, id);
                 id

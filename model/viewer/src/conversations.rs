@@ -6,6 +6,7 @@
 use crate::error::ApiError;
 use crate::scene_info::ObjectNames;
 use axum::http::StatusCode;
+use model::ObjectId;
 use model::chat::Conversation;
 use splat_kernels::Camera;
 use std::collections::HashMap;
@@ -16,7 +17,7 @@ pub enum Scope {
     /// The view from this camera.
     View(Camera),
     /// Object `id` as seen from this camera (where it was picked or followed to).
-    Object { camera: Camera, id: u8 },
+    Object { camera: Camera, id: ObjectId },
     /// The whole scene through this many views spread around it.
     Scene { views: usize },
 }

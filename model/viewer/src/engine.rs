@@ -11,6 +11,7 @@ pub use crate::conversations::Scope;
 use crate::error::ApiError;
 use crate::scene_info::ObjectNames;
 use crate::splat_files::SplatFiles;
+use model::ObjectId;
 use model::chat::{ChatSession, Conversation, Picked, Target};
 use model::find::Finder;
 use model::splats::SplatModel;
@@ -26,7 +27,7 @@ use tokio::sync::{mpsc, oneshot, watch};
 /// An object in a view: what a pick or a select answers.
 #[derive(Clone, Debug, Serialize)]
 pub struct ObjectReply {
-    pub id: u8,
+    pub id: ObjectId,
     pub name: String,
     /// Pixels of the object in the view.
     pub pixels: usize,
@@ -46,7 +47,7 @@ pub struct Mask {
 
 impl Mask {
     /// The pixels of `ids` equal to `id`.
-    pub fn of(ids: &[u8], id: u8, width: u32, height: u32) -> Self {
+    pub fn of(ids: &[ObjectId], id: ObjectId, width: u32, height: u32) -> Self {
         let mut runs = Vec::new();
         let mut p = 0;
         while p < ids.len() {
@@ -69,10 +70,10 @@ pub enum Quick {
     /// The object under pixel `(x, y)` of the view from `camera`.
     Pick { camera: Camera, x: usize, y: usize },
     /// Object `id` followed to the view from `camera`.
-    Select { camera: Camera, id: u8 },
+    Select { camera: Camera, id: ObjectId },
     /// The view from `camera` as RGB bytes `[H, W, 3]`, without the Gaussians of the objects in
     /// `hidden` (checked: objects of the scene).
-    Render { camera: Camera, hidden: Vec<u8> },
+    Render { camera: Camera, hidden: Vec<ObjectId> },
     /// Whether `question` can be asked about `scope` (in `conversation`, when given): resolves
     /// the scope (an object must be visible), checks the conversation is kept and about the same
     /// scope, and measures the question against the model's context.
@@ -109,7 +110,7 @@ pub struct Found {
 /// An object scored against a phrase.
 #[derive(Clone, Debug, Serialize)]
 pub struct FoundObject {
-    pub id: u8,
+    pub id: ObjectId,
     pub name: String,
     pub score: f32,
     #[serde(skip_serializing_if = "Option::is_none")]
@@ -310,7 +311,7 @@ struct QuickState {
     finder: Option<Finder>,
     files: Arc<SplatFiles>,
     /// The Gaussians shown without the objects last hidden, and those objects.
-    hidden: Option<(Vec<u8>, SplatModel)>,
+    hidden: Option<(Vec<ObjectId>, SplatModel)>,
 }
 
 /// Picks kept.
@@ -494,8 +495,12 @@ impl QuickState {
         } else {
             session.scene.splats.render_ids(camera).map_err(err("camera"))?
         };
-        let object =
-            |id: u8, score: f32, mask: Option<Option<Mask>>| FoundObject { id, name: self.names.name(id), score, mask };
+        let object = |id: ObjectId, score: f32, mask: Option<Option<Mask>>| FoundObject {
+            id,
+            name: self.names.name(id),
+            score,
+            mask,
+        };
         let matches = hits
             .iter()
             .map(|r| {
@@ -538,7 +543,7 @@ impl QuickState {
 
     /// Object `id` seen from `camera`: a kept pick when there is one (its tokens too), else
     /// resolved now and kept; `None` when the object is not visible there.
-    fn resolve(&mut self, session: &ChatSession, camera: &Camera, id: u8) -> model::Result<Option<Picked>> {
+    fn resolve(&mut self, session: &ChatSession, camera: &Camera, id: ObjectId) -> model::Result<Option<Picked>> {
         let found = self.picks.iter().find(|p| p.camera == *camera && p.id == id).cloned();
         let Some(p) = found.map_or_else(|| session.select(camera, id), |p| Ok(Some(p)))? else { return Ok(None) };
         self.keep(p.clone());

@@ -34,6 +34,7 @@ use axum::response::sse::{Event, KeepAlive, Sse};
 use axum::response::{IntoResponse, Response};
 use axum::routing::{get, post};
 use futures_util::Stream;
+use model::ObjectId;
 use model::vlm::GenerateOptions;
 use serde::Deserialize;
 use serde::de::DeserializeOwned;
@@ -204,7 +205,7 @@ async fn object_file(State(s): State<Arc<AppState>>, Path(file): Path<String>) -
     let bad =
         || ApiError::status(StatusCode::NOT_FOUND, format!("no such file: {file} (objects are ID.ply or ID.spz)"));
     let (id, ext) = file.split_once('.').ok_or_else(bad)?;
-    let (id, format) = (id.parse::<u8>().map_err(|_| bad())?, Format::of(ext).ok_or_else(bad)?);
+    let (id, format) = (id.parse::<ObjectId>().map_err(|_| bad())?, Format::of(ext).ok_or_else(bad)?);
     let ply = s.splats.object(id, format)?;
     let name = SplatFiles::object_file_name(id, &s.names, format);
     let disposition = HeaderValue::from_str(&format!("attachment; filename=\"{name}\""))
@@ -260,13 +261,13 @@ async fn pick(State(s): State<Arc<AppState>>, JsonBody(b): JsonBody<PickBody>) -
 #[serde(deny_unknown_fields)]
 struct SelectBody {
     camera: ViewCamera,
-    id: u16,
+    id: u64,
 }
 
-fn object_id(id: u16) -> Result<u8, ApiError> {
-    match u8::try_from(id) {
+fn object_id(id: u64) -> Result<ObjectId, ApiError> {
+    match ObjectId::try_from(id) {
         Ok(id) if id > 0 => Ok(id),
-        _ => Err(ApiError::field("id", format!("{id} is not an object id (1..=255)"))),
+        _ => Err(ApiError::field("id", format!("{id} is not an object id (1..={})", ObjectId::MAX))),
     }
 }
 
@@ -303,7 +304,7 @@ struct RenderBody {
     camera: ViewCamera,
     /// Objects left out of the frame (the page's hidden objects).
     #[serde(default)]
-    hidden: Vec<u8>,
+    hidden: Vec<ObjectId>,
 }
 
 async fn render(State(s): State<Arc<AppState>>, JsonBody(b): JsonBody<RenderBody>) -> Result<Response, ApiError> {
@@ -338,7 +339,7 @@ struct AskBody {
     #[serde(default)]
     camera: Option<ViewCamera>,
     #[serde(default)]
-    id: Option<u16>,
+    id: Option<u64>,
     #[serde(default)]
     views: Option<usize>,
     question: String,

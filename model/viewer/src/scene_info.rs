@@ -4,6 +4,7 @@
 
 use crate::camera::ViewCamera;
 use glam::Vec3;
+use model::ObjectId;
 use model::chat::{ChatSession, DEFAULT_SCENE_VIEWS};
 pub use model::find::ObjectNames;
 use model::run::GeometryRun;
@@ -22,7 +23,7 @@ pub struct ViewInfo {
 /// An object the training views show (a synthetic scene's table is ground, not an object).
 #[derive(Clone, Debug, Serialize)]
 pub struct ObjectInfo {
-    pub id: u8,
+    pub id: ObjectId,
     pub name: String,
 }
 

@@ -7,6 +7,7 @@ use crate::error::ApiError;
 use axum::body::Bytes;
 use axum::http::StatusCode;
 use model::GaussianCloud;
+use model::ObjectId;
 use model::chat::ChatSession;
 use model::find::ObjectNames;
 
@@ -19,9 +20,9 @@ pub struct SplatFiles {
     /// no identity channels).
     cloud: GaussianCloud,
     /// Each Gaussian's identity class (0: background).
-    classes: Vec<u8>,
+    classes: Vec<ObjectId>,
     /// The objects that own Gaussians, by id.
-    objects: Vec<u8>,
+    objects: Vec<ObjectId>,
     /// The whole scene as `.ply`, and as `.spz` where the format holds it (positions within
     /// ±2048).
     pub ply: Bytes,
@@ -63,7 +64,7 @@ impl SplatFiles {
             cloud.rest_per_gaussian = 0;
         }
         let classes = if s.scene.masks { shown.gaussian_classes() } else { vec![0; cloud.len()] };
-        let mut objects: Vec<u8> = classes.iter().copied().filter(|&c| c != 0).collect();
+        let mut objects: Vec<ObjectId> = classes.iter().copied().filter(|&c| c != 0).collect();
         objects.sort_unstable();
         objects.dedup();
         let ply = model::ply::encode(&cloud).into();
@@ -86,7 +87,7 @@ impl SplatFiles {
     }
 
     /// The rows of the Gaussians not of the objects in `hidden` (each an object of the scene).
-    pub fn kept(&self, hidden: &[u8], field: &'static str) -> Result<Vec<usize>, ApiError> {
+    pub fn kept(&self, hidden: &[ObjectId], field: &'static str) -> Result<Vec<usize>, ApiError> {
         if hidden.len() > MAX_HIDDEN {
             return Err(ApiError::field(field, format!("{} objects to hide; at most {MAX_HIDDEN}", hidden.len())));
         }
@@ -100,7 +101,7 @@ impl SplatFiles {
     }
 
     /// The scene without the objects in `hidden`.
-    pub fn without(&self, hidden: &[u8], format: Format) -> Result<Bytes, ApiError> {
+    pub fn without(&self, hidden: &[ObjectId], format: Format) -> Result<Bytes, ApiError> {
         match (hidden.is_empty(), format, &self.spz) {
             (true, Format::Ply, _) => Ok(self.ply.clone()),
             (true, Format::Spz, Some(spz)) => Ok(spz.clone()),
@@ -109,7 +110,7 @@ impl SplatFiles {
     }
 
     /// Object `id`'s Gaussians; 404 for an id that owns none.
-    pub fn object(&self, id: u8, format: Format) -> Result<Bytes, ApiError> {
+    pub fn object(&self, id: ObjectId, format: Format) -> Result<Bytes, ApiError> {
         if !self.objects.contains(&id) {
             return Err(ApiError::status(
                 StatusCode::NOT_FOUND,
@@ -121,7 +122,7 @@ impl SplatFiles {
     }
 
     /// `<object id>-<name>.<ext>`, as a download names it ("3-red-cone.ply").
-    pub fn object_file_name(id: u8, names: &ObjectNames, format: Format) -> String {
+    pub fn object_file_name(id: ObjectId, names: &ObjectNames, format: Format) -> String {
         let name: String = names
             .name(id)
             .chars()
@@ -140,11 +141,12 @@ impl SplatFiles {
 }
 
 /// Parses `?without=3,5` (ids separated by commas; empty for none).
-pub fn parse_ids(text: &str, field: &'static str) -> Result<Vec<u8>, ApiError> {
+pub fn parse_ids(text: &str, field: &'static str) -> Result<Vec<ObjectId>, ApiError> {
     let mut ids = Vec::new();
     for part in text.split(',').map(str::trim).filter(|p| !p.is_empty()) {
-        let id =
-            part.parse::<u8>().map_err(|_| ApiError::field(field, format!("{part:?} is not an object id (0-255)")))?;
+        let id = part
+            .parse::<ObjectId>()
+            .map_err(|_| ApiError::field(field, format!("{part:?} is not an object id (0-{})", ObjectId::MAX)))?;
         if !ids.contains(&id) {
             ids.push(id);
         }

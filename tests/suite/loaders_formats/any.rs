@@ -87,7 +87,7 @@ fn gaussian_grouping_object_masks_are_read() {
     }
     let ds = llff::load(&dir, &opts(1, 0)).unwrap();
     let b = ds.train.iter().find(|v| v.image_path.ends_with("b.jpg.png")).unwrap();
-    assert_eq!(b.instance_ids.as_deref(), Some(&ids(1)[..]));
+    assert_eq!(b.instance_ids, Some(chatsplat_tests::wide(&ids(1))));
     assert!(ds.train.iter().all(|v| v.instance_ids.is_some()));
     // an empty object_mask/ (SAM + DEVA not run yet) loads without masks, with a warning
     std::fs::remove_dir_all(dir.join("object_mask")).unwrap();
@@ -114,12 +114,12 @@ fn masks_from_another_tool_replace_any_formats_own() {
         let ds = load_any(&dir, &with(1)).unwrap();
         assert_eq!(ds.train.len(), images.len(), "{tag}");
         for (i, v) in ds.train.iter().enumerate() {
-            assert_eq!(v.instance_ids.as_ref().unwrap(), &ids(i), "{tag} view {i}");
+            assert_eq!(v.instance_ids.as_ref().unwrap(), &chatsplat_tests::wide(&ids(i)), "{tag} view {i}");
         }
         // downscaled by nearest sample, like the format's own masks
         let half = load_any(&dir, &with(2)).unwrap();
         let got = half.train[1].instance_ids.as_ref().unwrap();
-        assert_eq!(got, &(0..12).map(|j| ids(1)[(j / 4) * 16 + (j % 4) * 2]).collect::<Vec<_>>(), "{tag}");
+        assert_eq!(got, &(0..12).map(|j| ids(1)[(j / 4) * 16 + (j % 4) * 2] as u16).collect::<Vec<_>>(), "{tag}");
         // a mask of the wrong size, a missing mask, a folder that is not there: errors naming the file
         write_gray8(&masks.join(format!("{}.png", images[1])), W - 2, H, &vec![0; ((W - 2) * H) as usize]).unwrap();
         expect_err(load_any(&dir, &with(1)), &[&format!("{}.png", images[1]), "is 6x6 but its image"]);
@@ -146,7 +146,7 @@ fn raw_png(path: &Path, w: u32, h: u32, color: png::ColorType, bits: png::BitDep
 
 /// Instance masks are read by value whatever the PNG layout tools write (8- or 16-bit gray, a
 /// palette's indices, a gray mask saved as RGB), and what cannot be read right is refused, naming
-/// the file and a pixel: ids above 255 (no silent cut to a byte) and colour-coded masks (no
+/// the file and a pixel: ids above 4095 (no silent cut or wrap) and colour-coded masks (no
 /// silent read of the red channel).
 #[test]
 fn instance_masks_of_every_png_layout_are_read_by_value_or_refused() {
@@ -158,28 +158,35 @@ fn instance_masks_of_every_png_layout_are_read_by_value_or_refused() {
     // 16-bit gray with ids below 256: the same ids (the high byte alone would make them all 0)
     let wide: Vec<u8> = ids.iter().flat_map(|&v| (v as u16).to_be_bytes()).collect();
     raw_png(&mask, W, H, ColorType::Grayscale, BitDepth::Sixteen, &wide);
-    assert_eq!(load_a().unwrap(), ids);
+    let ids16 = chatsplat_tests::wide(&ids);
+    assert_eq!(load_a().unwrap(), ids16);
     // a palette PNG (DEVA): the index is the id, whatever colour the palette gives it
     raw_png(&mask, W, H, ColorType::Indexed, BitDepth::Eight, &ids);
-    assert_eq!(load_a().unwrap(), ids);
+    assert_eq!(load_a().unwrap(), ids16);
     // 4-bit palette, packed two pixels a byte
     let small: Vec<u8> = ids.iter().map(|v| v % 16).collect();
     let packed: Vec<u8> = small.chunks(2).map(|p| (p[0] << 4) | p[1]).collect();
     raw_png(&mask, W, H, ColorType::Indexed, BitDepth::Four, &packed);
-    assert_eq!(load_a().unwrap(), small);
+    assert_eq!(load_a().unwrap(), chatsplat_tests::wide(&small));
     // a gray mask saved as RGB: read; a colour-coded one: refused
     let rgb: Vec<u8> = ids.iter().flat_map(|&v| [v, v, v]).collect();
     raw_png(&mask, W, H, ColorType::Rgb, BitDepth::Eight, &rgb);
-    assert_eq!(load_a().unwrap(), ids);
+    assert_eq!(load_a().unwrap(), ids16);
     let mut coloured = rgb.clone();
     coloured[3 * 9 + 1] ^= 0x40;
     raw_png(&mask, W, H, ColorType::Rgb, BitDepth::Eight, &coloured);
     expect_err(load_a(), &["img_a.png", "colour-coded mask", "pixel (1, 1)"]);
-    // 16-bit ids above 255 are refused, naming the pixel
+    // 16-bit ids past 255 are read as they are (no wrap to a byte); past the largest id the
+    // identity classifier takes, refused naming the pixel
     let mut big = wide.clone();
     big[2 * 10..2 * 10 + 2].copy_from_slice(&300u16.to_be_bytes());
     raw_png(&mask, W, H, ColorType::Grayscale, BitDepth::Sixteen, &big);
-    expect_err(load_a(), &["img_a.png", "instance id 300 at pixel (2, 1)", "above 255"]);
+    let mut want = ids16.clone();
+    want[10] = 300;
+    assert_eq!(load_a().unwrap(), want);
+    big[2 * 10..2 * 10 + 2].copy_from_slice(&5000u16.to_be_bytes());
+    raw_png(&mask, W, H, ColorType::Grayscale, BitDepth::Sixteen, &big);
+    expect_err(load_a(), &["img_a.png", "instance id 5000 at pixel (2, 1)", "above 4095"]);
     // some masks missing: refused, naming the first missing mask
     raw_png(&mask, W, H, ColorType::Grayscale, BitDepth::Eight, &ids);
     std::fs::remove_file(dir.join("masks/img_c.png")).unwrap();

@@ -244,7 +244,7 @@ impl Colmap {
 /// Writes the images (pixel blue channel = index of the name in sorted order / 10) and a mask for
 /// each (the ids of `img_a.png` returned, the others shifted by their index); returns the ids of
 /// `img_a.png`.
-fn colmap_images(dir: &Path) -> Vec<u8> {
+fn colmap_images(dir: &Path) -> Vec<u16> {
     let mut sorted = NAMES;
     sorted.sort();
     let ids = |k: u32| -> Vec<u8> { (0..W * H).map(|i| ((i % W + i / W + k) % 4) as u8).collect() };
@@ -252,7 +252,7 @@ fn colmap_images(dir: &Path) -> Vec<u8> {
         write_rgb(&dir.join("images").join(n), W, H, &gradient(i as f32 / 10.0, W, H)).unwrap();
         write_gray8(&dir.join("masks").join(n), W, H, &ids(i as u32)).unwrap();
     }
-    ids(0)
+    chatsplat_tests::wide(&ids(0))
 }
 
 /// The fixture's binary model in `sparse` with camera 3 (OPENCV) given a radial distortion, as

@@ -138,8 +138,8 @@ fn llff_downscale_prefers_images_k_and_reads_masks() {
     let m = llff::load(&dir, &opts(2, 0)).unwrap();
     assert!(m.train[1].image_path.starts_with(dir.join("images")));
     let got = m.train[1].instance_ids.as_ref().unwrap();
-    assert_eq!(got, &(0..12).map(|i| ids[(i / 4) * 16 + (i % 4) * 2]).collect::<Vec<_>>());
-    assert_eq!(m.train[0].instance_ids.as_deref(), Some(&[0u8; 12][..]));
+    assert_eq!(got, &(0..12).map(|i| ids[(i / 4) * 16 + (i % 4) * 2] as u16).collect::<Vec<_>>());
+    assert_eq!(m.train[0].instance_ids.as_deref(), Some(&[0u16; 12][..]));
     // images_2 with the wrong count is ignored.
     std::fs::remove_dir_all(dir.join("masks")).unwrap();
     std::fs::remove_file(dir.join("images_2/c.png")).unwrap();

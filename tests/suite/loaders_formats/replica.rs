@@ -69,7 +69,7 @@ fn replica_intrinsics_poses_depth_and_labels() {
     // 16-bit ids compacted over the sequence in order of first appearance: 1000 -> 1, 42 -> 2,
     // 7 -> 3; 0 stays 0.
     for (i, v) in ds.train.iter().enumerate() {
-        let want: Vec<u8> = replica_labels(i)
+        let want: Vec<u16> = replica_labels(i)
             .iter()
             .map(|&l| match l {
                 0 => 0,
@@ -110,7 +110,7 @@ fn replica_8bit_labels_and_errors() {
     for i in 0..3 {
         write_gray8(&dir.join(format!("semantic_instance/semantic_instance_{i}.png")), W, H, &ids8).unwrap();
     }
-    assert_eq!(load().unwrap().train[1].instance_ids.as_ref().unwrap(), &ids8);
+    assert_eq!(load().unwrap().train[1].instance_ids.as_ref().unwrap(), &chatsplat_tests::wide(&ids8));
     // Mixed bit depths.
     write_gray16(&dir.join("semantic_instance/semantic_instance_2.png"), W, H, &replica_labels(0)).unwrap();
     expect_err(load(), &["semantic_instance_2.png: 16-bit labels in a sequence whose earlier labels are 8-bit"]);
@@ -126,16 +126,22 @@ fn replica_8bit_labels_and_errors() {
     let big: Vec<u16> = (0..W * 40).map(|p| 1000 + p as u16).collect();
     write_gray16(&dir.join("semantic_instance/semantic_instance_1.png"), W, 40, &big).unwrap();
     expect_err(load(), &["semantic_instance_1.png: is 8x40 but its image is 8x6"]);
-    // More than 255 distinct non-zero 16-bit ids do not fit.
+    // 272 distinct non-zero 16-bit ids: dense ids 1..=272 past a byte; more than the identity
+    // classifier takes do not fit.
     let d = temp_dir("replica-many");
     std::fs::create_dir_all(d.join("rgb")).unwrap();
     std::fs::write(d.join("traj_w_c.txt"), "1 0 0 0 0 1 0 0 0 0 1 0 0 0 0 1\n").unwrap();
     write_rgb(&d.join("rgb/rgb_0.png"), 16, 17, &gradient(0.0, 16, 17)).unwrap();
-    let ids: Vec<u16> = (0..16 * 17).map(|p| 1 + p as u16).collect();
+    let ids: Vec<u16> = (0..16 * 17).map(|p| 60000 - 7 * p as u16).collect();
     write_gray16(&d.join("semantic_instance/semantic_instance_0.png"), 16, 17, &ids).unwrap();
+    let dense = replica::load(&d, &opts(1, 0)).unwrap().train[0].instance_ids.clone().unwrap();
+    assert_eq!(dense, (1..=16 * 17).collect::<Vec<u16>>());
+    write_rgb(&d.join("rgb/rgb_0.png"), 65, 64, &gradient(0.0, 65, 64)).unwrap();
+    let ids: Vec<u16> = (0..65 * 64).map(|p| 1 + p as u16).collect();
+    write_gray16(&d.join("semantic_instance/semantic_instance_0.png"), 65, 64, &ids).unwrap();
     expect_err(
         replica::load(&d, &opts(1, 0)),
-        &["semantic_instance_0.png: more than 255 distinct non-zero instance ids"],
+        &["semantic_instance_0.png: more than 4095 distinct non-zero instance ids"],
     );
     std::fs::remove_dir_all(&d).ok();
     // Missing files and a bad trajectory.

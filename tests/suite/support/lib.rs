@@ -198,3 +198,8 @@ pub fn wgpu_device() -> Option<Device> {
         }
     }
 }
+
+/// 8-bit ids (as a test writes them to a PNG) as the loaders return them.
+pub fn wide(ids: &[u8]) -> Vec<u16> {
+    ids.iter().map(|&i| i as u16).collect()
+}

@@ -1,6 +1,7 @@
 //! Image metrics of the geometry stage: SSIM (also the D-SSIM loss term), PSNR, identity mIoU.
 
 use burn::tensor::Tensor;
+use model::ObjectId;
 
 /// Separable 11-tap Gaussian blur (σ = 1.5) of `[C, H, W]` along `axis` (1 or 2), zero padded:
 /// 11 shifted, weighted copies, cheap on every backend and in autodiff (a grouped 11x11
@@ -47,19 +48,19 @@ pub fn psnr(a: &[f32], b: &[f32]) -> f32 {
 }
 
 /// Mean IoU over the classes present in `gt` (predicted vs ground-truth id maps).
-pub fn miou(pred: &[u8], gt: &[u8]) -> f32 {
-    let mut ious = Vec::new();
-    for class in 0..=255u8 {
-        let (mut inter, mut union, mut any) = (0usize, 0usize, false);
-        for (p, g) in pred.iter().zip(gt) {
-            let (pp, gg) = (*p == class, *g == class);
-            any |= gg;
-            inter += (pp && gg) as usize;
-            union += (pp || gg) as usize;
+pub fn miou(pred: &[ObjectId], gt: &[ObjectId]) -> f32 {
+    // per class of `gt`: (intersection, union)
+    let mut counts: std::collections::BTreeMap<ObjectId, (usize, usize)> = gt.iter().map(|&g| (g, (0, 0))).collect();
+    for (&p, &g) in pred.iter().zip(gt) {
+        if let Some(c) = counts.get_mut(&g) {
+            c.0 += (p == g) as usize;
+            c.1 += 1;
         }
-        if any {
-            ious.push(inter as f32 / union as f32);
+        if p != g
+            && let Some(c) = counts.get_mut(&p)
+        {
+            c.1 += 1;
         }
     }
-    ious.iter().sum::<f32>() / ious.len().max(1) as f32
+    counts.values().map(|&(i, u)| i as f32 / u as f32).sum::<f32>() / counts.len().max(1) as f32
 }

@@ -7,6 +7,7 @@ use crate::dist::{self, Collective, Solo};
 use crate::schedule::warmup_cosine;
 use crate::teacher::{TeacherObject, TeacherSet};
 use burn::tensor::{Device, Tensor, TensorData};
+use model::ObjectId;
 use model::error::{Error, Result};
 use model::io;
 use model::language::field::ParamGroup;
@@ -39,11 +40,11 @@ pub struct LanguageTrainer {
     pub iter: usize,
     /// Per-Gaussian sum of |gradient| of both feature tensors: zero = never seen by any map.
     pub contribution: Vec<f32>,
-    masks: HashMap<(usize, u8), (Camera, Vec<f32>)>,
+    masks: HashMap<(usize, ObjectId), (Camera, Vec<f32>)>,
     /// Blend weights of training cameras `(view, object)`.
-    kept: HashMap<(usize, Option<u8>), Arc<BlendWeights>>,
+    kept: HashMap<(usize, Option<ObjectId>), Arc<BlendWeights>>,
     /// Teacher tokens `(view, object)` as read once.
-    targets: HashMap<(usize, Option<u8>), Arc<Vec<f32>>>,
+    targets: HashMap<(usize, Option<ObjectId>), Arc<Vec<f32>>>,
     /// Bytes held by `kept` and `targets` together (capped by `kept_weights_mb`).
     kept_bytes: usize,
     device: Device,
@@ -166,7 +167,7 @@ impl LanguageTrainer {
 
     /// The blend weights of a training camera: kept from an earlier step, or found now (and kept
     /// while they fit in `kept_weights_mb`).
-    fn weights(&mut self, key: (usize, Option<u8>), cam: &Camera) -> Result<Arc<BlendWeights>> {
+    fn weights(&mut self, key: (usize, Option<ObjectId>), cam: &Camera) -> Result<Arc<BlendWeights>> {
         if let Some(w) = self.kept.get(&key) {
             return Ok(w.clone());
         }
@@ -231,7 +232,7 @@ impl LanguageTrainer {
 
     /// The teacher's tokens of view `v` (`None`) or of its object, read from disk once (and kept
     /// while they fit in the same budget as the weights).
-    fn target(&mut self, v: usize, object: Option<u8>) -> Result<Arc<Vec<f32>>> {
+    fn target(&mut self, v: usize, object: Option<ObjectId>) -> Result<Arc<Vec<f32>>> {
         if let Some(t) = self.targets.get(&(v, object)) {
             return Ok(t.clone());
         }

@@ -4,6 +4,7 @@
 
 use super::LabelMap;
 use model::rng::Rng;
+use std::path::{Path, PathBuf};
 
 /// How often each error happens (per mask, per view).
 #[derive(Clone, Debug, PartialEq)]
@@ -111,6 +112,46 @@ fn corrupt_view(m: &LabelMap, e: &Errors, seed: u64) -> LabelMap {
         *i = fresh[labels.binary_search(i).unwrap()];
     }
     LabelMap { width: w, height: h, ids }
+}
+
+/// Makes the synthetic capture in `data` (written by `chatsplat synth`) one without labels, its
+/// true masks handed to `per_view` corrupted by `errors` (one label PNG per image, ids arbitrary
+/// per view): the masks folder, `scene.json`, `questions.json` and the frames' mask paths go.
+/// Returns the number of true objects. The benchmarks' and the tests' stand-in for a segmenter.
+pub fn strip_capture(data: &Path, per_view: &Path, errors: &Errors, seed: u64) -> model::Result<usize> {
+    let masks = data.join("masks");
+    let mut files: Vec<PathBuf> = std::fs::read_dir(&masks)
+        .map_err(|e| model::Error::io(&masks, "reading", e))?
+        .filter_map(|e| e.ok().map(|e| e.path()))
+        .filter(|p| p.extension().is_some_and(|x| x == "png"))
+        .collect();
+    files.sort();
+    let mut truth = Vec::new();
+    for p in &files {
+        let (w, h, ids) = model::data::read_ids16_any(p)?;
+        truth.push(LabelMap { width: w as usize, height: h as usize, ids });
+    }
+    model::io::create_dir(per_view)?;
+    for (m, p) in corrupt(&truth, errors, seed).iter().zip(&files) {
+        let name = p.file_name().expect("a file read from the folder");
+        model::images::write_ids(&per_view.join(name), m.width as u32, m.height as u32, &m.ids)?;
+    }
+    std::fs::remove_dir_all(&masks).map_err(|e| model::Error::io(&masks, "removing", e))?;
+    for f in ["scene.json", "questions.json"] {
+        let p = data.join(f);
+        if p.is_file() {
+            std::fs::remove_file(&p).map_err(|e| model::Error::io(&p, "removing", e))?;
+        }
+    }
+    let transforms = data.join("transforms.json");
+    let mut t: serde_json::Value = model::io::read_json(&transforms)?;
+    if let Some(frames) = t.get_mut("frames").and_then(|f| f.as_array_mut()) {
+        frames.iter_mut().filter_map(|f| f.as_object_mut()).for_each(|f| {
+            f.remove("instance_mask_path");
+        });
+    }
+    model::io::write_json(&transforms, &t)?;
+    Ok(truth.iter().flat_map(|m| m.labels()).collect::<std::collections::BTreeSet<_>>().len())
 }
 
 #[cfg(test)]

@@ -15,6 +15,7 @@ use super::LabelMap;
 use crate::adam_state::AdamStates;
 use burn::optim::AdamConfig;
 use burn::tensor::{Device, Int, Tensor, TensorData, activation};
+use model::ObjectId;
 use model::error::Result;
 use model::rng::Rng;
 use model::splats::{IDENTITY_DIM, SplatModel, host};
@@ -28,27 +29,29 @@ pub fn vote_labels(weights: &[BlendWeights], masks: &[LabelMap]) -> Vec<u16> {
     super::soft::Shares::from_maps(weights, masks, 1.0).argmax()
 }
 
-/// The code of each of `classes` ids: one-hot while they fit the 16 channels, else unit vectors
-/// drawn from `seed` (nearly orthogonal; [`refine`] separates what they do not).
-fn codes(classes: usize, seed: u64) -> Vec<[f32; IDENTITY_DIM]> {
+/// The code of each of `classes` ids: one-hot while the ids in use (`used`, ascending, 0 among
+/// them) fit the 16 channels, else unit vectors drawn from `seed` (nearly orthogonal; [`refine`]
+/// separates what they do not); `None` for an id no Gaussian carries.
+fn codes(classes: usize, used: &[u16], seed: u64) -> Vec<Option<[f32; IDENTITY_DIM]>> {
     let mut rng = Rng::new(seed ^ 0x1de7);
-    (0..classes)
-        .map(|k| {
-            let mut c = [0f32; IDENTITY_DIM];
-            if classes <= IDENTITY_DIM {
-                c[k] = 1.0;
-            } else {
-                c.iter_mut().for_each(|v| *v = rng.normal());
-                let norm = c.iter().map(|v| v * v).sum::<f32>().sqrt().max(1e-6);
-                c.iter_mut().for_each(|v| *v /= norm);
-            }
-            c
-        })
-        .collect()
+    let mut out = vec![None; classes];
+    for (rank, &id) in used.iter().enumerate() {
+        let mut c = [0f32; IDENTITY_DIM];
+        if used.len() <= IDENTITY_DIM {
+            c[rank] = 1.0;
+        } else {
+            c.iter_mut().for_each(|v| *v = rng.normal());
+            let norm = c.iter().map(|v| v * v).sum::<f32>().sqrt().max(1e-6);
+            c.iter_mut().for_each(|v| *v /= norm);
+        }
+        out[id as usize] = Some(c);
+    }
+    out
 }
 
 /// `model` with identity features and a classifier of `1 + max(labels)` classes (at least 2) that
-/// classify Gaussian `g` as `labels[g]`; everything else as it was.
+/// classify Gaussian `g` as `labels[g]`; everything else as it was. Ids need not be dense: an id
+/// no Gaussian carries gets no code and a bias that never wins.
 ///
 /// A pixel's logit for id `k` is proportional to the blend weight of id `k`'s Gaussians there,
 /// less a margin for every object (a pixel mostly transparent stays background, as the masks
@@ -56,13 +59,27 @@ fn codes(classes: usize, seed: u64) -> Vec<[f32; IDENTITY_DIM]> {
 pub fn from_labels(model: &SplatModel, labels: &[u16], seed: u64) -> SplatModel {
     assert_eq!(labels.len(), model.len(), "one label per Gaussian");
     let classes = (labels.iter().copied().max().unwrap_or(0) as usize + 1).max(2);
-    let code = codes(classes, seed);
+    let mut used: Vec<u16> = labels.iter().copied().chain([0]).collect();
+    used.sort_unstable();
+    used.dedup();
+    let code = codes(classes, &used, seed);
     const SCALE: f32 = 4.0;
     const MARGIN: f32 = 0.25;
-    let identity: Vec<f32> = labels.iter().flat_map(|&l| code[l as usize].map(|v| v * SCALE)).collect();
-    // W [16, K]: column k is code k
-    let w: Vec<f32> = (0..IDENTITY_DIM).flat_map(|d| code.iter().map(move |c| c[d] * SCALE)).collect();
-    let b: Vec<f32> = (0..classes).map(|k| if k == 0 { 0.0 } else { -MARGIN * SCALE * SCALE }).collect();
+    const NEVER: f32 = -1e4;
+    let identity: Vec<f32> =
+        labels.iter().flat_map(|&l| code[l as usize].expect("a used id").map(|v| v * SCALE)).collect();
+    // W [16, K]: column k is code k (zero for an unused id)
+    let w: Vec<f32> =
+        (0..IDENTITY_DIM).flat_map(|d| code.iter().map(move |c| c.map_or(0.0, |c| c[d]) * SCALE)).collect();
+    let b: Vec<f32> = code
+        .iter()
+        .enumerate()
+        .map(|(k, c)| match (k, c) {
+            (0, _) => 0.0,
+            (_, None) => NEVER,
+            _ => -MARGIN * SCALE * SCALE,
+        })
+        .collect();
     let dev = model.means.val().device();
     let t = model.tensors();
     let t = model::splats::SplatParams {
@@ -96,7 +113,7 @@ impl Refined {
 /// order, learning rates `lr_identity` and `lr_classifier`; the geometry takes no gradient.
 pub fn refine(
     model: SplatModel,
-    views: &[(Camera, Vec<u8>)],
+    views: &[(Camera, Vec<ObjectId>)],
     iters: usize,
     lrs: (f64, f64),
     seed: u64,

@@ -50,7 +50,7 @@ impl LabelMap {
     pub fn of_view(view: &model::data::View) -> Option<Self> {
         let ids = view.instance_ids.as_ref()?;
         let (width, height) = (view.camera.width as usize, view.camera.height as usize);
-        Some(Self { width, height, ids: ids.iter().map(|&i| i as u16).collect() })
+        Some(Self { width, height, ids: ids.clone() })
     }
 
     /// The same size, every id `f(id)`.

@@ -3,6 +3,7 @@
 use super::novel::Novel;
 use super::{ExtractOptions, Plan, ViewPlan, plan};
 use burn::tensor::Tensor;
+use model::ObjectId;
 use model::data::load_any;
 use model::error::{Error, IoContext, Result};
 use model::io;
@@ -45,7 +46,7 @@ fn write_view(
     path: &Path,
     vp: &ViewPlan,
     img: &RgbImage,
-    ids: Option<&[u8]>,
+    ids: Option<&[ObjectId]>,
     margin: f32,
     gaussians: Option<&str>,
     tail: usize,

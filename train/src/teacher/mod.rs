@@ -20,6 +20,7 @@ pub use extract::{ExtractSummary, extract};
 pub use novel::{NOVEL_BETWEEN, NOVEL_NEIGHBOURS, NovelViews, gaussians_hash, novel_cameras};
 pub use read::{TeacherObject, TeacherSet, TeacherViewInfo, content_hash, read_tokens};
 
+use model::ObjectId;
 use model::data::{LoadOptions, View};
 use model::language::objects_in;
 use std::path::PathBuf;
@@ -32,7 +33,7 @@ pub struct ExtractOptions {
     /// Objects with fewer mask pixels in a view are skipped there.
     pub min_object_pixels: usize,
     /// Instance ids that are not objects (0 = background).
-    pub ignore_ids: Vec<u8>,
+    pub ignore_ids: Vec<ObjectId>,
     /// Dataset loader options (downscale etc.).
     pub load: LoadOptions,
     /// This worker's shard `(I, N)` of the views: those whose index is I modulo N (`(0, 1)`:
@@ -68,7 +69,7 @@ impl Default for ExtractOptions {
 
 impl ExtractOptions {
     /// The objects of a view that get tokens.
-    pub fn objects(&self, ids: &[u8]) -> Vec<u8> {
+    pub fn objects(&self, ids: &[ObjectId]) -> Vec<ObjectId> {
         objects_in(ids, self.min_object_pixels, &self.ignore_ids)
     }
 }
@@ -79,7 +80,7 @@ pub struct ViewPlan {
     pub index: usize,
     pub image: PathBuf,
     /// Object ids with enough pixels, ascending.
-    pub objects: Vec<u8>,
+    pub objects: Vec<ObjectId>,
 }
 
 /// The whole job.

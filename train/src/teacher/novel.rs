@@ -1,6 +1,7 @@
 //! Novel views: the frozen geometry rendered at cameras between the training cameras, taught like
 //! photos.
 use glam::{Mat3, Mat4, Quat};
+use model::ObjectId;
 use model::data::Dataset;
 use model::error::{Error, Result};
 use model::rng::Rng;
@@ -123,7 +124,7 @@ impl Novel {
     }
 
     /// Novel view `k` rendered: its image and identity classes.
-    pub(super) fn render(&self, k: usize) -> Result<(RgbImage, Vec<u8>)> {
+    pub(super) fn render(&self, k: usize) -> Result<(RgbImage, Vec<ObjectId>)> {
         let cam = &self.cameras[k];
         let r = self.splats.render(cam, self.sh_degree, self.background)?;
         let rgb: Vec<f32> = r.rgb.iter().map(|c| c.clamp(0.0, 1.0)).collect();

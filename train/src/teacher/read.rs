@@ -1,5 +1,6 @@
 //! Reading a teacher directory back for training: the index, each view's object boxes and tokens.
 use super::novel::gaussians_hash;
+use model::ObjectId;
 use model::data::{Dataset, LoadOptions, load_any};
 use model::error::{Error, IoContext, Result};
 use model::run::{GeometryRun, TeacherDir, TeacherIndex};
@@ -27,7 +28,7 @@ pub fn read_tokens(path: &Path, name: &str) -> Result<(Vec<usize>, Vec<f32>)> {
 /// One object of one teacher view.
 #[derive(Clone, Debug, PartialEq)]
 pub struct TeacherObject {
-    pub id: u8,
+    pub id: ObjectId,
     /// `[x0, y0, x1, y1)` crop box in view pixels.
     pub bbox: [usize; 4],
 }
@@ -214,7 +215,7 @@ impl TeacherSet {
     }
 
     /// Tokens `[grid * grid * dim]` of the view (`None`) or of object `id`.
-    pub fn tokens(&self, view: usize, object: Option<u8>) -> Result<Vec<f32>> {
+    pub fn tokens(&self, view: usize, object: Option<ObjectId>) -> Result<Vec<f32>> {
         let name = object.map(|id| format!("object_{id}")).unwrap_or_else(|| "view".into());
         let file = &self.views[view].file;
         let (shape, v) = read_tokens(file, &name)?;

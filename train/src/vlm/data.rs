@@ -4,6 +4,7 @@
 //! drawn from seeds and ray-cast on the fly; every answer is true by construction
 //! (`model::data::synth::questions`).
 
+use model::ObjectId;
 use model::data::synth::questions::{
     CLICK_FRACTION, FollowUp, Kind, Qa, VISIBLE_FRACTION, ViewFacts, covering_views, object_follow_ups,
     object_questions, scene_questions, view_follow_ups, view_questions,
@@ -57,7 +58,7 @@ pub struct TowerImage {
 }
 
 /// The (colour, shape, size) classes (1-based) of object `id` of `scene`; zeros for anything else.
-fn token_label(scene: &SynthScene, id: u8) -> [u8; 3] {
+fn token_label(scene: &SynthScene, id: ObjectId) -> [u8; 3] {
     use model::data::synth::scene::{Color, Shape, Size};
     match scene.object(id) {
         Some(o) => [
@@ -133,7 +134,7 @@ impl DataSpec {
 
     /// The tower input of an image, its id map and depth (`[h, w]`, same size), resized like
     /// the processor's base view (the ids and depths by nearest sample).
-    fn tower_image(&self, img: &RgbImage, ids: &[u8], depth: &[f32], scene: &SynthScene) -> TowerImage {
+    fn tower_image(&self, img: &RgbImage, ids: &[ObjectId], depth: &[f32], scene: &SynthScene) -> TowerImage {
         let s = self.image_size;
         let resized = resize(img, s, s, self.processor.resample);
         let patches = ImagePatches { views: vec![resized], orig_hw: (img.height, img.width), anyres: false };
@@ -142,7 +143,7 @@ impl DataSpec {
         let mut labels = Vec::with_capacity(g * g);
         let mut depths = Vec::with_capacity(g * g);
         // per object id: (its pixels in each token, depth sums), for the visibility pass below
-        let mut per_object: std::collections::BTreeMap<u8, Vec<(usize, f32)>> = Default::default();
+        let mut per_object: std::collections::BTreeMap<ObjectId, Vec<(usize, f32)>> = Default::default();
         for ty in 0..g {
             for tx in 0..g {
                 let mut count = [0usize; 256];
@@ -158,14 +159,15 @@ impl DataSpec {
                 }
                 for (i, &n) in count.iter().enumerate().skip(2) {
                     if n > 0 {
-                        per_object.entry(i as u8).or_insert_with(|| vec![(0, 0.0); g * g])[ty * g + tx] = (n, dsum[i]);
+                        per_object.entry(i as ObjectId).or_insert_with(|| vec![(0, 0.0); g * g])[ty * g + tx] =
+                            (n, dsum[i]);
                     }
                 }
                 let (best, n) =
                     (2..256).map(|i| (i, count[i])).max_by_key(|&(i, n)| (n, usize::MAX - i)).unwrap_or((0, 0));
                 let enough = n as f32 >= MIN_TOKEN_PIXELS * (p * p) as f32;
                 depths.push(if enough { dsum[best] / n as f32 } else { 0.0 });
-                labels.push(if enough { token_label(scene, best as u8) } else { [0; 3] });
+                labels.push(if enough { token_label(scene, best as ObjectId) } else { [0; 3] });
             }
         }
         // every object the questions count as seen shows in at least one token: one that no
@@ -219,7 +221,7 @@ impl DataSpec {
                     return None;
                 }
                 let r = self.resolution as usize;
-                let big: Vec<u8> = facts
+                let big: Vec<ObjectId> = facts
                     .seen
                     .iter()
                     .filter(|s| s.pixels as f32 >= CLICK_FRACTION * (r * r) as f32)
@@ -233,7 +235,7 @@ impl DataSpec {
                 let obj_img = crop.masked_image(&img, &v.ids, id);
                 // the crop's id map: the object where it is, nothing elsewhere
                 let side = crop.side;
-                let mut ids = vec![0u8; side * side];
+                let mut ids: Vec<ObjectId> = vec![0; side * side];
                 let mut depth = vec![0f32; side * side];
                 let [bx0, by0, bx1, by1] = crop.bbox;
                 for y in by0..by1 {

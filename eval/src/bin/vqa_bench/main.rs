@@ -18,7 +18,6 @@ mod totals;
 use burn::tensor::Device;
 use clap::Parser;
 use eval::harness::{HeldOutSeeds, ModelArgs};
-use model::Result;
 use model::chat::{ChatSession, DEFAULT_SCENE_VIEWS};
 use model::data::synth::{SynthOptions, write_dataset};
 use model::data::{LoadOptions, load_any};
@@ -27,15 +26,17 @@ use model::run::{GeometryRun, LanguageRun};
 use model::splats::host;
 use model::vlm::{LlavaOnevision, RgbImage};
 use model::vqa::{FindOptions, Level, load_questions, scene_view, target_of};
-use scoring::compare::{Answered, Source, answer_file, find_file};
+use model::{ObjectId, Result};
+use scoring::compare::{Answered, Source, answer_file, find_file_as};
 use scoring::progress::Progress;
+use std::collections::BTreeMap;
 use std::path::PathBuf;
 use std::time::Instant;
 use sweep::{GEOMETRY_SWEEP, Point, SWEEP, Variant, add_point};
 use totals::{BenchJson, Totals, add_find, report};
 use train::geometry::GeometryConfig;
 use train::language::LanguageTrainConfig;
-use train::pipeline::{Observer, Recipe, SceneDirs, Stage, TeacherModel, train_scene};
+use train::pipeline::{Observer, PerViewMasks, Recipe, SceneDirs, Stage, TeacherModel, train_scene};
 use train::teacher::{ExtractOptions, NovelViews};
 
 /// One seed's progress bars: geometry (PSNR) and language (loss).
@@ -104,10 +105,57 @@ struct Args {
     /// paths, no token speed or fidelity.
     #[arg(long, conflicts_with = "sweep")]
     find_only: bool,
+    /// Where each scene's objects come from: `truth`, the capture's own masks; `matched`, issue
+    /// 84's flow on a capture without labels: its true masks corrupted the way segmenters err
+    /// (ids shuffled per view, masks split, merged, missing, fragments, edges moved), the geometry
+    /// trained without them, the masks matched across views (`chatsplat masks`) and the identity
+    /// fitted from them. The questions and the scoring are the same either way.
+    #[arg(long, value_enum, default_value_t = Objects::Truth)]
+    objects: Objects,
+    /// Only ChatSplat's answers and find phrases: not the ground-truth and rendered-RGB paths, no
+    /// token speed or fidelity.
+    #[arg(long, conflicts_with = "sweep")]
+    chatsplat_only: bool,
+    /// Keep what an earlier run left in `--out`: a seed's capture is not written again and its
+    /// finished stages are not trained again (to score the same fields again).
+    #[arg(long, conflicts_with = "sweep")]
+    resume: bool,
     /// Instead of running, add up the bench.json of earlier runs (tallies, token seconds and sweep
     /// points of their scenes) and print, plot and write them as one run into `--out`.
     #[arg(long, num_args = 1.., value_name = "BENCH_JSON")]
     merge: Vec<PathBuf>,
+}
+
+#[derive(Clone, Copy, Debug, PartialEq, clap::ValueEnum)]
+enum Objects {
+    Truth,
+    Matched,
+}
+
+/// Each object of the matched masks in `matched` (`<image stem>.png`, the images' size) taken to
+/// the true object (`ds`'s masks) most of its pixels show over every view; one mostly on the
+/// background to an id of its own that no phrase names.
+fn truth_of_matched(ds: &model::data::Dataset, matched: &std::path::Path) -> Result<BTreeMap<ObjectId, ObjectId>> {
+    let mut votes: BTreeMap<ObjectId, BTreeMap<ObjectId, usize>> = BTreeMap::new();
+    for v in ds.train.iter().chain(&ds.test) {
+        let Some(truth) = &v.instance_ids else { continue };
+        let name = v.image_path.file_name().map(|n| n.to_string_lossy().into_owned()).unwrap_or_default();
+        let path = matched.join(format!("{}.png", train::masks::files::stem(&name)));
+        let (_, _, ids) = model::data::read_ids16_any(&path)?;
+        if ids.len() != truth.len() {
+            return Err(model::Error::invalid(&path, "is not its image's size"));
+        }
+        for (&m, &t) in ids.iter().zip(truth).filter(|(m, _)| **m != 0) {
+            *votes.entry(m).or_default().entry(t).or_default() += 1;
+        }
+    }
+    Ok(votes
+        .into_iter()
+        .map(|(m, v)| {
+            let (t, _) = v.into_iter().max_by_key(|&(t, n)| (n, std::cmp::Reverse(t))).expect("a vote");
+            (m, if t == 0 { ObjectId::MAX - m } else { t })
+        })
+        .collect())
 }
 
 /// Bytes of a scene's language field (features and encoder) as f32.
@@ -143,8 +191,27 @@ fn bench(a: &Args) -> Result<()> {
         let dir = a.out.join(format!("seed{seed}"));
         let data = dir.join("data");
         let opts = SynthOptions { seed, views: a.views, width: side, height: side, ..Default::default() };
-        write_dataset(&data, &opts, |_, _| {})?;
-        let dirs = SceneDirs::beside(&data, &dir.join("run"));
+        // `--resume`: a capture already written is kept as it is
+        let written = |d: &std::path::Path| a.resume && d.join("transforms.json").is_file();
+        if !written(&data) {
+            write_dataset(&data, &opts, |_, _| {})?;
+        }
+        let dirs = match a.objects {
+            Objects::Truth => SceneDirs::beside(&data, &dir.join("run")),
+            Objects::Matched => {
+                // the same capture without labels, a segmenter's masks beside it
+                let bare = dir.join("bare");
+                let per_view = dir.join("per-view");
+                if !written(&bare) {
+                    write_dataset(&bare, &opts, |_, _| {})?;
+                    let truth = train::masks::corrupt::strip_capture(&bare, &per_view, &Default::default(), seed)?;
+                    eprintln!("seed {seed}: {truth} objects, their masks corrupted into {}", per_view.display());
+                }
+                let objects =
+                    PerViewMasks { per_view, bare: GeometryRun::new(dir.join("geometry")), matched: dir.join("masks") };
+                SceneDirs { objects: Some(objects), ..SceneDirs::beside(&bare, &dir.join("run")) }
+            }
+        };
         let (run, teacher) = (dirs.run.clone(), dirs.teacher.clone());
         let novel = (a.novel_views > 0).then(|| NovelViews { run: run.clone(), count: a.novel_views, seed });
         let recipe = Recipe {
@@ -154,34 +221,60 @@ fn bench(a: &Args) -> Result<()> {
             identity: Default::default(),
         };
         let mut bars = SeedBars { seed, bar: None };
-        let trained = train_scene(TeacherModel::Loaded(&vlm), &dirs, &recipe, &device, false, &mut bars)?;
-        let (Some(g), Some(l)) = (trained.geometry, trained.language) else {
-            unreachable!("every stage runs without resume")
-        };
+        let trained = train_scene(TeacherModel::Loaded(&vlm), &dirs, &recipe, &device, a.resume, &mut bars)?;
+        if let Some((m, _)) = &trained.objects {
+            eprintln!("seed {seed}: {} objects matched, {:.1} ms per view", m.objects.len(), m.per_view_ms);
+        }
         let load = LoadOptions::default();
         let ds = load_any(&data, &load)?;
-        eprintln!(
-            "seed {seed}: geometry held-out PSNR {:.2} dB, mIoU {:.3}; language token L1 view {:.3} object {:.3}",
-            g.eval.psnr,
-            g.eval.miou.unwrap_or(0.0),
-            l.after.0,
-            l.after.1
-        );
+        if let (Some(g), Some(l)) = (&trained.geometry, &trained.language) {
+            eprintln!(
+                "seed {seed}: geometry held-out PSNR {:.2} dB, mIoU {:.3}; language token L1 view {:.3} object {:.3}",
+                g.eval.psnr,
+                g.eval.miou.unwrap_or(0.0),
+                l.after.0,
+                l.after.1
+            );
+        }
+        // the sweep's own rate (`--resume`, which keeps a finished language stage, has no sweep)
+        let l_seconds = trained.language.as_ref().map_or(0.0, |l| l.seconds_per_iter);
         let session = ChatSession::open(&run, None, &vlm_dir, &device)?;
         let qf = load_questions(&data.join("questions.json"))?;
         let find_opts = FindOptions::of_run(&run, &mut Vec::new());
-        let (kinds, secs) = find_file(&session, &qf, &find_opts)?;
+        // matched masks number the objects their own way: what is found is scored as the true
+        // object most of its pixels show
+        let named = match &dirs.objects {
+            Some(o) => truth_of_matched(&ds, &o.matched)?,
+            None => Default::default(),
+        };
+        let as_named = |id: ObjectId| if dirs.objects.is_some() { named.get(&id).copied().unwrap_or(0) } else { id };
+        let (kinds, secs) = find_file_as(&session, &qf, &find_opts, &as_named)?;
+        if dirs.objects.is_some() {
+            // a capture without labels cannot tell the table from the objects on it (the truth's
+            // scene.json can): the same phrases with the matched table left out of the search
+            let ground = |m: &ObjectId| named.get(m) == Some(&model::data::synth::TABLE_ID);
+            let only = named.keys().copied().filter(|m| !ground(m)).collect();
+            let opts = FindOptions { names: model::find::ObjectNames::only(only), ..find_opts.clone() };
+            let (k, _) = find_file_as(&session, &qf, &opts, &as_named)?;
+            let mut all = model::find::FindTally::default();
+            k.values().for_each(|t| all.merge(t));
+            eprintln!("seed {seed}: find with the matched table left out: {}", all.summary());
+        }
         add_find(find, find_seconds, &kinds, secs);
         if a.find_only {
             continue;
         }
         let mut configured = None;
-        for source in Source::ALL {
+        let sources = if a.chatsplat_only { &[Source::ChatSplat][..] } else { &Source::ALL[..] };
+        for &source in sources {
             let answered = answer_file(&vlm, &qf, &ds, Some(&session), source, CROP_MARGIN)?;
             tallies.entry(source).or_default().merge(&answered.tally);
             if source == Source::ChatSplat {
                 configured = Some(answered);
             }
+        }
+        if a.chatsplat_only {
+            continue;
         }
         // speed of each path's tokens and their fidelity to teacher(ground truth), per question target
         for q in &qf.questions {
@@ -267,12 +360,10 @@ fn bench(a: &Args) -> Result<()> {
             // is a point of its own)
             let mut cfg = LanguageTrainConfig { compact_tolerance: 0.0, ..language_config.clone() };
             let (field, seconds_per_iter) = match v {
-                Variant::Configured => {
-                    (ChatSession::open_full(&run, None, &vlm_dir, &device)?, Some(l.seconds_per_iter))
-                }
+                Variant::Configured => (ChatSession::open_full(&run, None, &vlm_dir, &device)?, Some(l_seconds)),
                 Variant::Compacted => {
                     let ans = configured.take().expect("ChatSplat's answers of the default field");
-                    record(v, &session, ans, Some(l.seconds_per_iter));
+                    record(v, &session, ans, Some(l_seconds));
                     continue;
                 }
                 Variant::Kept(pct) => {
@@ -321,6 +412,7 @@ fn bench(a: &Args) -> Result<()> {
         "seeds": [a.held_out.first_seed, a.held_out.range().end], "views": a.views, "resolution": side,
         "geometry_iters": a.geometry_iters, "language_iters": a.language_iters, "novel_views": a.novel_views,
         "tower_tail": a.tower_tail, "find_only": a.find_only,
+        "objects": format!("{:?}", a.objects).to_lowercase(), "chatsplat_only": a.chatsplat_only, "resume": a.resume,
         "language_config": language_config, "backend": a.model.backend.to_string(),
     });
     report(&totals, &format!("{} views of {side}px", a.views), settings, &a.out)

@@ -96,7 +96,9 @@ pub(crate) fn report(t: &Totals, what: &str, settings: serde_json::Value, out: &
         return write_bench(t, settings, serde_json::json!({}), out);
     }
     println!("| path | view | object | scene | overall | questions |\n|---|---|---|---|---|---|");
-    for source in Source::ALL {
+    // the paths run (`--chatsplat-only`: ChatSplat's alone)
+    let sources: Vec<Source> = Source::ALL.into_iter().filter(|s| t.tallies.contains_key(s)).collect();
+    for &source in &sources {
         let t = tally(source);
         let f = |l: Level| t.level(l).map(|v| format!("{v:.1}")).unwrap_or_else(|| "-".into());
         let n: usize = t.by_level.values().map(|(_, n)| n).sum();
@@ -110,7 +112,7 @@ pub(crate) fn report(t: &Totals, what: &str, settings: serde_json::Value, out: &
         );
     }
     find_report(t);
-    let kinds: Vec<String> = tally(Source::GroundTruth).by_kind.keys().cloned().collect();
+    let kinds: std::collections::BTreeSet<&String> = t.tallies.values().flat_map(|t| t.by_kind.keys()).collect();
     println!(
         "\n| question type | (a) ground truth | (b) rendered RGB | (c) ChatSplat | asked |\n|---|---|---|---|---|"
     );
@@ -118,17 +120,23 @@ pub(crate) fn report(t: &Totals, what: &str, settings: serde_json::Value, out: &
         let pct = |s: Source| {
             tally(s)
                 .by_kind
-                .get(k)
+                .get(*k)
                 .map(|(r, n)| format!("{:.1}", 100.0 * *r as f64 / (*n).max(1) as f64))
                 .unwrap_or("-".into())
         };
-        let n = tally(Source::GroundTruth).by_kind.get(k).map_or(0, |e| e.1);
+        let n = sources.iter().find_map(|&s| tally(s).by_kind.get(*k)).map_or(0, |e| e.1);
         println!(
             "| {k} | {} | {} | {} | {n} |",
             pct(Source::GroundTruth),
             pct(Source::RenderedRgb),
             pct(Source::ChatSplat)
         );
+    }
+    let tallies: serde_json::Map<_, _> =
+        t.tallies.iter().map(|(s, t)| (format!("{s:?}"), serde_json::to_value(t).unwrap())).collect();
+    if t.seconds.is_empty() {
+        // `--chatsplat-only`: no token figures
+        return write_bench(t, settings, serde_json::json!({ "tallies": tallies }), out);
     }
     println!("\n| tokens of | views/s | objects/s | view token L1 vs teacher(GT) | cosine |\n|---|---|---|---|---|");
     let rate = |s: Source, l: Level| t.seconds.get(&(s, l)).map(|(t, n)| *n as f64 / t.max(1e-9));
@@ -151,10 +159,7 @@ pub(crate) fn report(t: &Totals, what: &str, settings: serde_json::Value, out: &
         sweep_report(&t.points, baseline, (&t.label(), t.scenes()), out)?;
     }
     let figures = serde_json::json!({
-        "tallies": t.tallies
-            .iter()
-            .map(|(s, t)| (format!("{s:?}"), serde_json::to_value(t).unwrap()))
-            .collect::<serde_json::Map<_, _>>(),
+        "tallies": tallies,
         "token_seconds": t.seconds.iter().map(|(&(s, l), &(secs, n))| (s, l, secs, n)).collect::<Vec<_>>(),
         "fidelity_rendered_rgb": fr, "fidelity_chatsplat": fc, "sweep": t.points,
     });

@@ -9,6 +9,7 @@
 //! larger than that are zoomed out to fit). The teacher's image keeps the object's pixels, blanks
 //! everything else to black, and is resized from the square to the tower's input size.
 
+use crate::ObjectId;
 use crate::vlm::RgbImage;
 
 /// The crop square is at least this fraction of the view's shorter side.
@@ -31,7 +32,7 @@ pub struct ObjectCrop {
 
 impl ObjectCrop {
     /// The crop of object `id` in an `[height, width]` id map, or `None` when it is absent.
-    pub fn of(ids: &[u8], width: usize, height: usize, id: u8, margin: f32) -> Option<Self> {
+    pub fn of(ids: &[ObjectId], width: usize, height: usize, id: ObjectId, margin: f32) -> Option<Self> {
         object_box(ids, width, height, id, margin).map(|b| Self::from_box(b, width, height))
     }
 
@@ -56,7 +57,7 @@ impl ObjectCrop {
 
     /// The teacher's image of the object: its pixels of `img` (`ids` the view's id map), black
     /// elsewhere, in the `side x side` square.
-    pub fn masked_image(&self, img: &RgbImage, ids: &[u8], id: u8) -> RgbImage {
+    pub fn masked_image(&self, img: &RgbImage, ids: &[ObjectId], id: ObjectId) -> RgbImage {
         let (w, side) = (img.width, self.side);
         let [bx0, by0, bx1, by1] = self.bbox;
         let [ox, oy] = self.offset;
@@ -75,7 +76,7 @@ impl ObjectCrop {
 
 /// The mask's bounding box plus `margin` of its size on every side, clipped to the image, as
 /// `[x0, y0, x1, y1)`. `None` when `id` is absent.
-pub fn object_box(ids: &[u8], width: usize, height: usize, id: u8, margin: f32) -> Option<[usize; 4]> {
+pub fn object_box(ids: &[ObjectId], width: usize, height: usize, id: ObjectId, margin: f32) -> Option<[usize; 4]> {
     let (mut x0, mut y0, mut x1, mut y1) = (width, height, 0, 0);
     for y in 0..height {
         for x in 0..width {
@@ -96,17 +97,22 @@ pub fn object_box(ids: &[u8], width: usize, height: usize, id: u8, margin: f32) 
 }
 
 /// The masked object image of `id` in `img` and its crop, or `None` when `id` is absent.
-pub fn object_image(img: &RgbImage, ids: &[u8], id: u8, margin: f32) -> Option<(RgbImage, ObjectCrop)> {
+pub fn object_image(img: &RgbImage, ids: &[ObjectId], id: ObjectId, margin: f32) -> Option<(RgbImage, ObjectCrop)> {
     let crop = ObjectCrop::of(ids, img.width, img.height, id, margin)?;
     Some((crop.masked_image(img, ids, id), crop))
 }
 
 /// Object ids of an id map with at least `min_pixels` pixels, ascending, `ignore` left out
 /// (0 = background): the objects a view has tokens for.
-pub fn objects_in(ids: &[u8], min_pixels: usize, ignore: &[u8]) -> Vec<u8> {
-    let mut count = [0usize; 256];
+pub fn objects_in(ids: &[ObjectId], min_pixels: usize, ignore: &[ObjectId]) -> Vec<ObjectId> {
+    pixel_counts(ids).into_iter().filter(|&(i, n)| n >= min_pixels && !ignore.contains(&i)).map(|(i, _)| i).collect()
+}
+
+/// How many pixels of an id map each id holds, by id (0 included where present).
+pub fn pixel_counts(ids: &[ObjectId]) -> std::collections::BTreeMap<ObjectId, usize> {
+    let mut count = std::collections::BTreeMap::new();
     for &i in ids {
-        count[i as usize] += 1;
+        *count.entry(i).or_default() += 1;
     }
-    (0..=255u8).filter(|&i| count[i as usize] >= min_pixels && !ignore.contains(&i)).collect()
+    count
 }

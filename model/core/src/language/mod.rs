@@ -29,7 +29,7 @@ mod init;
 pub mod mix;
 
 pub use config::LanguageConfig;
-pub use crop::{CROP_MARGIN, ObjectCrop, object_box, object_image, objects_in};
+pub use crop::{CROP_MARGIN, ObjectCrop, object_box, object_image, objects_in, pixel_counts};
 pub use field::{Encoder, LanguageField, mask_out};
 pub use frozen::FrozenEncoder;
 pub use mix::TokenMixer;

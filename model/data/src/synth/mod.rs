@@ -28,6 +28,7 @@ pub mod questions;
 pub mod raycast;
 pub mod scene;
 
+use crate::ObjectId;
 use crate::error::{Error, Result};
 use crate::images;
 use crate::io;
@@ -74,8 +75,8 @@ pub const FOV_DEG: f32 = 40.0;
 /// Distance of the dataset cameras from [`LOOK_AT`].
 pub const CAMERA_DISTANCE: f32 = 3.4;
 /// Mask id of the table top; objects start at `FIRST_OBJECT_ID`.
-pub const TABLE_ID: u8 = 1;
-pub const FIRST_OBJECT_ID: u8 = 2;
+pub const TABLE_ID: ObjectId = 1;
+pub const FIRST_OBJECT_ID: ObjectId = 2;
 /// Depth PNG unit: metres per count.
 pub const DEPTH_SCALE: f32 = 0.001;
 
@@ -143,7 +144,7 @@ pub fn held_out(i: usize) -> bool {
 /// still lands on the object when a reconstruction's identity map is a pixel or two off at the
 /// edges, where a centroid of a ring, a cone seen edge-on or a partly hidden object may not be
 /// on the object at all. `ids` `[H, W]` row-major.
-pub fn click_pixel(ids: &[u8], width: usize, id: u8) -> Option<[usize; 2]> {
+pub fn click_pixel(ids: &[ObjectId], width: usize, id: ObjectId) -> Option<[usize; 2]> {
     if width == 0 {
         return None;
     }
@@ -212,7 +213,7 @@ pub fn write_dataset(dir: &Path, opts: &SynthOptions, mut progress: impl FnMut(u
         let v = render_view(&cam, &scene);
         let f = ViewFacts::of(&scene, &v.ids, &v.depth, w, h);
         let area = (w * h) as f32;
-        let big: Vec<(u8, [usize; 2])> = f
+        let big: Vec<(ObjectId, [usize; 2])> = f
             .seen
             .iter()
             .filter(|s| s.pixels as f32 >= CLICK_FRACTION * area)
@@ -222,7 +223,7 @@ pub fn write_dataset(dir: &Path, opts: &SynthOptions, mut progress: impl FnMut(u
         clicks.push(big);
         let name = format!("frame_{i:04}.png");
         images::write_rgb(&dir.join("images").join(&name), cam.width, cam.height, &v.rgb)?;
-        images::write_gray8(&dir.join("masks").join(&name), cam.width, cam.height, &v.ids)?;
+        images::write_ids(&dir.join("masks").join(&name), cam.width, cam.height, &v.ids)?;
         let mm: Vec<u16> = v.depth.iter().map(|&d| (d / DEPTH_SCALE).round().clamp(0.0, 65535.0) as u16).collect();
         images::write_gray16(&dir.join("depth").join(&name), cam.width, cam.height, &mm)?;
         frames.push(Frame {
@@ -255,7 +256,7 @@ pub fn write_dataset(dir: &Path, opts: &SynthOptions, mut progress: impl FnMut(u
 fn question_file(
     scene: &SynthScene,
     facts: &[ViewFacts],
-    clicks: &[Vec<(u8, [usize; 2])>],
+    clicks: &[Vec<(ObjectId, [usize; 2])>],
     frames: &[String],
 ) -> QuestionFile {
     let mut rng = Rng::new(scene.seed ^ 0x0935_7105);

@@ -26,6 +26,7 @@
 //! | find | find_color / find_shape / find_name (`find_absent_*`) | `red` / `cone` / `red cone` | ids named |
 
 use super::scene::{Color, Object, Shape, Size, SynthScene};
+use crate::ObjectId;
 use crate::question_file::Level;
 use base::rng::Rng;
 use serde::{Deserialize, Serialize};
@@ -154,7 +155,7 @@ impl Qa {
 /// One object as a view shows it.
 #[derive(Clone, Copy, Debug, PartialEq)]
 pub struct Seen {
-    pub id: u8,
+    pub id: ObjectId,
     pub pixels: usize,
     /// Mask centroid (pixels).
     pub cx: f32,
@@ -177,7 +178,7 @@ pub struct ViewFacts {
 
 impl ViewFacts {
     /// The facts of a view of `scene` from its instance ids and camera-space depth (`[h, w]`).
-    pub fn of(scene: &SynthScene, ids: &[u8], depth: &[f32], width: usize, height: usize) -> Self {
+    pub fn of(scene: &SynthScene, ids: &[ObjectId], depth: &[f32], width: usize, height: usize) -> Self {
         let area = (width * height) as f32;
         let mut seen = Vec::new();
         let mut ambiguous = false;
@@ -396,7 +397,7 @@ pub struct FindQuery {
     pub kind: String,
     pub phrase: String,
     /// The instance ids it names, in id order (empty for an absent phrase).
-    pub objects: Vec<u8>,
+    pub objects: Vec<ObjectId>,
 }
 
 /// The find queries of a scene: each colour, shape and name (colour and shape) it holds, and as
@@ -404,8 +405,8 @@ pub struct FindQuery {
 /// and a shape the scene holds apart before any other pair). `rng` picks the absent ones.
 pub fn find_queries(scene: &SynthScene, rng: &mut Rng) -> Vec<FindQuery> {
     let objs = &scene.objects;
-    let ids = |f: &dyn Fn(&Object) -> bool| -> Vec<u8> { objs.iter().filter(|o| f(o)).map(|o| o.id).collect() };
-    let query = |kind: &str, phrase: String, objects: Vec<u8>| {
+    let ids = |f: &dyn Fn(&Object) -> bool| -> Vec<ObjectId> { objs.iter().filter(|o| f(o)).map(|o| o.id).collect() };
+    let query = |kind: &str, phrase: String, objects: Vec<ObjectId>| {
         let kind = if objects.is_empty() { kind.replace("find_", "find_absent_") } else { kind.to_string() };
         FindQuery { kind, phrase, objects }
     };
@@ -456,7 +457,7 @@ pub fn find_queries(scene: &SynthScene, rng: &mut Rng) -> Vec<FindQuery> {
 /// adding most unseen objects, at most `k`; `None` when some object is seen in none of them.
 pub fn covering_views(scene: &SynthScene, facts: &[ViewFacts], k: usize) -> Option<Vec<usize>> {
     let mut chosen = Vec::new();
-    let mut covered: Vec<u8> = Vec::new();
+    let mut covered: Vec<ObjectId> = Vec::new();
     let usable: Vec<usize> = (0..facts.len()).filter(|&i| !facts[i].ambiguous).collect();
     while chosen.len() < k {
         let gain = |i: usize| facts[i].seen.iter().filter(|s| !covered.contains(&s.id)).count();

@@ -8,6 +8,7 @@ use super::scene::{
     CONE_HEIGHT, CONE_RADIUS, CUBE_HALF, CYLINDER_HALF_HEIGHT, CYLINDER_RADIUS, Object, PYRAMID_HALF, PYRAMID_HEIGHT,
     Shape, SynthScene, TORUS_MAJOR, TORUS_MINOR,
 };
+use crate::ObjectId;
 use glam::{Mat4, Quat, Vec3};
 use splat_kernels::Camera;
 
@@ -16,7 +17,7 @@ use splat_kernels::Camera;
 struct Hit {
     t: f32,
     normal: Vec3,
-    id: u8,
+    id: ObjectId,
     albedo: [f32; 3],
 }
 
@@ -202,7 +203,7 @@ fn trace(o: Vec3, d: Vec3, scene: &SynthScene) -> Option<Hit> {
 /// One rendered view: RGB in [0, 1] (`[H, W, 3]`), instance ids, camera-space depth (0 = none).
 pub struct SynthView {
     pub rgb: Vec<f32>,
-    pub ids: Vec<u8>,
+    pub ids: Vec<ObjectId>,
     pub depth: Vec<f32>,
 }
 

@@ -6,6 +6,7 @@
 //!
 //! World frame: y up, the table top at y = 0, objects standing on it.
 
+use crate::ObjectId;
 use base::rng::Rng;
 use glam::Vec3;
 use serde::{Deserialize, Serialize};
@@ -164,7 +165,7 @@ impl Size {
 #[derive(Clone, Debug, PartialEq, Serialize, Deserialize)]
 pub struct Object {
     /// Instance id in the masks (`FIRST_OBJECT_ID`, ...).
-    pub id: u8,
+    pub id: ObjectId,
     pub shape: Shape,
     pub color: Color,
     pub size: Size,
@@ -274,7 +275,7 @@ impl SynthScene {
                 continue;
             }
             objects.push(Object {
-                id: super::FIRST_OBJECT_ID + objects.len() as u8,
+                id: super::FIRST_OBJECT_ID + objects.len() as ObjectId,
                 shape,
                 color,
                 size,
@@ -287,7 +288,7 @@ impl SynthScene {
     }
 
     /// The object with mask id `id`.
-    pub fn object(&self, id: u8) -> Option<&Object> {
+    pub fn object(&self, id: ObjectId) -> Option<&Object> {
         self.objects.iter().find(|o| o.id == id)
     }
 }

@@ -28,11 +28,13 @@ struct Args {
 eval::bench_main!("view-depth", depth);
 
 fn depth(a: &Args) -> model::Result<()> {
+    let run = GeometryRun::new(&a.run);
+    // the output guard's rule: nothing onto or around the run's files; and only a new folder
+    model::guard::refuse_overlap("--out", &a.out, &run.own_files())?;
     if a.out.exists() {
         return Err(model::Error::invalid(&a.out, "exists: name a new folder for the depth maps"));
     }
     let device = Device::ndarray();
-    let run = GeometryRun::new(&a.run);
     let (model, _) = run.load_model(&device)?;
     let cams = run.read_cameras()?;
     let mut maps = Vec::new();

@@ -9,6 +9,7 @@ use model::run::GeometryRun;
 use model::splats::SplatModel;
 use serde::Serialize;
 use splat_kernels::Camera;
+use splat_kernels::blend::BlendWeights;
 use std::path::{Path, PathBuf};
 
 /// What `masks.json` records.
@@ -66,14 +67,15 @@ fn read_view(dir: &Path, name: &str, cam: &Camera) -> Result<Option<LabelMap>> {
 }
 
 /// Matches the per-view masks in `per_view` over the views `names` / `cameras` of `model`;
-/// returns the result, the views without a mask file and the milliseconds per view.
+/// returns the result, each view's blend weights, the views without a mask file and the
+/// milliseconds per view.
 fn match_run(
     model: &SplatModel,
     names: &[String],
     cameras: &[Camera],
     per_view: &Path,
     opts: &MatchOptions,
-) -> Result<(Matched, Vec<String>, f64)> {
+) -> Result<(Matched, Vec<BlendWeights>, Vec<String>, f64)> {
     let t0 = std::time::Instant::now();
     let mut masks = Vec::new();
     let mut missing = Vec::new();
@@ -96,16 +98,15 @@ fn match_run(
     let weights = cameras.iter().map(|c| model.blend_weights(c)).collect::<Result<Vec<_>>>()?;
     let matched = match_masks(&weights, &masks, opts);
     let ms = t0.elapsed().as_secs_f64() * 1000.0 / names.len().max(1) as f64;
-    Ok((matched, missing, ms))
+    Ok((matched, weights, missing, ms))
 }
 
-/// Writes `OUT/<stem>.png` for every view at `full_size(view)` (the image's size) and
-/// `OUT/masks.json`; returns the summary.
+/// Writes `OUT/<stem>.png` for every view (its blend weights `weights`, the matching's) at
+/// `full_size(view)` (the image's size) and `OUT/masks.json`; returns the summary.
 #[allow(clippy::too_many_arguments)]
 fn write(
     out: &Path,
-    model: &SplatModel,
-    cameras: &[Camera],
+    weights: &[BlendWeights],
     matched: &Matched,
     names: &[String],
     missing: Vec<String>,
@@ -114,13 +115,13 @@ fn write(
     full_size: impl Fn(usize) -> (u32, u32),
 ) -> Result<Summary> {
     model::io::create_dir(out)?;
-    for (v, cam) in cameras.iter().enumerate() {
+    for (v, bw) in weights.iter().enumerate() {
         // rendered at the run's resolution (what a run trained at it reads back), scaled to the
         // image's size by nearest pixel: a run at 1/8 of a phone's photos renders 64x fewer
         // pixels
         let (w, h) = full_size(v);
-        let labels = matched.shares.render(&model.blend_weights(cam)?);
-        let (cw, ch) = (cam.width as usize, cam.height as usize);
+        let labels = matched.shares.render(bw);
+        let (cw, ch) = (bw.width, bw.height);
         let ids: Vec<u16> = (0..h as usize)
             .flat_map(|y| (0..w as usize).map(move |x| (y * ch / h as usize) * cw + x * cw / w as usize))
             .map(|p| labels.ids[p])
@@ -164,7 +165,7 @@ pub fn match_capture(
     let (model, _) = run.load_model(&burn::tensor::Device::ndarray())?;
     let cams = run.read_cameras()?;
     let (names, cameras) = (cams.image_names(), cams.all());
-    let (matched, missing, ms) = match_run(&model, &names, &cameras, per_view, opts)?;
+    let (matched, weights, missing, ms) = match_run(&model, &names, &cameras, per_view, opts)?;
     // the images' full sizes (what `train --masks` checks a mask against), by file name; the
     // holdout split changes nothing here (train and test views together)
     let full = model::data::load_any(data, &model::data::LoadOptions { holdout_every: 0, ..Default::default() })?;
@@ -180,5 +181,5 @@ pub fn match_capture(
         .iter()
         .map(|n| size_of.get(n).copied().ok_or_else(|| Error::invalid(data, format!("has no image {n} of the run"))))
         .collect::<Result<Vec<_>>>()?;
-    write(out, &model, &cameras, &matched, &names, missing, ms, opts, |v| sizes[v])
+    write(out, &weights, &matched, &names, missing, ms, opts, |v| sizes[v])
 }

@@ -287,6 +287,9 @@ fn check_find_objects(s: &ChatSession, (path, qf): (&Path, &QuestionFile), names
                 Some(false) if names.name(id) == "table" => {
                     format!("object {id}, the table, which find never searches")
                 }
+                None if names.surface(id) => {
+                    format!("object {id}, a surface (the ground or a table, masks.json), which find never searches")
+                }
                 None if held.contains(&id) => continue,
                 _ => format!("object {id}, which the scene does not have"),
             };

@@ -256,6 +256,15 @@ fn a_capture_without_masks_gets_objects_through_masks_and_identity() {
     let found = summary["objects"].as_array().unwrap().len();
     assert!(found >= true_objects.min(2) && found <= true_objects, "{found} of {true_objects} objects: {said}");
     assert_eq!(summary["views_without_masks"].as_array().unwrap().len(), 1, "{summary}");
+    // the table the objects stand on is the one surface (kept out of find, as scene.json keeps it)
+    let surfaces: Vec<u64> = summary["objects"]
+        .as_array()
+        .unwrap()
+        .iter()
+        .filter(|o| o["surface"].as_bool().unwrap())
+        .map(|o| o["id"].as_u64().unwrap())
+        .collect();
+    assert_eq!(surfaces.len(), 1, "{summary}");
 
     // identity on the frozen geometry: a new run, the old one untouched, the same Gaussians
     let before = std::fs::read(run.join("checkpoint.safetensors")).unwrap();
@@ -327,4 +336,18 @@ fn a_capture_without_masks_gets_objects_through_masks_and_identity() {
     let listed: serde_json::Value = serde_json::from_str(said.lines().find(|l| l.starts_with('{')).unwrap()).unwrap();
     let ids: Vec<u64> = listed["matches"].as_array().unwrap().iter().map(|m| m["id"].as_u64().unwrap()).collect();
     assert!(!ids.is_empty() && ids.iter().all(|&i| i >= 1 && i <= found as u64), "{said}");
+    assert!(!ids.contains(&surfaces[0]), "the table was searched: {said}");
+    // a question file whose find entry names the surface is refused, naming it
+    let q = root.join("find-surface.json");
+    std::fs::write(
+        &q,
+        format!(
+            r#"{{"questions": [{{"id": "f", "level": "find", "question": "red", "answer": "-", "objects": [{}]}}]}}"#,
+            surfaces[0]
+        ),
+    )
+    .unwrap();
+    let o = chatsplat().arg("vqa").arg("--run").arg(&objects).arg("--questions").arg(&q).output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("find-surface.json") && err.contains("a surface"), "{err}");
 }

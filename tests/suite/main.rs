@@ -44,6 +44,9 @@ mod language_hard_cases;
 
 mod compact;
 
+// Segment Anything: parity with transformers' SamModel on a tiny random checkpoint.
+mod sam;
+
 // The house: no circle in any crate's module graph (ARCHITECTURE.md).
 mod module_graph;
 

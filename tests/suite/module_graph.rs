@@ -14,6 +14,7 @@ const CRATES: &[&str] = &[
     "model/base/src",
     "model/data/src",
     "model/llava-onevision/src",
+    "model/sam/src",
     "model/core/src",
     "model/viewer/src",
     "train/src",

@@ -48,6 +48,12 @@ struct Args {
     /// The share of views where two candidates' Gaussians share a mask for them to be one object.
     #[arg(long, default_value_t = MatchOptions::default().together)]
     together: f64,
+    /// The share of each other's Gaussians two masks must own to be joined (the matching's default).
+    #[arg(long, default_value_t = MatchOptions::default().mutual)]
+    mutual: f32,
+    /// The blend weight a Gaussian needs in a view to take part in it (the matching's default).
+    #[arg(long, default_value_t = MatchOptions::default().min_weight)]
+    min_weight: f32,
     /// Write the per-scene rows as JSON here.
     #[arg(long)]
     json: Option<PathBuf>,
@@ -75,6 +81,8 @@ struct Row {
     weights_ms_per_view: f64,
     match_ms_per_view: f64,
     greedy_ms_per_view: f64,
+    /// The surfaces found ([`train::masks::surface`]) are the matched table, and only it.
+    surface_is_table: bool,
 }
 
 fn errors(spec: &str) -> Result<corrupt::Errors, String> {
@@ -152,11 +160,28 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     let a = Args::parse();
     let errs = errors(&a.errors)?;
     let dev = Device::ndarray();
-    let mopts = MatchOptions { unmasked: a.unmasked, together: a.together, ..Default::default() };
+    let mopts = MatchOptions {
+        unmasked: a.unmasked,
+        together: a.together,
+        mutual: a.mutual,
+        min_weight: a.min_weight,
+        ..Default::default()
+    };
     let mut rows = Vec::new();
     println!(
-        "{:>5} {:>4} {:>8} {:>8} {:>9} {:>13} {:>9} {:>13} {:>9} {:>9} {:>9}",
-        "seed", "objs", "geometry", "ceiling", "corrupt", "matched", "reversed", "greedy", "w ms/v", "m ms/v", "g ms/v"
+        "{:>5} {:>4} {:>8} {:>8} {:>9} {:>13} {:>9} {:>13} {:>9} {:>9} {:>9} {:>7}",
+        "seed",
+        "objs",
+        "geometry",
+        "ceiling",
+        "corrupt",
+        "matched",
+        "reversed",
+        "greedy",
+        "w ms/v",
+        "m ms/v",
+        "g ms/v",
+        "surface"
     );
     for seed in a.first_seed..a.first_seed + a.scenes as u64 {
         let (ds, t) = scene(&a, seed, &dev)?;
@@ -185,6 +210,14 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let greedy_views: Vec<LabelMap> = weights.iter().map(|w| render_labels(w, &g)).collect();
         let greedy_ms = t0.elapsed().as_secs_f64() * 1e3 / nv;
         let baseline = score::consistency(&truth, &greedy_views);
+        // the surfaces found are the table, and only it
+        let ids: Vec<u16> = m.objects.iter().map(|o| o.id).collect();
+        let mut found = train::masks::surface::surfaces(&t.model.to_cloud().0.means, &m.gaussian_labels, &ids);
+        let named = score::truth_of(&truth, &m.views);
+        let mut tables: Vec<u16> =
+            ids.iter().copied().filter(|i| named.get(i) == Some(&model::data::synth::TABLE_ID)).collect();
+        found.sort_unstable();
+        tables.sort_unstable();
         let row = Row {
             seed,
             true_objects: after.true_objects,
@@ -199,9 +232,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             weights_ms_per_view: weights_ms,
             match_ms_per_view: match_ms,
             greedy_ms_per_view: greedy_ms,
+            surface_is_table: !found.is_empty() && found == tables,
         };
         println!(
-            "{:>5} {:>4} {:>8.3} {:>8.3} {:>9.3} {:>7.3} ({:>2}) {:>9.4} {:>7.3} ({:>2}) {:>9.1} {:>9.1} {:>9.1}",
+            "{:>5} {:>4} {:>8.3} {:>8.3} {:>9.3} {:>7.3} ({:>2}) {:>9.4} {:>7.3} ({:>2}) {:>9.1} {:>9.1} {:>9.1} {:>7}",
             row.seed,
             row.true_objects,
             row.geometry_miou,
@@ -214,7 +248,8 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
             row.greedy_objects,
             row.weights_ms_per_view,
             row.match_ms_per_view,
-            row.greedy_ms_per_view
+            row.greedy_ms_per_view,
+            if row.surface_is_table { "table" } else { "WRONG" }
         );
         rows.push(row);
     }
@@ -225,7 +260,7 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
     println!(
         "mean over {} scenes: geometry {:.3}, ceiling {:.3}; corrupted {:.3} -> matched {:.3} (object count \
          exact on {}/{}), greedy {:.3} (exact on {}/{}); largest change with the views reversed {:.4}; ms per \
-         view: weights {:.1}, matching {:.1}, greedy {:.1}",
+         view: weights {:.1}, matching {:.1}, greedy {:.1}; the table the one surface on {}/{}",
         rows.len(),
         mean(&|r| r.geometry_miou),
         mean(&|r| r.ceiling_miou),
@@ -239,7 +274,9 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         rows.iter().map(|r| r.reversed_delta).fold(0.0, f64::max),
         mean(&|r| r.weights_ms_per_view),
         mean(&|r| r.match_ms_per_view),
-        mean(&|r| r.greedy_ms_per_view)
+        mean(&|r| r.greedy_ms_per_view),
+        rows.iter().filter(|r| r.surface_is_table).count(),
+        rows.len()
     );
     if let Some(p) = &a.json {
         std::fs::write(p, serde_json::to_string_pretty(&rows)?)?;

@@ -36,6 +36,22 @@ pub struct ObjectNames {
     names: BTreeMap<ObjectId, String>,
     /// A synthetic scene's objects (not its table); `None` where the dataset does not say.
     objects: Option<Vec<ObjectId>>,
+    /// The surfaces (ground, table) of a run whose ids come from a matched masks folder, as its
+    /// `masks.json` marks them (`chatsplat masks`): never searched.
+    surfaces: Vec<ObjectId>,
+}
+
+/// What [`ObjectNames`] reads of a matched masks folder's `masks.json`.
+#[derive(serde::Deserialize)]
+struct MatchedMasks {
+    objects: Vec<MatchedObject>,
+}
+
+#[derive(serde::Deserialize)]
+struct MatchedObject {
+    id: ObjectId,
+    #[serde(default)]
+    surface: bool,
 }
 
 impl ObjectNames {
@@ -45,8 +61,21 @@ impl ObjectNames {
     pub fn of_run(run: &GeometryRun, warnings: &mut Vec<String>) -> Self {
         use crate::data::synth::scene::SynthScene;
         let Ok(state) = run.read_state() else { return Self::default() };
-        if state.data.mask_dir.is_some() {
-            return Self::default();
+        if let Some(dir) = &state.data.mask_dir {
+            // no names; the surfaces `chatsplat masks` found, where it made the masks
+            let path = dir.resolve(&run.dir).join("masks.json");
+            if !path.is_file() {
+                return Self::default();
+            }
+            return match crate::io::read_json::<MatchedMasks>(&path) {
+                Ok(m) => {
+                    Self { surfaces: m.objects.iter().filter(|o| o.surface).map(|o| o.id).collect(), ..Self::default() }
+                }
+                Err(e) => {
+                    warnings.push(format!("surfaces unknown: {e}"));
+                    Self::default()
+                }
+            };
         }
         let path = state.data.dir.resolve(&run.dir).join("scene.json");
         if !path.exists() {
@@ -56,7 +85,7 @@ impl ObjectNames {
             Ok(scene) => {
                 let mut names: BTreeMap<ObjectId, String> = scene.objects.iter().map(|o| (o.id, o.name())).collect();
                 names.insert(crate::data::synth::TABLE_ID, "table".into());
-                Self { names, objects: Some(scene.objects.iter().map(|o| o.id).collect()) }
+                Self { names, objects: Some(scene.objects.iter().map(|o| o.id).collect()), surfaces: Vec::new() }
             }
             Err(e) => {
                 warnings.push(format!("object names unavailable: {e}"));
@@ -68,7 +97,7 @@ impl ObjectNames {
     /// No names; a search looks at `objects` alone (e.g. a capture's objects less the ground it
     /// stands on, known from elsewhere).
     pub fn only(objects: Vec<ObjectId>) -> Self {
-        Self { names: BTreeMap::new(), objects: Some(objects) }
+        Self { names: BTreeMap::new(), objects: Some(objects), surfaces: Vec::new() }
     }
 
     pub fn name(&self, id: ObjectId) -> String {
@@ -87,10 +116,16 @@ impl ObjectNames {
         self.objects.as_ref().map(|o| o.contains(&id))
     }
 
+    /// Whether `id` is a surface a matched masks folder marked (the ground or a table).
+    pub fn surface(&self, id: ObjectId) -> bool {
+        self.surfaces.contains(&id)
+    }
+
     /// Whether a search looks at instance `id`: every instance, except a synthetic scene's table
-    /// (the ground its objects stand on, which its questions and the built-in model never name).
+    /// (the ground its objects stand on, which its questions and the built-in model never name)
+    /// and the surfaces of matched masks, which stand for it in a capture without labels.
     pub fn searched(&self, id: ObjectId) -> bool {
-        self.objects.as_ref().is_none_or(|o| o.contains(&id))
+        !self.surface(id) && self.objects.as_ref().is_none_or(|o| o.contains(&id))
     }
 }
 

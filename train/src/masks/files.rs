@@ -30,6 +30,8 @@ pub struct ObjectEntry {
     pub confidence: f32,
     /// The images whose mask shows it.
     pub views: Vec<String>,
+    /// The ground or a table other objects stand on ([`super::surface`]): kept out of `find`.
+    pub surface: bool,
 }
 
 #[derive(Clone, Debug, Serialize)]
@@ -112,6 +114,7 @@ fn write(
     missing: Vec<String>,
     per_view_ms: f64,
     opts: &MatchOptions,
+    surfaces: &[u16],
     full_size: impl Fn(usize) -> (u32, u32),
 ) -> Result<Summary> {
     model::io::create_dir(out)?;
@@ -137,6 +140,7 @@ fn write(
             gaussians: o.gaussians,
             confidence: o.confidence,
             views: o.views.iter().map(|&v| names[v].clone()).collect(),
+            surface: surfaces.contains(&o.id),
         })
         .collect();
     let o = opts;
@@ -181,5 +185,7 @@ pub fn match_capture(
         .iter()
         .map(|n| size_of.get(n).copied().ok_or_else(|| Error::invalid(data, format!("has no image {n} of the run"))))
         .collect::<Result<Vec<_>>>()?;
-    write(out, &weights, &matched, &names, missing, ms, opts, |v| sizes[v])
+    let ids: Vec<u16> = matched.objects.iter().map(|o| o.id).collect();
+    let surfaces = super::surface::surfaces(&model.to_cloud().0.means, &matched.gaussian_labels, &ids);
+    write(out, &weights, &matched, &names, missing, ms, opts, &surfaces, |v| sizes[v])
 }

@@ -20,6 +20,8 @@
 //!    rendered there. The shares are gathered again.
 //! 6. The per-view masks out are the shares rendered: each pixel the object holding most of its
 //!    weight, so a merge, a missing mask or a moved edge in one view is outvoted by the others.
+//! 7. [`surface`]: objects that are flat and carry others (a table, the ground) are marked, and
+//!    search leaves them out as a labelled scene leaves its table out.
 //!
 //! Nothing depends on the order of the views (masks joined by union-find, candidates keyed by
 //! their first Gaussian, objects numbered by size), and ids are 16-bit.
@@ -34,6 +36,7 @@ pub mod identity_run;
 pub mod ownership;
 pub mod score;
 pub mod soft;
+pub mod surface;
 
 use splat_kernels::blend::BlendWeights;
 

@@ -66,6 +66,28 @@ pub fn consistency(truth: &[LabelMap], pred: &[LabelMap]) -> Consistency {
     Consistency { miou, true_objects: true_ids.len(), predicted_objects: pred_ids.len() }
 }
 
+/// For each predicted id: the true id it overlaps most over all views (not one to one: two
+/// pieces of one object both name it); ids that overlap nothing are left out.
+pub fn truth_of(truth: &[LabelMap], pred: &[LabelMap]) -> HashMap<u16, u16> {
+    let mut inter: HashMap<(u16, u16), u64> = HashMap::new();
+    for (t, p) in truth.iter().zip(pred) {
+        for (&a, &b) in t.ids.iter().zip(&p.ids) {
+            if a != 0 && b != 0 {
+                *inter.entry((b, a)).or_default() += 1;
+            }
+        }
+    }
+    let mut best: HashMap<u16, (u64, u16)> = HashMap::new();
+    for ((b, a), n) in inter {
+        let e = best.entry(b).or_insert((n, a));
+        // largest overlap, then the smaller true id: deterministic
+        if (n, std::cmp::Reverse(a)) > (e.0, std::cmp::Reverse(e.1)) {
+            *e = (n, a);
+        }
+    }
+    best.into_iter().map(|(b, (_, a))| (b, a)).collect()
+}
+
 #[cfg(test)]
 mod tests {
     use super::*;
@@ -84,5 +106,9 @@ mod tests {
         let c = consistency(&truth, &swapped);
         assert!((c.miou - 0.5).abs() < 1e-9, "{c:?}");
         assert_eq!((c.true_objects, c.predicted_objects), (2, 2));
+        // each predicted id names the true object it overlaps most
+        let split = [map(&[0, 7, 8, 9, 9]), map(&[7, 8, 0, 9, 9])];
+        let named = truth_of(&truth, &split);
+        assert_eq!((named[&7], named[&8], named[&9]), (1, 1, 2));
     }
 }

@@ -250,8 +250,9 @@ fn bench(a: &Args) -> Result<()> {
         let as_named = |id: ObjectId| if dirs.objects.is_some() { named.get(&id).copied().unwrap_or(0) } else { id };
         let (kinds, secs) = find_file_as(&session, &qf, &find_opts, &as_named)?;
         if dirs.objects.is_some() {
-            // a capture without labels cannot tell the table from the objects on it (the truth's
-            // scene.json can): the same phrases with the matched table left out of the search
+            // the truth's scene.json names its table; a capture without labels finds it as a
+            // surface (masks.json): the same phrases with the matched table left out by the
+            // truth, which equals the main figure when the surface found is the table
             let ground = |m: &ObjectId| named.get(m) == Some(&model::data::synth::TABLE_ID);
             let only = named.keys().copied().filter(|m| !ground(m)).collect();
             let opts = FindOptions { names: model::find::ObjectNames::only(only), ..find_opts.clone() };

@@ -211,12 +211,10 @@ fn main() -> Result<(), Box<dyn std::error::Error>> {
         let greedy_ms = t0.elapsed().as_secs_f64() * 1e3 / nv;
         let baseline = score::consistency(&truth, &greedy_views);
         // the surfaces found are the table, and only it
-        let ids: Vec<u16> = m.objects.iter().map(|o| o.id).collect();
-        let mut found = train::masks::surface::surfaces(&t.model.to_cloud().0.means, &m.gaussian_labels, &ids);
+        let found = train::masks::surface::of_matched(&t.model, &m);
         let named = score::truth_of(&truth, &m.views);
         let mut tables: Vec<u16> =
-            ids.iter().copied().filter(|i| named.get(i) == Some(&model::data::synth::TABLE_ID)).collect();
-        found.sort_unstable();
+            m.objects.iter().map(|o| o.id).filter(|i| named.get(i) == Some(&model::data::synth::TABLE_ID)).collect();
         tables.sort_unstable();
         let row = Row {
             seed,

@@ -185,7 +185,6 @@ pub fn match_capture(
         .iter()
         .map(|n| size_of.get(n).copied().ok_or_else(|| Error::invalid(data, format!("has no image {n} of the run"))))
         .collect::<Result<Vec<_>>>()?;
-    let ids: Vec<u16> = matched.objects.iter().map(|o| o.id).collect();
-    let surfaces = super::surface::surfaces(&model.to_cloud().0.means, &matched.gaussian_labels, &ids);
+    let surfaces = super::surface::of_matched(&model, &matched);
     write(out, &weights, &matched, &names, missing, ms, opts, &surfaces, |v| sizes[v])
 }

@@ -89,21 +89,25 @@ fn symmetric_eigen(mut a: [[f64; 3]; 3]) -> ([f64; 3], [[f64; 3]; 3]) {
     ([a[0][0], a[1][1], a[2][2]], v)
 }
 
+/// The surfaces among the objects `matched` found, from the centres of `model`'s Gaussians.
+pub fn of_matched(model: &model::splats::SplatModel, matched: &super::Matched) -> Vec<u16> {
+    let means = model::splats::host(model.means.val());
+    let centres: Vec<[f32; 3]> = means.chunks_exact(3).map(|c| [c[0], c[1], c[2]]).collect();
+    let ids: Vec<u16> = matched.objects.iter().map(|o| o.id).collect();
+    surfaces(&centres, &matched.gaussian_labels, &ids)
+}
+
 /// The ids among `objects` that are surfaces, given each Gaussian's centre and object label
-/// (0 = none).
+/// (0 = none), ascending.
 pub fn surfaces(centres: &[[f32; 3]], labels: &[u16], objects: &[u16]) -> Vec<u16> {
-    let frames: Vec<(u16, Frame)> = objects
-        .iter()
-        .filter_map(|&id| {
-            let points: Vec<DVec3> = centres
-                .iter()
-                .zip(labels)
-                .filter(|&(_, &l)| l == id)
-                .map(|(c, _)| DVec3::new(c[0] as f64, c[1] as f64, c[2] as f64))
-                .collect();
-            Some((id, Frame::of(&points)?))
-        })
-        .collect();
+    // each object's centres, gathered in one pass over the Gaussians
+    let mut points: std::collections::BTreeMap<u16, Vec<DVec3>> = objects.iter().map(|&id| (id, Vec::new())).collect();
+    for (c, l) in centres.iter().zip(labels) {
+        if let Some(p) = points.get_mut(l) {
+            p.push(DVec3::new(c[0] as f64, c[1] as f64, c[2] as f64));
+        }
+    }
+    let frames: Vec<(u16, Frame)> = points.iter().filter_map(|(&id, p)| Some((id, Frame::of(p)?))).collect();
     frames
         .iter()
         .filter(|(id, f)| f.flat() && frames.iter().any(|(other, g)| other != id && f.carries(g)))

@@ -1,13 +1,18 @@
-//! `chatsplat masks`: per-view instance masks from any segmenter (ids arbitrary per view) made
-//! into one id per object over all views through a geometry run's Gaussians
-//! (`train::masks`), written as a masks folder `train --masks` and `extract --masks` read.
+//! `chatsplat masks`: per-view instance masks from any segmenter (ids arbitrary per view; a
+//! folder of them, or SAM's automatic masks made here) made into one id per object over all
+//! views through a geometry run's Gaussians (`train::masks`), written as a masks folder `train
+//! --masks` and `extract --masks` read.
 
+use model::Backend;
 use model::guard::{Existing, Kind};
 use model::run::GeometryRun;
-use std::path::PathBuf;
+use sam::automatic::AutoOptions;
+use scoring::progress::Progress;
+use std::path::{Path, PathBuf};
 use train::masks::{MatchOptions, files};
 
 #[derive(clap::Args)]
+#[command(group = clap::ArgGroup::new("source").required(true).args(["per_view", "segmenter"]))]
 pub struct Args {
     /// The capture the run was trained on (its images give the masks' sizes).
     #[arg(long)]
@@ -18,7 +23,17 @@ pub struct Args {
     /// The per-view masks: `<image stem>.png` per image (8- or 16-bit grayscale or palette, 0 =
     /// none, ids arbitrary per view); a view without a file is matched as showing no object.
     #[arg(long)]
-    pub per_view: PathBuf,
+    pub per_view: Option<PathBuf>,
+    /// Instead of --per-view: a Segment Anything model folder (transformers' layout, e.g. a
+    /// download of facebook/sam-vit-base) whose automatic masks of each image are matched.
+    #[arg(long)]
+    pub segmenter: Option<PathBuf>,
+    /// With --segmenter: points per side of the prompt grid (SAM's default 32).
+    #[arg(long, default_value_t = AutoOptions::default().points_per_side, requires = "segmenter")]
+    pub points_per_side: usize,
+    /// With --segmenter: the backend SAM runs on.
+    #[arg(long, default_value_t = Backend::Flex, requires = "segmenter")]
+    pub backend: Backend,
     /// The masks folder to write: `<image stem>.png` per image and masks.json.
     #[arg(long)]
     pub out: PathBuf,
@@ -33,20 +48,65 @@ pub struct Args {
     /// apart that a segmenter often merges.
     #[arg(long, default_value_t = MatchOptions::default().together)]
     pub together: f64,
+    /// A Gaussian takes part in a view's overlaps when its blend weights there sum to at least
+    /// this (pixels' worth); lower keeps objects that lie on many small Gaussians apart.
+    #[arg(long, default_value_t = MatchOptions::default().min_weight)]
+    pub min_weight: f32,
 }
 
 pub fn run(a: Args) -> anyhow::Result<()> {
     if !(0.5..=1.0).contains(&a.mutual) || a.min_views == 0 || !(0.0..=1.0).contains(&a.together) {
         anyhow::bail!("--mutual must be within 0.5..=1, --together within 0..=1 and --min-views at least 1");
     }
+    if !(a.min_weight.is_finite() && a.min_weight >= 0.0) {
+        anyhow::bail!("--min-weight must be a number at least 0, not {}", a.min_weight);
+    }
     let run = GeometryRun::new(&a.run);
     let mut inputs = run.own_files();
     inputs.push(("the --data directory", a.data.clone()));
-    inputs.push(("the --per-view directory", a.per_view.clone()));
+    if let Some(p) = &a.per_view {
+        inputs.push(("the --per-view directory", p.clone()));
+    }
+    if let Some(p) = &a.segmenter {
+        inputs.push(("the --segmenter directory", p.clone()));
+    }
+    if a.points_per_side == 0 {
+        anyhow::bail!("--points-per-side must be at least 1");
+    }
     model::guard::output_folder("--out", &a.out, Kind::Masks, Existing::GoOn, &inputs)?;
     check_trained_on(&run, &a.data)?;
-    let opts = MatchOptions { mutual: a.mutual, min_views: a.min_views, together: a.together, ..Default::default() };
-    let s = files::match_capture(&a.data, &run, &a.per_view, &a.out, &opts)?;
+    let opts = MatchOptions {
+        mutual: a.mutual,
+        min_views: a.min_views,
+        together: a.together,
+        min_weight: a.min_weight,
+        ..Default::default()
+    };
+    let s = match (&a.per_view, &a.segmenter) {
+        (Some(dir), _) => files::match_capture(&a.data, &run, files::PerView::Dir(dir), &a.out, &opts)?,
+        (None, Some(dir)) => {
+            let device = a.backend.device()?;
+            let sam = model::catch_backend("loading SAM", || sam::Sam::load(dir, &device))??;
+            let auto = AutoOptions { points_per_side: a.points_per_side, ..Default::default() };
+            let total = run.read_cameras()?.image_names().len();
+            let bar = Progress::new("SAM", "views");
+            let (mut done, mut seconds) = (0, 0.0);
+            let mut segment = |image: &Path| -> model::error::Result<(u32, u32, Vec<u16>)> {
+                let t = std::time::Instant::now();
+                let img = model::data::images::read_rgb_image(image)?;
+                let masks = model::catch_backend("SAM", || sam.automatic_masks(&img, &auto, &device))
+                    .map_err(|e| model::error::Error::invalid(image, format!("SAM failed on it: {e}")))?;
+                seconds += t.elapsed().as_secs_f64();
+                done += 1;
+                bar.update_with(done, total, &format!("{} masks in the last view", masks.len()));
+                Ok((img.width as u32, img.height as u32, sam::automatic::label_map(&masks, img.width * img.height)))
+            };
+            let s = files::match_capture(&a.data, &run, files::PerView::Made(&mut segment), &a.out, &opts)?;
+            eprintln!("SAM: {:.1} s per view", seconds / done.max(1) as f64);
+            s
+        }
+        (None, None) => unreachable!("clap requires --per-view or --segmenter"),
+    };
     for o in &s.objects {
         eprintln!(
             "object {}: {} Gaussians, {} views, confidence {:.2}",

@@ -266,6 +266,33 @@ fn a_capture_without_masks_gets_objects_through_masks_and_identity() {
         .collect();
     assert_eq!(surfaces.len(), 1, "{summary}");
 
+    // the same matching from masks SAM makes here, in process (the tiny random checkpoint: its
+    // masks mean nothing, but every view is segmented and the masks folder is whole)
+    let tiny_sam = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("checkpoints/tiny-sam");
+    let sam_masks = root.join("sam-masks");
+    let masks_cmd = || {
+        let mut c = chatsplat();
+        c.arg("masks").args(["--data".as_ref(), data.as_os_str(), "--run".as_ref(), run.as_os_str()]);
+        c.arg("--segmenter").arg(&tiny_sam).args(["--points-per-side", "4"]).arg("--out").arg(&sam_masks);
+        c
+    };
+    let both = masks_cmd().arg("--per-view").arg(&per_view).output().unwrap();
+    assert!(!both.status.success() && !sam_masks.exists(), "--per-view and --segmenter together were not refused");
+    let mut missing = chatsplat();
+    missing.arg("masks").args(["--data".as_ref(), data.as_os_str(), "--run".as_ref(), run.as_os_str()]);
+    let o = missing.arg("--segmenter").arg(root.join("no-such-sam")).arg("--out").arg(&sam_masks).output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("no-such-sam") && !sam_masks.exists(), "{err}");
+    let said = ok(&mut masks_cmd());
+    assert!(said.contains("SAM:") && said.contains("s per view"), "{said}");
+    let summary: serde_json::Value =
+        serde_json::from_slice(&std::fs::read(sam_masks.join("masks.json")).unwrap()).unwrap();
+    assert_eq!(summary["views_without_masks"].as_array().unwrap().len(), 0, "{summary}");
+    for image in std::fs::read_dir(data.join("images")).unwrap() {
+        let stem = image.unwrap().path().file_stem().unwrap().to_string_lossy().into_owned();
+        assert!(sam_masks.join(format!("{stem}.png")).is_file(), "no SAM-matched mask for {stem}");
+    }
+
     // identity on the frozen geometry: a new run, the old one untouched, the same Gaussians
     let before = std::fs::read(run.join("checkpoint.safetensors")).unwrap();
     let identity = || {

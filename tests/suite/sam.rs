@@ -2,13 +2,15 @@
 //! checkpoints/tiny-sam (built by checkpoints/make_tiny_sam.py), on ndarray (the whole pipeline
 //! also on flex): the image embeddings, the relative-position tables (resized and for unequal
 //! query and key sizes), the prompt embeddings (points with a box, points alone with their
-//! padding point, a mask prompt), and the masks and IoU of the mask decoder.
+//! padding point, a mask prompt), and the masks and IoU of the mask decoder; and automatic masks
+//! against transformers' mask-generation pipeline (checkpoints/make_tiny_sam_auto.py).
 #![allow(deprecated)] // burn-ndarray and TensorData::to_vec are deprecated in burn 0.22; the card names ndarray.
 
 use burn::tensor::{Device, Int, Tensor, TensorData};
 use safetensors::{Dtype, SafeTensors};
+use sam::automatic::{AutoMask, AutoOptions, Filters, nms, suppress};
 use sam::image_encoder::rel_pos_table;
-use sam::{Prompt, Sam};
+use sam::{Prompt, RgbImage, Sam};
 use std::collections::HashMap;
 use std::path::{Path, PathBuf};
 
@@ -131,4 +133,79 @@ fn pixels_to_masks_match_transformers() {
         r.check("pred_masks", masks);
         r.check("iou_scores", iou);
     }
+}
+
+/// checkpoints/tiny-sam/auto_reference.safetensors (checkpoints/make_tiny_sam_auto.py): every
+/// tensor as f32, u8 ones converted.
+fn auto_reference() -> HashMap<String, (Vec<usize>, Vec<f32>)> {
+    let bytes = std::fs::read(fixture().join("auto_reference.safetensors")).expect("auto_reference.safetensors");
+    let st = SafeTensors::deserialize(&bytes).expect("valid reference");
+    st.tensors()
+        .into_iter()
+        .map(|(name, v)| {
+            let values = match v.dtype() {
+                Dtype::U8 => v.data().iter().map(|&b| b as f32).collect(),
+                Dtype::F32 => v.data().chunks_exact(4).map(|b| f32::from_le_bytes(b.try_into().unwrap())).collect(),
+                other => panic!("{name}: {other:?}"),
+            };
+            (name, (v.shape().to_vec(), values))
+        })
+        .collect()
+}
+
+/// Masks against the reference's `[K, H, W]` masks: the same count, IoU at least 0.99 each,
+/// predicted IoU within 1e-4; returns the least IoU.
+fn same_masks(ours: &[AutoMask], want: &(Vec<usize>, Vec<f32>), scores: &[f32], what: &str) -> f64 {
+    let (shape, values) = want;
+    assert_eq!(ours.len(), shape[0], "{what}: mask count");
+    let mut least = 1.0f64;
+    for (k, (m, w)) in ours.iter().zip(values.chunks_exact(shape[1] * shape[2])).enumerate() {
+        let inter = m.mask.iter().zip(w).filter(|(a, b)| **a && **b > 0.5).count();
+        let union = m.mask.iter().zip(w).filter(|(a, b)| **a || **b > 0.5).count();
+        let iou = if union == 0 { 1.0 } else { inter as f64 / union as f64 };
+        least = least.min(iou);
+        assert!(iou >= 0.99, "{what} {k}: IoU {iou} with the pipeline's mask");
+        assert!((m.predicted_iou - scores[k]).abs() < 1e-4, "{what} {k}: score {} vs {}", m.predicted_iou, scores[k]);
+    }
+    println!("{what}: {} masks, least IoU with the pipeline's {least:.4}", ours.len());
+    least
+}
+
+/// Automatic masks as transformers' mask-generation pipeline makes them on the tiny model (a
+/// 56 x 40 image resized and padded to 64, 8 x 8 points in batches of 24, each filter alone with
+/// its threshold between the random model's values): the masks that pass the filters, then those
+/// NMS keeps, on ndarray (and flex for one filter).
+#[test]
+fn automatic_masks_match_the_pipeline() {
+    let r = auto_reference();
+    let (shape, pixels) = &r["image"];
+    let img = RgbImage::new(shape[1], shape[0], pixels.iter().map(|&v| v as u8).collect());
+    for (filter, device) in
+        [("stability", Device::ndarray()), ("iou", Device::ndarray()), ("stability", Device::flex())]
+    {
+        let at = |name: &str| &r[&format!("{filter}.{name}")];
+        let (t, grid) = (&at("thresholds").1, &r["grid"].1);
+        let f =
+            Filters { pred_iou: t[0], stability: t[1], stability_offset: t[2], mask_threshold: t[3], nms_iou: t[4] };
+        let o = AutoOptions { points_per_side: grid[0] as usize, points_per_batch: grid[1] as usize, filters: f };
+        let sam = model(&device);
+        let passing = sam.passing_masks(&img, &o, &device);
+        same_masks(&passing, at("passed"), &at("passed_scores").1, &format!("{filter}: passing"));
+        let kept = suppress(passing, o.filters.nms_iou);
+        same_masks(&kept, at("masks"), &at("scores").1, &format!("{filter}: kept"));
+        let boxes: Vec<u32> = at("boxes").1.iter().map(|&b| b as u32).collect();
+        assert_eq!(kept.iter().flat_map(|m| m.bbox).collect::<Vec<_>>(), boxes, "{filter}: boxes");
+    }
+}
+
+/// Box NMS against torchvision's `batched_nms` on 60 random overlapping boxes (the tiny model's
+/// masks all span the image, so the pipeline's own NMS keeps one).
+#[test]
+fn box_suppression_matches_torchvision() {
+    let r = auto_reference();
+    let boxes: Vec<[u32; 4]> =
+        r["nms_boxes"].1.chunks_exact(4).map(|b| [b[0] as u32, b[1] as u32, b[2] as u32, b[3] as u32]).collect();
+    let keep: Vec<usize> = r["nms_keep"].1.iter().map(|&i| i as usize).collect();
+    assert!(keep.len() < boxes.len(), "the fixture suppresses some boxes");
+    assert_eq!(nms(&boxes, &r["nms_scores"].1, 0.7), keep);
 }

@@ -187,7 +187,13 @@ pub fn train_scene(
     if let Some(o) = dirs.objects.as_ref().filter(|_| !(resume && dirs.run.metrics().is_file())) {
         let t0 = Instant::now();
         obs.start(Stage::Objects, None);
-        let matched = files::match_capture(&dirs.data, &o.bare, &o.per_view, &o.matched, &MatchOptions::default())?;
+        let matched = files::match_capture(
+            &dirs.data,
+            &o.bare,
+            files::PerView::Dir(&o.per_view),
+            &o.matched,
+            &MatchOptions::default(),
+        )?;
         let load = LoadOptions { masks: Some(o.matched.clone()), ..Default::default() };
         let (ds, _) = load_for_geometry(&dirs.data, &load)?;
         let s = model::catch_backend("the identity", || {

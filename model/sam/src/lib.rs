@@ -11,15 +11,17 @@
 //! Weights load through [`llava_onevision::weights::WeightStore`] under transformers' key names.
 #![allow(deprecated)] // burn-ndarray is deprecated in burn 0.22 in favour of burn-flex.
 
+pub mod automatic;
 pub mod config;
 pub mod image_encoder;
 pub mod mask_decoder;
+pub mod preprocess;
 pub mod prompt_encoder;
 pub mod transformer;
 pub mod weights;
 
 pub use config::SamConfig;
-pub use llava_onevision::VlmError;
+pub use llava_onevision::{RgbImage, VlmError};
 pub use prompt_encoder::Prompt;
 
 use burn::module::Module;

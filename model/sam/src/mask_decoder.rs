@@ -6,7 +6,7 @@
 
 use crate::config::MaskDecoderConfig;
 use crate::transformer::TwoWayTransformer;
-use crate::weights::{ConvTranspose2d, WeightStore, layer_norm, layer_norm_2d, linear, param};
+use crate::weights::{ConvTranspose2d, WeightStore, layer_norm, linear, param};
 use burn::module::{Module, Param};
 use burn::nn::{LayerNorm, Linear};
 use burn::tensor::Tensor;
@@ -127,16 +127,17 @@ impl MaskDecoder {
             x.unsqueeze_dim::<4>(1).repeat_dim(1, p).reshape([n, h * w, d])
         };
         let image = per_entry(image + dense);
-        let image_pe = per_entry(image_pe.repeat_dim(0, b));
+        // one image's positions, shared by every entry (added by broadcasting)
+        let image_pe = image_pe.flatten::<3>(2, 3).swap_dims(1, 2);
         let (hs, image) = self.transformer.forward(tokens, image, image_pe);
         let iou_out = hs.clone().narrow(1, 0, 1);
         let mask_out = hs.narrow(1, 1, k);
 
-        let image = image.swap_dims(1, 2).reshape([n, d, h, w]);
-        let up = self.upscale_conv1.forward(image);
-        let up = gelu(layer_norm_2d(&self.upscale_layer_norm, up));
-        let up = gelu(self.upscale_conv2.forward(up));
-        let [_, c, uh, uw] = up.dims();
+        // the upscaling channels last, as the transformer leaves the image
+        let up = self.upscale_conv1.forward_channels_last(image.reshape([n, h, w, d]));
+        let up = gelu(self.upscale_layer_norm.forward(up));
+        let up = gelu(self.upscale_conv2.forward_channels_last(up));
+        let [_, uh, uw, c] = up.dims();
         let hyper: Vec<Tensor<3>> = self
             .output_hypernetworks_mlps
             .iter()
@@ -144,7 +145,9 @@ impl MaskDecoder {
             .map(|(i, mlp)| mlp.forward(mask_out.clone().narrow(1, i, 1)))
             .collect();
         let hyper = Tensor::cat(hyper, 1); // [N, k, c]
-        let masks = hyper.matmul(up.reshape([n, c, uh * uw])).reshape([b, p, k, uh, uw]);
+        // [N, uh uw, c] x [N, c, k], the small result turned
+        let masks =
+            up.reshape([n, uh * uw, c]).matmul(hyper.swap_dims(1, 2)).swap_dims(1, 2).reshape([b, p, k, uh, uw]);
         let iou = self.iou_prediction_head.forward(iou_out).reshape([b, p, k]);
         if multimask {
             (masks.narrow(2, 1, k - 1), iou.narrow(2, 1, k - 1))

@@ -48,6 +48,68 @@ impl Attention {
     }
 }
 
+/// The weight `[D, c]` of a projection and its bias `[c]`.
+fn weight_bias(l: &Linear) -> (Tensor<2>, Tensor<1>) {
+    let w = l.weight.val();
+    let c = w.dims()[1];
+    let b = l.bias.as_ref().map_or_else(|| Tensor::zeros([c], &w.device()), |b| b.val());
+    (w, b)
+}
+
+impl Attention {
+    /// Image pixels attending to a few tokens, the same as [`Attention::forward`] with the
+    /// pixels' projections folded into the tokens': each head's scores are `x (W_q,h K_h^T) + b_q,h
+    /// K_h^T` and its output through `out_proj` is `S_h (V_h W_o,h)`, so every pixel costs two
+    /// products with `heads x T` columns instead of two through the projections' width.
+    ///
+    /// # Shapes
+    /// `x` `[N, P, D]` (queries), `k` and `v` `[N, T, D]` -> `[N, P, D]`.
+    pub fn pixels_to_tokens(&self, x: Tensor<3>, k: Tensor<3>, v: Tensor<3>) -> Tensor<3> {
+        let (h, [n, p, d], t) = (self.heads, x.dims(), k.dims()[1]);
+        let (wq, bq) = weight_bias(&self.q_proj);
+        let c = wq.dims()[1];
+        let hd = c / h;
+        let heads = |y: Tensor<3>| y.reshape([n, t, h, hd]).swap_dims(1, 2); // [N, h, T, hd]
+        let (k, v) = (heads(self.k_proj.forward(k)), heads(self.v_proj.forward(v)));
+        // M [N, D, h T]: column (h, t) = W_q,h K_h[t]; beta [N, 1, h T] = b_q,h . K_h[t]
+        let wq_h = wq.reshape([d, h, hd]).swap_dims(0, 1).unsqueeze_dim::<4>(0); // [1, h, D, hd]
+        let m = wq_h.matmul(k.clone().swap_dims(2, 3)).permute([0, 2, 1, 3]).reshape([n, d, h * t]);
+        let beta = bq.reshape([1, h, 1, hd]).matmul(k.swap_dims(2, 3)).reshape([n, 1, h * t]);
+        let scores = (x.matmul(m) + beta) * (hd as f64).powf(-0.5);
+        let probs = softmax(scores.reshape([n, p, h, t]), 3).reshape([n, p, h * t]);
+        // U [N, h T, D]: row (h, t) = V_h[t] W_o,h
+        let (wo, bo) = weight_bias(&self.out_proj);
+        let wo_h = wo.reshape([h, hd, d]).unsqueeze_dim::<4>(0); // [1, h, hd, D]
+        let u = v.matmul(wo_h).reshape([n, h * t, d]);
+        probs.matmul(u) + bo.reshape([1, 1, d])
+    }
+
+    /// A few tokens attending to the image's pixels, the same as [`Attention::forward`] with the
+    /// pixels' projections folded into the tokens': each head's scores are `(Q_h W_k,h^T) x_k^T`
+    /// (the key bias adds a constant per row, which the softmax drops) and its output is
+    /// `(S_h x_v) W_v,h + b_v,h` (the probabilities sum to 1).
+    ///
+    /// # Shapes
+    /// `q` `[N, T, D]`, `xk` and `xv` `[N, P, D]` (keys, values) -> `[N, T, D]`.
+    pub fn tokens_to_pixels(&self, q: Tensor<3>, xk: Tensor<3>, xv: Tensor<3>) -> Tensor<3> {
+        let (h, [n, t, d]) = (self.heads, q.dims());
+        let (wk, _) = weight_bias(&self.k_proj);
+        let c = wk.dims()[1];
+        let hd = c / h;
+        let q = self.q_proj.forward(q).reshape([n, t, h, hd]).swap_dims(1, 2); // [N, h, T, hd]
+        // A [N, D, h T]: column (h, t) = W_k,h Q_h[t]
+        let wk_h = wk.reshape([d, h, hd]).swap_dims(0, 1).unsqueeze_dim::<4>(0); // [1, h, D, hd]
+        let a = wk_h.matmul(q.swap_dims(2, 3)).permute([0, 2, 1, 3]).reshape([n, d, h * t]);
+        let scores = xk.matmul(a) * (hd as f64).powf(-0.5); // [N, P, h T]
+        let probs = softmax(scores, 1).swap_dims(1, 2); // [N, h T, P]
+        let z = probs.matmul(xv).reshape([n, h, t, d]);
+        let (wv, bv) = weight_bias(&self.v_proj);
+        let wv_h = wv.reshape([d, h, hd]).swap_dims(0, 1).unsqueeze_dim::<4>(0); // [1, h, D, hd]
+        let out = z.matmul(wv_h) + bv.reshape([1, h, 1, hd]); // [N, h, T, hd]
+        self.out_proj.forward(out.swap_dims(1, 2).reshape([n, t, c]))
+    }
+}
+
 /// Self-attention of the tokens, tokens to image, MLP on the tokens, image to tokens
 /// (`SamTwoWayAttentionBlock`), each followed by a layer norm.
 #[derive(Module, Debug)]
@@ -71,7 +133,8 @@ pub struct TwoWayBlock {
 
 impl TwoWayBlock {
     /// # Shapes
-    /// `queries`, `query_pe` `[N, T, D]`; `keys`, `key_pe` `[N, HW, D]` -> (queries, keys).
+    /// `queries`, `query_pe` `[N, T, D]`; `keys` `[N, HW, D]`, `key_pe` `[N or 1, HW, D]` ->
+    /// (queries, keys).
     pub fn forward(
         &self,
         queries: Tensor<3>,
@@ -88,16 +151,17 @@ impl TwoWayBlock {
         let queries = self.layer_norm1.forward(queries);
 
         let q = queries.clone() + query_pe.clone();
-        let k = keys.clone() + key_pe.clone();
-        let queries = queries + self.cross_attn_token_to_image.forward(q, k, keys.clone());
+        // the keys with their positions: the keys of this attention and the queries of the last
+        let k = keys.clone() + key_pe;
+        let queries = queries + self.cross_attn_token_to_image.tokens_to_pixels(q, k.clone(), keys.clone());
         let queries = self.layer_norm2.forward(queries);
 
         let mlp = self.lin2.forward(self.act.apply(self.lin1.forward(queries.clone())));
         let queries = self.layer_norm3.forward(queries + mlp);
 
         let q = queries.clone() + query_pe;
-        let k = keys.clone() + key_pe;
-        let keys = self.layer_norm4.forward(keys + self.cross_attn_image_to_token.forward(k, q, queries.clone()));
+        let keys =
+            self.layer_norm4.forward(keys + self.cross_attn_image_to_token.pixels_to_tokens(k, q, queries.clone()));
         (queries, keys)
     }
 }
@@ -158,7 +222,8 @@ impl TwoWayTransformer {
     }
 
     /// # Shapes
-    /// `tokens` `[N, T, D]` (also their positional embedding), `image` and `image_pe` `[N, HW, D]`
+    /// `tokens` `[N, T, D]` (also their positional embedding), `image` `[N, HW, D]` and `image_pe`
+    /// `[N or 1, HW, D]`
     /// -> (tokens `[N, T, D]`, image `[N, HW, D]`).
     pub fn forward(&self, tokens: Tensor<3>, image: Tensor<3>, image_pe: Tensor<3>) -> (Tensor<3>, Tensor<3>) {
         let (mut queries, mut keys) = (tokens.clone(), image);
@@ -167,7 +232,7 @@ impl TwoWayTransformer {
         }
         let q = queries.clone() + tokens;
         let k = keys.clone() + image_pe;
-        let queries = queries + self.final_attn_token_to_image.forward(q, k, keys.clone());
+        let queries = queries + self.final_attn_token_to_image.tokens_to_pixels(q, k, keys.clone());
         (self.layer_norm_final_attn.forward(queries), keys)
     }
 }

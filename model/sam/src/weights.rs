@@ -4,8 +4,8 @@
 
 use burn::module::{Module, Param};
 use burn::nn::{LayerNorm, Linear};
-use burn::tensor::module::{conv_transpose2d, conv2d};
-use burn::tensor::ops::{ConvOptions, ConvTransposeOptions};
+use burn::tensor::module::conv2d;
+use burn::tensor::ops::ConvOptions;
 use burn::tensor::{Tensor, TensorData};
 pub use llava_onevision::weights::WeightStore;
 use llava_onevision::{VlmError, layers};
@@ -92,11 +92,19 @@ impl ConvTranspose2d {
         })
     }
 
+    /// Channels last: every input pixel's k x k output block is one product with the weight
+    /// as a `[c_in, c_out k k]` matrix (kernel = stride: the blocks do not overlap).
+    ///
     /// # Shapes
-    /// `x` `[B, c_in, H, W]` -> `[B, c_out, k H, k W]`.
-    pub fn forward(&self, x: Tensor<4>) -> Tensor<4> {
-        let options = ConvTransposeOptions::new([self.stride; 2], [0, 0], [0, 0], [1, 1], 1);
-        conv_transpose2d(x, self.weight.val(), Some(self.bias.val()), options)
+    /// `x` `[B, H, W, c_in]` -> `[B, k H, k W, c_out]`.
+    pub fn forward_channels_last(&self, x: Tensor<4>) -> Tensor<4> {
+        let [b, h, w, c] = x.dims();
+        let [_, o, k, _] = self.weight.dims();
+        let wm = self.weight.val().reshape([c, o * k * k]);
+        let y = x.reshape([b * h * w, c]).matmul(wm).reshape([b, h, w, o, k, k]);
+        // [B, H, W, O, ky, kx] -> [B, H, ky, W, kx, O]
+        let y = y.permute([0, 1, 4, 2, 5, 3]).reshape([b, k * h, k * w, o]);
+        y + self.bias.val().reshape([1, 1, 1, o])
     }
 }
 

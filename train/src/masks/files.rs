@@ -49,54 +49,69 @@ pub fn stem(image: &str) -> String {
     Path::new(image).file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| image.to_string())
 }
 
-/// Reads `dir/<stem>.png` at the camera's size (a mask `k` times larger sampled every `k`
-/// pixels); a missing file is a view with no mask (`None`).
+/// Where per-view masks come from.
+pub enum PerView<'a> {
+    /// `<image stem>.png` per view in a folder; a missing file is a view with no mask.
+    Dir(&'a Path),
+    /// Made from each view's image file by a segmenter (e.g. SAM's automatic masks), at the
+    /// image's size: `(width, height, ids)`.
+    Made(&'a mut dyn FnMut(&Path) -> Result<(u32, u32, Vec<u16>)>),
+}
+
+/// Reads `dir/<stem>.png` at the camera's size; a missing file is a view with no mask (`None`).
 fn read_view(dir: &Path, name: &str, cam: &Camera) -> Result<Option<LabelMap>> {
     let path = dir.join(format!("{}.png", stem(name)));
     if !path.exists() {
         return Ok(None);
     }
     let (w, h, ids) = model::data::read_ids16_any(&path)?;
+    at_camera_size(&path, (w, h, ids), cam).map(Some)
+}
+
+/// A mask `(w, h, ids)` at the camera's size (a mask `k` times larger sampled every `k` pixels).
+fn at_camera_size(path: &Path, (w, h, ids): (u32, u32, Vec<u16>), cam: &Camera) -> Result<LabelMap> {
     let (cw, ch) = (cam.width, cam.height);
     if w % cw != 0 || h % ch != 0 || w / cw != h / ch {
-        return Err(Error::invalid(&path, format!("is {w}x{h}, not the view's {cw}x{ch} or a whole multiple of it")));
+        return Err(Error::invalid(path, format!("is {w}x{h}, not the view's {cw}x{ch} or a whole multiple of it")));
     }
     let k = (w / cw) as usize;
     let ids = (0..ch as usize)
         .flat_map(|y| (0..cw as usize).map(move |x| (y * k, x * k)))
         .map(|(y, x)| ids[y * w as usize + x]);
-    Ok(Some(LabelMap { width: cw as usize, height: ch as usize, ids: ids.collect() }))
+    Ok(LabelMap { width: cw as usize, height: ch as usize, ids: ids.collect() })
 }
 
-/// Matches the per-view masks in `per_view` over the views `names` / `cameras` of `model`;
-/// returns the result, each view's blend weights, the views without a mask file and the
-/// milliseconds per view.
+/// Matches the per-view masks of `per_view` over the views `names` / `cameras` of `model`
+/// (`images[v]`: view v's image file, for a segmenter); returns the result, each view's blend
+/// weights, the views without a mask file and the milliseconds per view (the matching, after the
+/// masks are read or made).
 fn match_run(
     model: &SplatModel,
     names: &[String],
     cameras: &[Camera],
-    per_view: &Path,
+    images: &[PathBuf],
+    per_view: &mut PerView,
     opts: &MatchOptions,
 ) -> Result<(Matched, Vec<BlendWeights>, Vec<String>, f64)> {
-    let t0 = std::time::Instant::now();
     let mut masks = Vec::new();
     let mut missing = Vec::new();
-    for (name, cam) in names.iter().zip(cameras) {
-        masks.push(match read_view(per_view, name, cam)? {
-            Some(m) => m,
-            None => {
-                missing.push(name.clone());
-                LabelMap {
-                    width: cam.width as usize,
-                    height: cam.height as usize,
-                    ids: vec![0; (cam.width * cam.height) as usize],
-                }
-            }
-        });
+    for ((name, cam), image) in names.iter().zip(cameras).zip(images) {
+        let mask = match per_view {
+            PerView::Dir(dir) => read_view(dir, name, cam)?,
+            PerView::Made(segment) => Some(at_camera_size(image, (*segment)(image)?, cam)?),
+        };
+        masks.push(mask.unwrap_or_else(|| {
+            missing.push(name.clone());
+            let (w, h) = (cam.width as usize, cam.height as usize);
+            LabelMap { width: w, height: h, ids: vec![0; w * h] }
+        }));
     }
-    if missing.len() == names.len() {
-        return Err(Error::invalid(per_view, "holds no <image stem>.png of any of the run's views"));
+    if let PerView::Dir(dir) = per_view
+        && missing.len() == names.len()
+    {
+        return Err(Error::invalid(dir, "holds no <image stem>.png of any of the run's views"));
     }
+    let t0 = std::time::Instant::now();
     let weights = cameras.iter().map(|c| model.blend_weights(c)).collect::<Result<Vec<_>>>()?;
     let matched = match_masks(&weights, &masks, opts);
     let ms = t0.elapsed().as_secs_f64() * 1000.0 / names.len().max(1) as f64;
@@ -157,34 +172,37 @@ fn write(
     Ok(summary)
 }
 
-/// `chatsplat masks` whole: the per-view masks in `per_view` matched over the views of `run`
-/// (trained on the capture `data`), written to `out` at each image's full size.
+/// `chatsplat masks` whole: the per-view masks of `per_view` (a folder, or made from each image)
+/// matched over the views of `run` (trained on the capture `data`), written to `out` at each
+/// image's full size.
 pub fn match_capture(
     data: &Path,
     run: &GeometryRun,
-    per_view: &Path,
+    mut per_view: PerView,
     out: &Path,
     opts: &MatchOptions,
 ) -> Result<Summary> {
     let (model, _) = run.load_model(&burn::tensor::Device::ndarray())?;
     let cams = run.read_cameras()?;
     let (names, cameras) = (cams.image_names(), cams.all());
-    let (matched, weights, missing, ms) = match_run(&model, &names, &cameras, per_view, opts)?;
-    // the images' full sizes (what `train --masks` checks a mask against), by file name; the
-    // holdout split changes nothing here (train and test views together)
+    // the images' files and full sizes (what `train --masks` checks a mask against), by file
+    // name; the holdout split changes nothing here (train and test views together)
     let full = model::data::load_any(data, &model::data::LoadOptions { holdout_every: 0, ..Default::default() })?;
-    let size_of: std::collections::HashMap<String, (u32, u32)> = full
+    let by_name: std::collections::HashMap<String, (PathBuf, (u32, u32))> = full
         .train
         .iter()
         .chain(&full.test)
         .filter_map(|v| {
-            Some((v.image_path.file_name()?.to_string_lossy().into_owned(), (v.camera.width, v.camera.height)))
+            let name = v.image_path.file_name()?.to_string_lossy().into_owned();
+            Some((name, (v.image_path.clone(), (v.camera.width, v.camera.height))))
         })
         .collect();
-    let sizes = names
+    let views = names
         .iter()
-        .map(|n| size_of.get(n).copied().ok_or_else(|| Error::invalid(data, format!("has no image {n} of the run"))))
+        .map(|n| by_name.get(n).cloned().ok_or_else(|| Error::invalid(data, format!("has no image {n} of the run"))))
         .collect::<Result<Vec<_>>>()?;
+    let images: Vec<PathBuf> = views.iter().map(|v| v.0.clone()).collect();
+    let (matched, weights, missing, ms) = match_run(&model, &names, &cameras, &images, &mut per_view, opts)?;
     let surfaces = super::surface::of_matched(&model, &matched);
-    write(out, &weights, &matched, &names, missing, ms, opts, &surfaces, |v| sizes[v])
+    write(out, &weights, &matched, &names, missing, ms, opts, &surfaces, |v| views[v].1)
 }

@@ -93,7 +93,7 @@ pub fn run(a: Args) -> anyhow::Result<()> {
             let (mut done, mut seconds) = (0, 0.0);
             let mut segment = |image: &Path| -> model::error::Result<(u32, u32, Vec<u16>)> {
                 let t = std::time::Instant::now();
-                let img = model::data::images::read_rgb_image(image)?;
+                let img = model::data::read_rgb_any(image)?;
                 let masks = model::catch_backend("SAM", || sam.automatic_masks(&img, &auto, &device))
                     .map_err(|e| model::error::Error::invalid(image, format!("SAM failed on it: {e}")))?;
                 seconds += t.elapsed().as_secs_f64();

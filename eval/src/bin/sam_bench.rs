@@ -11,7 +11,7 @@
 
 use clap::Parser;
 use model::Backend;
-use model::data::images::read_rgb_image;
+use model::data::read_rgb_any;
 use sam::Sam;
 use sam::automatic::{AutoOptions, Filters};
 use std::path::PathBuf;
@@ -51,7 +51,7 @@ fn main() {
 }
 
 fn run(a: Args) -> Result<(), String> {
-    let img = read_rgb_image(&a.image).map_err(|e| e.to_string())?;
+    let img = read_rgb_any(&a.image).map_err(|e| e.to_string())?;
     let reference: Option<serde_json::Value> = match &a.reference {
         Some(p) => Some(
             std::fs::read_to_string(p)

@@ -303,6 +303,14 @@ pub(crate) fn read_ids_any(path: &Path) -> Result<(u32, u32, Vec<u16>)> {
 /// The largest instance id a dataset's masks may hold (16-bit masks; ids need not be dense).
 pub const MAX_INSTANCE_ID: u16 = 4095;
 
+/// A PNG or (by its extension) JPEG colour image as the VLM port's 8-bit RGB image (gray and
+/// alpha converted like PIL's `convert("RGB")`, alpha dropped).
+pub fn read_rgb_any(path: &Path) -> Result<llava_onevision::RgbImage> {
+    let img = decode(path)?;
+    let (w, h) = (img.width as usize, img.height as usize);
+    Ok(llava_onevision::RgbImage::from_channels(w, h, img.channels, &img.bytes))
+}
+
 /// An instance-id PNG of any size: its width, height and `[h, w]` 16-bit ids (0 = background).
 ///
 /// The id is the pixel's value in a one-channel PNG: grayscale of any bit depth (8 or 16 bits

@@ -57,14 +57,9 @@ pub fn read_png8(path: &Path) -> Result<(u32, u32, usize, Vec<u8>)> {
     Ok((info.width, info.height, info.color_type.samples(), buf))
 }
 
-/// Reads an 8-bit PNG, or by its extension a JPEG, as the port's RGB image (gray and alpha
-/// converted like PIL's `convert("RGB")`, alpha dropped).
+/// Reads an 8-bit PNG as the port's RGB image (gray and alpha converted like PIL's
+/// `convert("RGB")`, alpha dropped).
 pub fn read_rgb_image(path: &Path) -> Result<llava_onevision::RgbImage> {
-    if crate::image::is_jpeg(path) {
-        let img = crate::image::decode(path)?;
-        let (w, h) = (img.width as usize, img.height as usize);
-        return Ok(llava_onevision::RgbImage::from_channels(w, h, img.channels, &img.bytes));
-    }
     let (w, h, c, bytes) = read_png8(path)?;
     if !(1..=4).contains(&c) {
         return Err(Error::invalid(path, format!("{c} channels per pixel: expected gray, RGB or RGBA")));

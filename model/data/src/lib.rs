@@ -28,6 +28,8 @@ pub mod question_file;
 
 pub mod colmap;
 pub(crate) mod image;
+/// A PNG or JPEG as the VLM port's RGB image.
+pub use image::read_rgb_any;
 /// An instance-id PNG of any segmenter (8- or 16-bit grayscale, a palette's index, or gray saved
 /// as RGB): its width, height and `[h, w]` ids (0 = none).
 pub use image::{MAX_INSTANCE_ID, read_ids16_any};

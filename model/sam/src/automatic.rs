@@ -122,7 +122,8 @@ pub fn suppress(passed: Vec<AutoMask>, nms_iou: f32) -> Vec<AutoMask> {
 pub fn label_map(masks: &[AutoMask], pixels: usize) -> Vec<u16> {
     let area = |m: &AutoMask| m.mask.iter().filter(|&&b| b).count();
     let mut order: Vec<usize> = (0..masks.len()).collect();
-    order.sort_by_key(|&i| std::cmp::Reverse(area(&masks[i])));
+    // each area counted once (a mask is the image's size), the sort stable
+    order.sort_by_cached_key(|&i| std::cmp::Reverse(area(&masks[i])));
     let mut ids = vec![0u16; pixels];
     for (k, &i) in order.iter().enumerate().take(usize::from(u16::MAX)) {
         for (id, _) in ids.iter_mut().zip(&masks[i].mask).filter(|(_, m)| **m) {

@@ -73,14 +73,13 @@ impl Conv2d {
     }
 }
 
-/// `torch.nn.ConvTranspose2d` with kernel = stride (SAM's 2x upscaling: no overlap, no padding).
+/// `torch.nn.ConvTranspose2d` with kernel = stride (SAM's 2x upscaling: no overlap, no padding);
+/// the kernel size is the weight's.
 #[derive(Module, Debug)]
 pub struct ConvTranspose2d {
     /// `[in, out, k, k]` (torch's layout, also burn's)
     pub weight: Param<Tensor<4>>,
     pub bias: Param<Tensor<1>>,
-    #[module(skip)]
-    pub stride: usize,
 }
 
 impl ConvTranspose2d {
@@ -88,7 +87,6 @@ impl ConvTranspose2d {
         Ok(Self {
             weight: param(w, &format!("{prefix}.weight"), [c_in, c_out, k, k])?,
             bias: param(w, &format!("{prefix}.bias"), [c_out])?,
-            stride: k,
         })
     }
 

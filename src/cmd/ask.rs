@@ -10,8 +10,9 @@ use std::path::PathBuf;
 
 #[derive(clap::Args)]
 pub struct Args {
-    /// LLaVA-OneVision directory, e.g. llava-hf/llava-onevision-qwen2-{0.5b,7b}-ov-hf (default:
-    /// the built-in model).
+    /// LLaVA-OneVision directory or Hugging Face repo id, e.g.
+    /// llava-hf/llava-onevision-qwen2-{0.5b,7b}-ov-hf, fetched into the Hugging Face cache
+    /// (default: the built-in model).
     #[arg(long)]
     pub vlm: Option<PathBuf>,
     /// PNG image to ask about; repeat for a multi-image prompt (one base view + newline per image,

@@ -21,9 +21,11 @@ use train::pipeline::{Recipe, TeacherModel, train_scene};
 
 #[derive(clap::Args)]
 pub struct Args {
-    /// The manifest (TOML): optional `out`, `vlm`, `backend`, `geometry_iters`,
+    /// The manifest (TOML): optional `out`, `vlm`, `segmenter`, `backend`, `geometry_iters`,
     /// `language_iters`, `tower_tail`, then one `[[scene]]` table per scene (`name`, `data`, optional
-    /// `questions`, `per_view_masks` and per-scene iterations). Paths are relative to the manifest's folder.
+    /// `questions`, `per_view_masks` and per-scene iterations). Paths are relative to the manifest's folder;
+    /// `vlm` and `segmenter` may be Hugging Face repo ids. With `segmenter`, a scene with no masks and no
+    /// `per_view_masks` gets SAM's automatic masks of each image (kept in its `per-view/`), matched.
     #[arg(long)]
     pub manifest: PathBuf,
     /// This worker's shard `I/N` (0 <= I < N): the scenes at positions I, I + N, I + 2N ... of
@@ -120,7 +122,7 @@ fn job_fingerprint(plan: &Plan, s: &Job, vlm: &Path) -> anyhow::Result<String> {
         file.take(64 << 10).read_to_end(&mut head).with_context(|| format!("{}: cannot read", f.display()))?;
         h.eat(&head);
     }
-    let settings = format!(
+    let mut settings = format!(
         "{}|{}|{}|{}|{}",
         s.geometry_iters,
         s.language_iters,
@@ -128,6 +130,9 @@ fn job_fingerprint(plan: &Plan, s: &Job, vlm: &Path) -> anyhow::Result<String> {
         plan.backend,
         model::io::resolved(vlm).display()
     );
+    if let Some(seg) = &plan.segmenter {
+        settings += &format!("|{}", seg.display());
+    }
     h.eat(settings.as_bytes());
     Ok(h.hex())
 }
@@ -137,6 +142,16 @@ fn job_fingerprint(plan: &Plan, s: &Job, vlm: &Path) -> anyhow::Result<String> {
 fn check_globals(plan: &Plan, manifest: &Path) -> anyhow::Result<PathBuf> {
     let vlm = super::vlm_dir(plan.vlm.as_ref())?;
     let cfg = model::vlm::config::read_llava_config(&vlm).with_context(|| format!("{}: vlm", manifest.display()))?;
+    if let Some(seg) = &plan.segmenter
+        && !seg.join("config.json").is_file()
+        && !seg.to_str().is_some_and(hub::is_repo_id)
+    {
+        bail!(
+            "{}: segmenter {}: no SAM folder (config.json) there, nor a Hugging Face repo id",
+            manifest.display(),
+            seg.display()
+        );
+    }
     let layers = cfg.vision_layers_needed();
     if plan.tower_tail > layers {
         bail!(
@@ -147,6 +162,34 @@ fn check_globals(plan: &Plan, manifest: &Path) -> anyhow::Result<PathBuf> {
         );
     }
     Ok(vlm)
+}
+
+/// Per-view masks of a scene with no masks of its own from the segmenter `seg` (a folder or repo
+/// id) in `out` (`<image stem>.png` per image; those an earlier attempt wrote are kept); `None`
+/// when the capture has masks.
+fn segment_scene(plan: &Plan, seg: &Path, data: &Path, out: &Path) -> anyhow::Result<Option<PathBuf>> {
+    let (ds, _) = train::pipeline::load_for_geometry(data, &model::data::LoadOptions::default())?;
+    let views: Vec<&model::data::View> = ds.train.iter().chain(&ds.test).collect();
+    if views.iter().any(|v| v.instance_ids.is_some()) {
+        return Ok(None);
+    }
+    let dir = hub::resolve(seg, &hub::wanted::SAM)?;
+    let todo: Vec<&PathBuf> = views
+        .iter()
+        .map(|v| &v.image_path)
+        .filter(|p| !out.join(format!("{}.png", p.file_stem().unwrap_or_default().to_string_lossy())).is_file())
+        .collect();
+    if !todo.is_empty() {
+        let sam =
+            super::masks::Segmenter::load(&dir, plan.backend, sam::automatic::AutoOptions::default().points_per_side)?;
+        let bar = scoring::progress::Progress::new("SAM", "views");
+        for (i, image) in todo.iter().enumerate() {
+            let (w, h, ids, _) = sam.label_map(image)?;
+            super::masks::write_label_map(out, image, (w, h, &ids))?;
+            bar.update(i + 1, todo.len());
+        }
+    }
+    Ok(Some(out.to_path_buf()))
 }
 
 /// Runs the pipeline on one scene, resuming whatever an earlier attempt left; returns its summary.
@@ -162,6 +205,11 @@ fn run_scene(plan: &Plan, s: &Job, d: &JobDirs, shard: &str, job: &str) -> anyho
     recipe.language.checkpoint_every = (s.language_iters / 10).max(1);
     recipe.teacher.tower_tail = plan.tower_tail;
     let vlm = super::vlm_dir(plan.vlm.as_ref())?;
+    let per_view = match (&s.per_view_masks, &plan.segmenter) {
+        (Some(p), _) => Some(p.clone()),
+        (None, Some(seg)) => segment_scene(plan, seg, &s.data, &d.dir.join("per-view"))?,
+        (None, None) => None,
+    };
     let dirs = train::pipeline::SceneDirs {
         data: s.data.clone(),
         run: d.run.clone(),
@@ -169,7 +217,7 @@ fn run_scene(plan: &Plan, s: &Job, d: &JobDirs, shard: &str, job: &str) -> anyho
         language: lang.clone(),
         // per-view masks: the geometry without them in `geometry`, the matched masks in `masks`,
         // and `run` the same Gaussians with their identity
-        objects: s.per_view_masks.as_ref().map(|p| train::pipeline::PerViewMasks {
+        objects: per_view.as_ref().map(|p| train::pipeline::PerViewMasks {
             per_view: p.clone(),
             bare: GeometryRun::new(d.dir.join("geometry")),
             matched: d.dir.join("masks"),

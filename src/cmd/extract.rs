@@ -12,7 +12,8 @@ use train::teacher::{ExtractOptions, NovelViews, extract};
 
 #[derive(clap::Args)]
 pub struct Args {
-    /// Local Hugging Face LLaVA-OneVision directory, the teacher (default: the built-in model).
+    /// LLaVA-OneVision directory or Hugging Face repo id (fetched into the Hugging Face cache),
+    /// the teacher (default: the built-in model).
     #[arg(long)]
     pub vlm: Option<PathBuf>,
     /// Scene dataset (any format `chatsplat train` reads, e.g. from `chatsplat synth`).

@@ -177,9 +177,9 @@ pub struct SceneArgs {
     /// Language run directory (default: RUN/language).
     #[arg(long)]
     pub language: Option<PathBuf>,
-    /// LLaVA-OneVision directory, the one the teacher tokens came from (default: the model the
-    /// language run was taught by, as `extract --vlm` named it; else the built-in model, see
-    /// `--vlm` of `chatsplat demo`).
+    /// LLaVA-OneVision directory or Hugging Face repo id, the one the teacher tokens came from
+    /// (default: the model the language run was taught by, as `extract --vlm` named it; else the
+    /// built-in model, see `--vlm` of `chatsplat demo`).
     #[arg(long)]
     pub vlm: Option<PathBuf>,
     /// Compute backend.
@@ -245,10 +245,11 @@ impl SceneArgs {
     }
 }
 
-/// The VLM directory: the one given, or the built-in model.
+/// The VLM directory: the one given (a repo id fetched into the Hugging Face cache, `hub`), or the
+/// built-in model.
 pub fn vlm_dir(given: Option<&PathBuf>) -> anyhow::Result<PathBuf> {
     match given {
-        Some(p) => Ok(p.clone()),
+        Some(p) => Ok(hub::resolve(p, &hub::wanted::VLM)?),
         None => model::vlm::default_model_dir().context("no --vlm given"),
     }
 }

@@ -205,9 +205,17 @@ fn a_scene_given_per_view_masks_gets_its_objects() {
     std::fs::create_dir_all(&*dir).unwrap();
     scenes(&dir, &[30_211]);
     let true_objects = chatsplat_tests::unlabelled::strip_to_per_view(&dir.join("d30211"), &dir.join("sam"));
+    // a second scene with no masks at all: SAM (the tiny random checkpoint) makes them
+    scenes(&dir, &[30_212]);
+    chatsplat_tests::unlabelled::strip_to_per_view(&dir.join("d30212"), &dir.join("unused"));
+    let tiny_sam = Path::new(env!("CARGO_MANIFEST_DIR")).join("checkpoints/tiny-sam");
     let manifest = dir.join("scenes.toml");
-    let text = "geometry_iters = 150\nlanguage_iters = 3\n\n[[scene]]\nname = \"one\"\ndata = \"d30211\"\n\
-                per_view_masks = \"sam\"\n";
+    let text = format!(
+        "geometry_iters = 150\nlanguage_iters = 3\nsegmenter = {:?}\n\n[[scene]]\nname = \"one\"\n\
+         data = \"d30211\"\nper_view_masks = \"sam\"\n\n[[scene]]\nname = \"two\"\ndata = \"d30212\"\n\
+         geometry_iters = 40\n",
+        tiny_sam.display().to_string()
+    );
     std::fs::write(&manifest, text).unwrap();
     let o = batch(&manifest, &[]).output().unwrap();
     assert!(o.status.success(), "{}", show(&o));
@@ -228,6 +236,13 @@ fn a_scene_given_per_view_masks_gets_its_objects() {
     let shape = st.tensor("classifier_w").unwrap().shape().to_vec();
     assert_eq!(shape, vec![16, found + 1], "one class per object and the background");
     assert!(out.join("geometry/checkpoint.safetensors").is_file());
+    // the scene without masks: SAM's masks of every image kept, matched, and the stages run
+    let two = dir.join("scenes-out/two");
+    let images = std::fs::read_dir(dir.join("d30212/images")).unwrap().count();
+    assert_eq!(std::fs::read_dir(two.join("per-view")).unwrap().count(), images, "a view without SAM's masks");
+    assert!(two.join("masks/masks.json").is_file(), "SAM's masks were not matched");
+    let s = summary(&dir.join("scenes-out"), "two");
+    assert!(s["seconds"]["objects"].as_f64().is_some(), "no objects stage in {s}");
 }
 
 #[test]
@@ -253,6 +268,11 @@ fn bad_manifests_and_shards_are_refused_naming_the_line() {
         ("[[scene]]\nname = \"a\"\ndata = \"d\"\n", "x", vec!["--shard x", "I/N"]),
         // a global setting the model cannot meet: refused before the first scene
         ("tower_tail = 99\n[[scene]]\nname = \"a\"\ndata = \"d\"\n", "", vec!["tower_tail 99", "vision tower"]),
+        (
+            "segmenter = \"no/such/sam\"\n[[scene]]\nname = \"a\"\ndata = \"d\"\n",
+            "",
+            vec!["segmenter", "no/such/sam", "no SAM folder"],
+        ),
         (
             "[[scene]]\nname = \"a\"\ndata = \"d\"\nper_view_masks = \"sam\"\n",
             "",

@@ -1,6 +1,7 @@
 //! The `chatsplat` binary as a user runs it: a render that writes real PNGs, and clear errors with
 //! a non-zero exit for bad input.
 
+use chatsplat_tests::fake_hub::{COMMIT, FakeHub, Served};
 use std::process::Command;
 
 fn chatsplat() -> Command {
@@ -268,12 +269,18 @@ fn a_capture_without_masks_gets_objects_through_masks_and_identity() {
 
     // the same matching from masks SAM makes here, in process (the tiny random checkpoint: its
     // masks mean nothing, but every view is segmented and the masks folder is whole)
+    // masks, named by its repo id and fetched from a loopback hub into HF_HOME
     let tiny_sam = std::path::Path::new(env!("CARGO_MANIFEST_DIR")).join("checkpoints/tiny-sam");
+    let hub = FakeHub::start("acme/tiny-sam", Served::files(&tiny_sam, &["config.json", "model.safetensors"]));
+    let hf_home = root.join("hf-home");
     let sam_masks = root.join("sam-masks");
     let masks_cmd = || {
         let mut c = chatsplat();
+        c.env("HF_HOME", &hf_home).env("HF_ENDPOINT", &hub.endpoint).env_remove("HF_HUB_OFFLINE");
         c.arg("masks").args(["--data".as_ref(), data.as_os_str(), "--run".as_ref(), run.as_os_str()]);
-        c.arg("--segmenter").arg(&tiny_sam).args(["--points-per-side", "4"]).arg("--out").arg(&sam_masks);
+        c.args(["--segmenter", "acme/tiny-sam", "--points-per-side", "4", "--keep-per-view"])
+            .arg("--out")
+            .arg(&sam_masks);
         c
     };
     let both = masks_cmd().arg("--per-view").arg(&per_view).output().unwrap();
@@ -283,14 +290,21 @@ fn a_capture_without_masks_gets_objects_through_masks_and_identity() {
     let o = missing.arg("--segmenter").arg(root.join("no-such-sam")).arg("--out").arg(&sam_masks).output().unwrap();
     let err = String::from_utf8_lossy(&o.stderr);
     assert!(!o.status.success() && err.contains("no-such-sam") && !sam_masks.exists(), "{err}");
+    // offline with nothing cached: refused, naming the repo, nothing written
+    let o = masks_cmd().env("HF_HUB_OFFLINE", "1").output().unwrap();
+    let err = String::from_utf8_lossy(&o.stderr);
+    assert!(!o.status.success() && err.contains("acme/tiny-sam") && !sam_masks.exists(), "{err}");
     let said = ok(&mut masks_cmd());
     assert!(said.contains("SAM:") && said.contains("s per view"), "{said}");
+    let fetched = hf_home.join("hub/models--acme--tiny-sam/snapshots").join(COMMIT).join("model.safetensors");
+    assert_eq!(std::fs::read(fetched).unwrap(), std::fs::read(tiny_sam.join("model.safetensors")).unwrap());
     let summary: serde_json::Value =
         serde_json::from_slice(&std::fs::read(sam_masks.join("masks.json")).unwrap()).unwrap();
     assert_eq!(summary["views_without_masks"].as_array().unwrap().len(), 0, "{summary}");
     for image in std::fs::read_dir(data.join("images")).unwrap() {
         let stem = image.unwrap().path().file_stem().unwrap().to_string_lossy().into_owned();
         assert!(sam_masks.join(format!("{stem}.png")).is_file(), "no SAM-matched mask for {stem}");
+        assert!(sam_masks.join(format!("per-view/{stem}.png")).is_file(), "SAM's own mask of {stem} not kept");
     }
 
     // identity on the frozen geometry: a new run, the old one untouched, the same Gaussians

@@ -47,6 +47,9 @@ mod compact;
 // Segment Anything: parity with transformers' SamModel on a tiny random checkpoint.
 mod sam;
 
+// Models named by their Hugging Face id, from a loopback hub.
+mod hub;
+
 // The house: no circle in any crate's module graph (ARCHITECTURE.md).
 mod module_graph;
 

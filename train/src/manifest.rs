@@ -13,8 +13,11 @@ use toml::Spanned;
 struct Manifest {
     /// Output folder (default: `<manifest stem>-out` beside the manifest).
     out: Option<PathBuf>,
-    /// LLaVA-OneVision directory (default: the built-in model).
+    /// LLaVA-OneVision directory or Hugging Face repo id (default: the built-in model).
     vlm: Option<PathBuf>,
+    /// Segment Anything directory or Hugging Face repo id: scenes with no masks of their own and no
+    /// `per_view_masks` get per-view masks from its automatic masks, matched across views.
+    segmenter: Option<PathBuf>,
     backend: Option<Spanned<String>>,
     #[serde(default = "default_geometry_iters")]
     geometry_iters: usize,
@@ -75,8 +78,10 @@ pub struct Job {
 pub struct Plan {
     /// The output folder.
     pub out: PathBuf,
-    /// The LLaVA-OneVision directory (`None`: the built-in model).
+    /// The LLaVA-OneVision directory or repo id (`None`: the built-in model).
     pub vlm: Option<PathBuf>,
+    /// The Segment Anything directory or repo id for scenes without masks.
+    pub segmenter: Option<PathBuf>,
     pub backend: Backend,
     pub tower_tail: usize,
     pub scenes: Vec<Job>,
@@ -226,5 +231,11 @@ pub fn read(path: &Path) -> Result<Plan> {
     let stem = path.file_stem().map(|s| s.to_string_lossy().into_owned()).unwrap_or_else(|| "batch".into());
     let out = m.out.as_ref().map(|o| base.join(o)).unwrap_or_else(|| base.join(format!("{stem}-out")));
     refuse_data_in_results(path, &out, &scenes)?;
-    Ok(Plan { out, vlm: m.vlm.as_ref().map(|v| base.join(v)), backend, tower_tail: m.tower_tail, scenes })
+    // a folder beside the manifest, else a repo id as written
+    let model = |v: &PathBuf| match v.to_str() {
+        Some(id) if !base.join(v).exists() && hub::is_repo_id(id) => v.clone(),
+        _ => base.join(v),
+    };
+    let (vlm, segmenter) = (m.vlm.as_ref().map(model), m.segmenter.as_ref().map(model));
+    Ok(Plan { out, vlm, segmenter, backend, tower_tail: m.tower_tail, scenes })
 }

@@ -7,6 +7,7 @@ use splat_kernels::{Camera, Gaussians};
 
 pub use model::rng::Rng;
 
+pub mod fake_hub;
 pub mod fixture;
 pub mod unlabelled;
 

@@ -26,7 +26,7 @@ fn counts(views: &[ViewOwners], labels: &[u32]) -> Counts {
                     Owner::Mask(k) => *k as usize + 1,
                     _ => continue,
                 };
-                *slots[s].entry(labels[g]).or_default() += 1.0;
+                *slots[s].entry(labels[g]).or_default() += o.seen[g] as f64;
             }
             slots
                 .into_iter()
@@ -113,6 +113,7 @@ mod tests {
         ViewOwners {
             labels: (1..=masks as u16).collect(),
             owner: owner.iter().map(|o| o.map_or(Owner::Background, Owner::Mask)).collect(),
+            seen: vec![1.0; owner.len()],
         }
     }
 

@@ -23,39 +23,39 @@ pub fn join(views: &[ViewOwners], n: usize, opts: &MatchOptions) -> Joined {
     }
     let masks = base[nv];
     let view_of: Vec<usize> = (0..nv).flat_map(|v| std::iter::repeat_n(v, views[v].labels.len())).collect();
-    let owned = |g: usize| -> Vec<usize> {
+    let owned = |g: usize| -> Vec<(usize, f32)> {
         (0..nv)
             .filter_map(|v| match views[v].owner[g] {
-                Owner::Mask(k) => Some(base[v] + k as usize),
+                Owner::Mask(k) => Some((base[v] + k as usize, views[v].seen[g])),
                 _ => None,
             })
             .collect()
     };
-    // shared[(a, b)]: Gaussians both own; seen[a * nv + v]: a's Gaussians that view v sees;
-    // first[a]: a's first Gaussian (an order-free key)
-    let mut shared: HashMap<(usize, usize), u32> = HashMap::new();
-    let mut seen = vec![0u32; masks * nv];
+    // each Gaussian counts as much as the less of the two views sees of it: shared[(a, b)]: the
+    // Gaussians both own (their weight, their number); seen[a * nv + v]: a's Gaussians that view
+    // v sees; first[a]: a's first Gaussian (an order-free key)
+    let mut shared: HashMap<(usize, usize), (f32, u32)> = HashMap::new();
+    let mut seen = vec![0f32; masks * nv];
     let mut first = vec![usize::MAX; masks];
     for g in 0..n {
         let list = owned(g);
-        for (i, &a) in list.iter().enumerate() {
+        for (i, &(a, wa)) in list.iter().enumerate() {
             first[a] = first[a].min(g);
-            for &b in &list[i + 1..] {
-                *shared.entry((a, b)).or_default() += 1;
+            for &(b, wb) in &list[i + 1..] {
+                let s = shared.entry((a, b)).or_default();
+                *s = (s.0 + wa.min(wb), s.1 + 1);
             }
             for (v, o) in views.iter().enumerate() {
-                if o.sees(g) {
-                    seen[a * nv + v] += 1;
-                }
+                seen[a * nv + v] += wa.min(o.counts(g));
             }
         }
     }
     // a mutual overlap joins two masks
     let mut parent: Vec<usize> = (0..masks).collect();
-    for (&(a, b), &both) in &shared {
+    for (&(a, b), &(both, count)) in &shared {
         let (va, vb) = (view_of[a], view_of[b]);
-        let (sa, sb) = (seen[a * nv + vb].max(1), seen[b * nv + va].max(1));
-        if both >= 3 && both as f32 >= opts.mutual * sa as f32 && both as f32 >= opts.mutual * sb as f32 {
+        let (sa, sb) = (seen[a * nv + vb].max(1e-6), seen[b * nv + va].max(1e-6));
+        if count >= 3 && both >= opts.mutual * sa && both >= opts.mutual * sb {
             let (ra, rb) = (find(&mut parent, a), find(&mut parent, b));
             parent[ra.max(rb)] = ra.min(rb);
         }
@@ -103,4 +103,37 @@ pub struct Joined {
     pub object: Vec<Vec<Option<u32>>>,
     /// Candidates, numbered by the first Gaussian any of their masks owns.
     pub candidates: usize,
+}
+
+#[cfg(test)]
+mod tests {
+    use super::*;
+
+    /// A view owning Gaussians as `owner` says (`None`: the unmasked rest), each counting `seen`.
+    fn view(masks: u16, owner: &[Option<u32>], seen: &[f32]) -> ViewOwners {
+        ViewOwners {
+            labels: (1..=masks).collect(),
+            owner: owner.iter().map(|o| o.map_or(Owner::Background, Owner::Mask)).collect(),
+            seen: seen.to_vec(),
+        }
+    }
+
+    #[test]
+    fn glimpsed_gaussians_count_little_in_an_overlap() {
+        // Gaussians 0-9: one object, seen whole in both views; 10-29: the second view's mask
+        // holds them too, but the first view only glimpses them (a tenth of a pixel each) outside
+        // its mask, as the many small Gaussians behind an object's edge
+        let n = 30;
+        let first: Vec<Option<u32>> = (0..n).map(|g| (g < 10).then_some(0)).collect();
+        let second = vec![Some(0); n];
+        let glimpsed: Vec<f32> = (0..n).map(|g| if g < 10 { 1.0 } else { 0.1f32.powi(2) }).collect();
+        let opts = MatchOptions::default();
+        let views = [view(1, &first, &glimpsed), view(1, &second, &[1.0; 30])];
+        let j = join(&views, n, &opts);
+        assert_eq!(j.candidates, 1, "{j:?}");
+        assert_eq!(j.object, vec![vec![Some(0)], vec![Some(0)]]);
+        // every Gaussian counted alike: the glimpses outweigh the object and the masks stay apart
+        let alike = [view(1, &first, &[1.0; 30]), view(1, &second, &[1.0; 30])];
+        assert_eq!(join(&alike, n, &opts).candidates, 0);
+    }
 }

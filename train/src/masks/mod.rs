@@ -6,7 +6,9 @@
 //! weight of each Gaussian that makes it ([`splat_kernels::blend::BlendWeights`]). So:
 //!
 //! 1. [`ownership`]: in each view, each Gaussian belongs to the mask (or the unmasked rest) that
-//!    holds more than half of its blend weight there.
+//!    holds more than half of its blend weight there, and counts by how much of it is seen (a
+//!    glimpse little, so a scene of many small Gaussians keeps its evidence and a moved edge does
+//!    not decide).
 //! 2. [`group::join`]: two masks of different views are one candidate object when each owns most
 //!    of the other's Gaussians that its view sees (a mutual overlap, which a part of an object or
 //!    two objects merged into one mask never has with a whole one).
@@ -74,7 +76,8 @@ impl LabelMap {
 #[derive(Clone, Debug, PartialEq)]
 pub struct MatchOptions {
     /// A Gaussian takes part in a view when its blend weights there sum to at least this (about
-    /// this many pixels' worth of it is seen).
+    /// this many pixels' worth of it is seen); it counts there by the square of that sum, at most 1
+    /// ([`ownership::ViewOwners::seen`]).
     pub min_weight: f32,
     /// Each of two masks must own at least this share of the other's Gaussians its view sees for
     /// the two to be one object.
@@ -92,7 +95,7 @@ pub struct MatchOptions {
 
 impl Default for MatchOptions {
     fn default() -> Self {
-        Self { min_weight: 0.5, mutual: 0.6, min_views: 2, min_gaussians: 8, together: 0.4, unmasked: 0.35 }
+        Self { min_weight: 0.1, mutual: 0.6, min_views: 2, min_gaussians: 8, together: 0.4, unmasked: 0.35 }
     }
 }
 
@@ -199,22 +202,23 @@ pub fn match_masks(weights: &[BlendWeights], masks: &[LabelMap], opts: &MatchOpt
 /// For each mask of a view (owners `o`): the object most of the Gaussians it owns carry
 /// (`labels`), when they are at least half of them.
 fn whole_objects(o: &ownership::ViewOwners, labels: &[u16]) -> Vec<Option<u16>> {
-    let mut count: Vec<Vec<(u16, usize)>> = vec![Vec::new(); o.labels.len()];
+    // (label, how much of its Gaussians the view sees) per mask
+    let mut count: Vec<Vec<(u16, f32)>> = vec![Vec::new(); o.labels.len()];
     for (g, own) in o.owner.iter().enumerate() {
         if let ownership::Owner::Mask(k) = own {
             let c = &mut count[*k as usize];
             match c.iter_mut().find(|(l, _)| *l == labels[g]) {
-                Some((_, n)) => *n += 1,
-                None => c.push((labels[g], 1)),
+                Some((_, n)) => *n += o.seen[g],
+                None => c.push((labels[g], o.seen[g])),
             }
         }
     }
     count
         .iter()
         .map(|c| {
-            let n: usize = c.iter().map(|x| x.1).sum();
-            let best = c.iter().filter(|x| x.0 != 0).max_by_key(|x| (x.1, std::cmp::Reverse(x.0)))?;
-            (2 * best.1 >= n).then_some(best.0)
+            let n: f32 = c.iter().map(|x| x.1).sum();
+            let best = c.iter().filter(|x| x.0 != 0).max_by(|a, b| a.1.total_cmp(&b.1).then(b.0.cmp(&a.0)))?;
+            (2.0 * best.1 >= n).then_some(best.0)
         })
         .collect()
 }

@@ -24,6 +24,11 @@ pub struct ViewOwners {
     pub labels: Vec<u16>,
     /// `[N]` per Gaussian.
     pub owner: Vec<Owner>,
+    /// `[N]` how much each Gaussian counts in the view: the square of its blend weights' sum, at
+    /// most 1 (0 where unseen). A Gaussian glimpsed behind others or at an edge is seen in few
+    /// pixels, so what owns it is said by few pixels (a mask's edge moved by one decides it): it
+    /// counts for less than one seen whole, and less than in proportion.
+    pub seen: Vec<f32>,
 }
 
 impl ViewOwners {
@@ -41,6 +46,7 @@ impl ViewOwners {
         }
         entries.sort_unstable_by_key(|&(g, s, _)| (g, s));
         let mut owner = vec![Owner::Unseen; w.gaussians];
+        let mut seen = vec![0f32; w.gaussians];
         let mut i = 0;
         while i < entries.len() {
             let g = entries[i].0;
@@ -57,6 +63,9 @@ impl ViewOwners {
                     (best, best_slot) = (sum, s);
                 }
             }
+            if total >= min_weight {
+                seen[g as usize] = total.min(1.0).powi(2);
+            }
             owner[g as usize] = if total < min_weight {
                 Owner::Unseen
             } else if best <= 0.5 * total {
@@ -67,7 +76,7 @@ impl ViewOwners {
                 Owner::Mask(best_slot - 1)
             };
         }
-        Self { labels, owner }
+        Self { labels, owner, seen }
     }
 
     /// The index of mask id `id` (non-zero, one of the view's).
@@ -81,5 +90,11 @@ impl ViewOwners {
     /// Whether the view sees Gaussian `g` clearly (a mask or the background owns it).
     pub fn sees(&self, g: usize) -> bool {
         matches!(self.owner[g], Owner::Background | Owner::Mask(_))
+    }
+
+    /// How much Gaussian `g` counts in this view: how much of it is seen where a mask or the
+    /// background owns it, else 0.
+    pub fn counts(&self, g: usize) -> f32 {
+        if self.sees(g) { self.seen[g] } else { 0.0 }
     }
 }

@@ -1,6 +1,6 @@
 //! SAM port: parity with transformers' `SamModel` on the tiny random fixture in
 //! checkpoints/tiny-sam (built by checkpoints/make_tiny_sam.py), on ndarray (the whole pipeline
-//! also on flex): the image embeddings, the relative-position tables (resized and for unequal
+//! also on flex and wgpu): the image embeddings, the relative-position tables (resized and for unequal
 //! query and key sizes), the prompt embeddings (points with a box, points alone with their
 //! padding point, a mask prompt), and the masks and IoU of the mask decoder; and automatic masks
 //! against transformers' mask-generation pipeline (checkpoints/make_tiny_sam_auto.py).
@@ -133,6 +133,21 @@ fn pixels_to_masks_match_transformers() {
         r.check("pred_masks", masks);
         r.check("iou_scores", iou);
     }
+}
+
+/// The same on wgpu (lavapipe in CI, any GPU): the image embeddings, then the masks and IoU
+/// predictions from them; skipped with a message where no adapter can run the op.
+#[test]
+fn pixels_to_masks_match_transformers_on_wgpu() {
+    let Some(device) = chatsplat_tests::wgpu_device() else { return };
+    let r = Reference::read();
+    let sam = model(&device);
+    let embeddings = sam.image_embeddings(r.tensor("pixel_values", &device));
+    r.check("image_embeddings", embeddings.clone());
+    let prompt = Prompt::single(&[(10.0, 20.0, 1), (41.5, 35.0, 0)], Some([5.0, 8.0, 50.0, 60.0]), &device);
+    let (masks, iou) = sam.segment(embeddings, &prompt, true);
+    r.check("pred_masks", masks);
+    r.check("iou_scores", iou);
 }
 
 /// checkpoints/tiny-sam/auto_reference.safetensors (checkpoints/make_tiny_sam_auto.py): every

@@ -70,11 +70,13 @@ impl Hub {
         let err = |file: &str, message: String| HubError { repo: repo.into(), file: file.into(), message };
         let cache = std::path::absolute(&self.cache).map_err(|e| err("the cache", e.to_string()))?;
         let cached = Cache::new(cache.clone()).repo(Repo::model(repo.into()));
-        if let Some(files) = want.in_cache(|f| cached.get(f)) {
-            return same_folder(repo, &files);
-        }
+        // the cache alone first: every needed file there, or the first one missing
+        let missing = match want.fetch(|f| Ok(cached.get(f))) {
+            Ok(files) => return same_folder(repo, &files),
+            Err(wanted::Missing::File(f) | wanted::Missing::Index(f, _)) => f,
+            Err(wanted::Missing::Hub(e)) => return Err(e),
+        };
         if self.offline {
-            let missing = want.first_missing(|f| cached.get(f)).unwrap_or_default();
             return Err(err(&missing, format!("not in the cache ({}) and HF_HUB_OFFLINE is set", cache.display())));
         }
         let api = ApiBuilder::new()

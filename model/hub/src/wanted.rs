@@ -62,31 +62,8 @@ pub fn shards(index: &std::path::Path) -> Result<Vec<String>, String> {
 }
 
 impl Wanted {
-    /// The needed files when the cache (`get`) holds them all.
-    pub fn in_cache(&self, get: impl Fn(&str) -> Option<PathBuf>) -> Option<Vec<PathBuf>> {
-        let mut files: Vec<PathBuf> = self.required.iter().map(|f| get(f)).collect::<Option<_>>()?;
-        if self.safetensors {
-            match get(SINGLE) {
-                Some(p) => files.push(p),
-                None => {
-                    let index = get(INDEX)?;
-                    let names = shards(&index).ok()?;
-                    files.extend(names.iter().map(|f| get(f)).collect::<Option<Vec<_>>>()?);
-                    files.push(index);
-                }
-            }
-        }
-        Some(files)
-    }
-
-    /// The first needed file the cache (`get`) lacks.
-    pub fn first_missing(&self, get: impl Fn(&str) -> Option<PathBuf>) -> Option<String> {
-        let name = self.required.iter().find(|f| get(f).is_none()).map(|f| f.to_string());
-        name.or_else(|| (self.safetensors && get(SINGLE).is_none()).then(|| SINGLE.to_string()))
-    }
-
-    /// Every file fetched through `fetch` (`None`: the repo has no such file); the needed ones
-    /// returned.
+    /// Every file fetched through `fetch` (`None`: the repo, or the cache when `fetch` only looks
+    /// there, has no such file); the needed ones returned.
     pub fn fetch(
         &self,
         mut fetch: impl FnMut(&str) -> Result<Option<PathBuf>, HubError>,

@@ -46,7 +46,7 @@ pub fn join(views: &[ViewOwners], n: usize, opts: &MatchOptions) -> Joined {
                 *s = (s.0 + wa.min(wb), s.1 + 1);
             }
             for (v, o) in views.iter().enumerate() {
-                seen[a * nv + v] += wa.min(o.counts(g));
+                seen[a * nv + v] += wa.min(o.seen[g]);
             }
         }
     }

@@ -25,9 +25,10 @@ pub struct ViewOwners {
     /// `[N]` per Gaussian.
     pub owner: Vec<Owner>,
     /// `[N]` how much each Gaussian counts in the view: the square of its blend weights' sum, at
-    /// most 1 (0 where unseen). A Gaussian glimpsed behind others or at an edge is seen in few
-    /// pixels, so what owns it is said by few pixels (a mask's edge moved by one decides it): it
-    /// counts for less than one seen whole, and less than in proportion.
+    /// most 1, where a mask or the background owns it clearly (0 where unseen or ambiguous). A
+    /// Gaussian glimpsed behind others or at an edge is seen in few pixels, so what owns it is said
+    /// by few pixels (a mask's edge moved by one decides it): it counts for less than one seen
+    /// whole, and less than in proportion.
     pub seen: Vec<f32>,
 }
 
@@ -63,9 +64,6 @@ impl ViewOwners {
                     (best, best_slot) = (sum, s);
                 }
             }
-            if total >= min_weight {
-                seen[g as usize] = total.min(1.0).powi(2);
-            }
             owner[g as usize] = if total < min_weight {
                 Owner::Unseen
             } else if best <= 0.5 * total {
@@ -75,6 +73,9 @@ impl ViewOwners {
             } else {
                 Owner::Mask(best_slot - 1)
             };
+            if matches!(owner[g as usize], Owner::Background | Owner::Mask(_)) {
+                seen[g as usize] = total.min(1.0).powi(2);
+            }
         }
         Self { labels, owner, seen }
     }
@@ -85,16 +86,5 @@ impl ViewOwners {
     /// When the view has no mask `id`.
     pub fn index(&self, id: u16) -> usize {
         self.labels.binary_search(&id).expect("a mask id of the view")
-    }
-
-    /// Whether the view sees Gaussian `g` clearly (a mask or the background owns it).
-    pub fn sees(&self, g: usize) -> bool {
-        matches!(self.owner[g], Owner::Background | Owner::Mask(_))
-    }
-
-    /// How much Gaussian `g` counts in this view: how much of it is seen where a mask or the
-    /// background owns it, else 0.
-    pub fn counts(&self, g: usize) -> f32 {
-        if self.sees(g) { self.seen[g] } else { 0.0 }
     }
 }
